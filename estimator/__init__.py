@@ -1,0 +1,1 @@
+"""Piezo injector estimator: identify N_u and L_h from amplifier current and voltage."""

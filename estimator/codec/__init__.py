@@ -1,0 +1,1 @@
+"""CAN codec: DBC load, frames <-> typed records, per-injection validity (cantools, numpy)."""

@@ -1,0 +1,1 @@
+"""Identification: cost functions, line searches, calibration, recursive estimator (numpy/scipy only)."""

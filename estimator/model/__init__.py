@@ -1,0 +1,1 @@
+"""Pure numerical model: parameters, PSA + valve dynamics, simulators (numpy/scipy only)."""

@@ -1,0 +1,189 @@
+"""Frozen, validated parameter objects for the PSA (Table 1) and the valve (Table 2).
+
+All values are SI. The nominal values live in ``parameters.toml`` beside this file, each traced
+to the paper's table; :func:`load_nominal` reads them.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Any, Mapping
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+from estimator.errors import ParameterError
+
+NOMINAL_FILE = Path(__file__).with_name("parameters.toml")
+
+# Units of every field, used in error messages (name -> unit).
+_UNITS = {
+    "m1_kg": "kg", "m2_kg": "kg", "m3_kg": "kg", "m4_kg": "kg",
+    "kp_n_per_m": "N/m", "kg1_n_per_m": "N/m", "kg2_n_per_m": "N/m", "ks_n_per_m": "N/m",
+    "bg1_ns_per_m": "N*s/m", "bg2_ns_per_m": "N*s/m", "rb_v2s_per_mn": "V^2*s/(m*N)",
+    "r0a_ohm": "Ohm", "r0b_v_per_n": "V/N", "nu_min_n_per_v": "N/V", "nu_max_n_per_v": "N/V",
+    "kf_n_per_m": "N/m", "kv1_n_per_m": "N/m", "kv2_n_per_m": "N/m", "sp_m": "m",
+    "bf_ns_per_m": "N*s/m", "bv_ns_per_m": "N*s/m", "f_open_n": "N", "lh_min_m": "m", "lh_max_m": "m",
+}
+# Fields that may be zero (dampers, which the paper sets to 0) or negative (L_h bound).
+_NON_NEGATIVE = {"bg1_ns_per_m", "bg2_ns_per_m", "bf_ns_per_m", "bv_ns_per_m", "rb_v2s_per_mn"}
+_SIGNED = {"lh_min_m", "lh_max_m"}
+
+
+def _check_fields(obj: Any) -> None:
+    for f in fields(obj):
+        value = getattr(obj, f.name)
+        unit = _UNITS.get(f.name, "")
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+            raise ParameterError(f"{f.name} = {value!r} {unit}: must be a finite number")
+        if f.name in _SIGNED:
+            continue
+        if f.name in _NON_NEGATIVE:
+            if value < 0:
+                raise ParameterError(f"{f.name} = {value!r} {unit}: must be >= 0")
+        elif value <= 0:
+            raise ParameterError(f"{f.name} = {value!r} {unit}: must be > 0")
+
+
+@dataclass(frozen=True)
+class PsaParameters:
+    """Piezo stack actuator with mounting, Table 1 (SI units).
+
+    The coupling factor N_u is *not* a field: it is the temperature dependent quantity that is
+    identified, and is passed separately. ``nu_min_n_per_v``/``nu_max_n_per_v`` bound it.
+    """
+
+    m1_kg: float
+    m2_kg: float
+    m3_kg: float
+    kp_n_per_m: float
+    kg1_n_per_m: float
+    kg2_n_per_m: float
+    ks_n_per_m: float
+    bg1_ns_per_m: float
+    bg2_ns_per_m: float
+    rb_v2s_per_mn: float
+    r0a_ohm: float
+    r0b_v_per_n: float
+    nu_min_n_per_v: float = 15.0
+    nu_max_n_per_v: float = 21.0
+
+    def __post_init__(self) -> None:
+        _check_fields(self)
+        if self.nu_min_n_per_v >= self.nu_max_n_per_v:
+            raise ParameterError(
+                f"nu_min_n_per_v = {self.nu_min_n_per_v} N/V must be below "
+                f"nu_max_n_per_v = {self.nu_max_n_per_v} N/V")
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any]) -> "PsaParameters":
+        """Build from a mapping of field name to SI value (e.g. the TOML table ``[psa]``)."""
+        unknown = set(values) - {f.name for f in fields(cls)}
+        if unknown:
+            raise ParameterError(f"unknown PSA parameter(s): {', '.join(sorted(unknown))}")
+        try:
+            return cls(**{k: float(v) for k, v in values.items()})
+        except TypeError as exc:
+            raise ParameterError(f"PSA parameters incomplete: {exc}") from None
+
+    def check_nu(self, nu_n_per_v: float) -> float:
+        """Return ``nu_n_per_v`` if it is finite and inside the configured range, else raise."""
+        nu = float(nu_n_per_v)
+        if not math.isfinite(nu) or not (self.nu_min_n_per_v <= nu <= self.nu_max_n_per_v):
+            raise ParameterError(
+                f"N_u = {nu_n_per_v!r} N/V is outside [{self.nu_min_n_per_v}, {self.nu_max_n_per_v}] N/V")
+        return nu
+
+    def capacitance_f(self, nu_n_per_v: float) -> float:
+        """Blocked capacitance C = N_u^2 / k_s (eq. 21), in F."""
+        return nu_n_per_v ** 2 / self.ks_n_per_m
+
+    def resistance_ohm(self, nu_n_per_v: float) -> float:
+        """Hysteresis substitute R(N_u) = R_0a exp(-R_0b N_u) (eq. 22), in Ohm."""
+        return self.r0a_ohm * math.exp(-self.r0b_v_per_n * nu_n_per_v)
+
+    def damping_ns_per_m(self, nu_n_per_v: float) -> float:
+        """Material damping b_p = R_b N_u^2, in N*s/m."""
+        return self.rb_v2s_per_mn * nu_n_per_v ** 2
+
+    def with_nu_range(self, nu_min: float, nu_max: float) -> "PsaParameters":
+        """A copy with another admissible N_u range (N/V)."""
+        return replace(self, nu_min_n_per_v=nu_min, nu_max_n_per_v=nu_max)
+
+
+@dataclass(frozen=True)
+class ValveParameters:
+    """Control valve mechanics, Table 2 (SI units)."""
+
+    m4_kg: float
+    kf_n_per_m: float
+    kv1_n_per_m: float
+    kv2_n_per_m: float
+    sp_m: float
+    bf_ns_per_m: float
+    bv_ns_per_m: float
+    f_open_n: float = 28.0
+    lh_min_m: float = -2e-6
+    lh_max_m: float = 10e-6
+
+    def __post_init__(self) -> None:
+        _check_fields(self)
+        if self.lh_min_m >= self.lh_max_m:
+            raise ParameterError(
+                f"lh_min_m = {self.lh_min_m} m must be below lh_max_m = {self.lh_max_m} m")
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any]) -> "ValveParameters":
+        """Build from a mapping of field name to SI value (e.g. the TOML table ``[valve]``)."""
+        unknown = set(values) - {f.name for f in fields(cls)}
+        if unknown:
+            raise ParameterError(f"unknown valve parameter(s): {', '.join(sorted(unknown))}")
+        try:
+            return cls(**{k: float(v) for k, v in values.items()})
+        except TypeError as exc:
+            raise ParameterError(f"valve parameters incomplete: {exc}") from None
+
+    def contact_force_n(self, compression_m: float) -> float:
+        """Piecewise linear contact spring F_v(s) of Fig. 11 (0 for s <= 0), in N."""
+        s = compression_m
+        if s <= 0.0:
+            return 0.0
+        if s <= self.sp_m:
+            return self.kv1_n_per_m * s
+        return self.kv1_n_per_m * self.sp_m + self.kv2_n_per_m * (s - self.sp_m)
+
+
+@dataclass(frozen=True)
+class InjectorParameters:
+    """The PSA and the valve together: everything the hybrid model needs except N_u, L_h, F_open."""
+
+    psa: PsaParameters
+    valve: ValveParameters
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> "InjectorParameters":
+        """Read ``[psa]`` and ``[valve]`` tables (SI values) from a TOML file."""
+        path = Path(path)
+        try:
+            data = tomllib.loads(path.read_text())
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            raise ParameterError(f"cannot read parameter file {path}: {exc}") from None
+        if "psa" not in data or "valve" not in data:
+            raise ParameterError(f"parameter file {path} needs the tables [psa] and [valve]")
+        return cls(PsaParameters.from_mapping(data["psa"]), ValveParameters.from_mapping(data["valve"]))
+
+
+_NOMINAL: InjectorParameters | None = None
+
+
+def load_nominal() -> InjectorParameters:
+    """The paper's nominal parameters (Tables 1 and 2), read once from ``parameters.toml``."""
+    global _NOMINAL
+    if _NOMINAL is None:
+        _NOMINAL = InjectorParameters.from_toml(NOMINAL_FILE)
+    return _NOMINAL

@@ -1,0 +1,1 @@
+"""Service: bus, pipeline, daemon, sd_notify (the only layer that imports python-can)."""

@@ -1,0 +1,85 @@
+"""Trace files: CSV with ``# key=value`` comment lines, then a header row and numeric columns.
+
+Used by both CLIs (``sim_bench simulate`` writes them, ``estimator identify`` reads them). Plain
+stdlib + numpy; no model imports, so every layer may use it.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from estimator.errors import TraceError
+
+
+@dataclass
+class Trace:
+    """Columns by name (SI units, names carry the unit suffix) plus the ``# key=value`` metadata."""
+
+    columns: dict[str, np.ndarray]
+    meta: dict[str, str] = field(default_factory=dict)
+
+    def column(self, name: str) -> np.ndarray:
+        """The column ``name``; raises :class:`TraceError` naming the file's columns if absent."""
+        if name not in self.columns:
+            raise TraceError(f"trace has no column {name!r} (columns: {', '.join(self.columns)})")
+        return self.columns[name]
+
+    def meta_float(self, key: str, default: float | None = None) -> float | None:
+        """A metadata value as float (``default`` if absent); raises TraceError if not a number."""
+        if key not in self.meta:
+            return default
+        try:
+            value = float(self.meta[key])
+        except ValueError:
+            raise TraceError(f"trace metadata {key}={self.meta[key]!r} is not a number") from None
+        if not math.isfinite(value):
+            raise TraceError(f"trace metadata {key}={self.meta[key]!r} is not finite")
+        return value
+
+
+def read_trace(path: str | Path) -> Trace:
+    """Read a trace CSV. Raises :class:`TraceError` with one readable line on any problem."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise TraceError(f"cannot read trace {path}: {exc.strerror or exc}") from None
+    meta: dict[str, str] = {}
+    body: list[str] = []
+    for line in text.splitlines():
+        s = line.strip()
+        if not s:
+            continue
+        if s.startswith("#"):
+            kv = s[1:].strip()
+            if "=" in kv:
+                k, v = kv.split("=", 1)
+                meta[k.strip()] = v.strip()
+            continue
+        body.append(s)
+    if len(body) < 2:
+        raise TraceError(f"trace {path} has no data rows")
+    names = [n.strip() for n in body[0].split(",")]
+    try:
+        data = np.loadtxt(io.StringIO("\n".join(body[1:])), delimiter=",", ndmin=2)
+    except ValueError as exc:
+        raise TraceError(f"trace {path}: unreadable numeric data ({exc})") from None
+    if data.shape[1] != len(names):
+        raise TraceError(f"trace {path}: {data.shape[1]} columns of data but {len(names)} names in the header")
+    return Trace({n: data[:, i].copy() for i, n in enumerate(names)}, meta)
+
+
+def write_trace(path: str | Path, columns: dict[str, np.ndarray], meta: dict[str, object] | None = None) -> None:
+    """Write a trace CSV with ``# key=value`` lines first (full float precision)."""
+    names = list(columns)
+    data = np.column_stack([np.asarray(columns[n], dtype=float) for n in names])
+    lines = [f"# {k}={v}" for k, v in (meta or {}).items()]
+    lines.append(",".join(names))
+    buf = io.StringIO()
+    np.savetxt(buf, data, delimiter=",", fmt="%.10g")
+    Path(path).write_text("\n".join(lines) + "\n" + buf.getvalue())

@@ -1,0 +1,1 @@
+"""Simulated injector node and the bench that scores the estimator against its truth."""

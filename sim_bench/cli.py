@@ -1,0 +1,125 @@
+"""Command line of the simulated injector and the benches: ``python -m sim_bench SUBCOMMAND``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from estimator.errors import EstimatorError
+from estimator.trace_io import read_trace, write_trace
+
+log = logging.getLogger("sim_bench")
+DEFAULT_OUT = Path("bench-results")
+
+
+def _write_json(path: Path, report: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report, indent=2, default=float) + "\n")
+    print(f"wrote {path}")
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """Simulate one injection with the fast simulator and write the trace CSV."""
+    from estimator.model.drive import resample_current, sample_times, standard_drive
+    from estimator.model.fast_sim import FastSimulator
+
+    t_end = args.t_end_us * 1e-6
+    if not (0 < t_end <= 5e-3):
+        raise EstimatorError(f"--t-end-us {args.t_end_us} must be in (0, 5000] µs")
+    t = sample_times(t_end)
+    if args.current:
+        tr = read_trace(args.current)
+        current = resample_current(tr.column("t_s"), tr.column("current_A"), t_end)
+    else:
+        current = standard_drive(t)
+    sim = FastSimulator()
+    res = sim.simulate(current, args.nu, args.lh_um * 1e-6, args.preload_n, exact=True)
+    if not res.success[0]:
+        raise EstimatorError(f"simulation failed: {res.message[0]} (N_u={args.nu} N/V, L_h={args.lh_um} µm, "
+                             f"F_open={args.preload_n} N)")
+    meta = {"nu_n_per_v": args.nu, "lh_um": args.lh_um, "preload_force_n": args.preload_n,
+            "sample_period_s": sim.dt_s, "t_contact_us": f"{res.t_contact_s[0] * 1e6:.4f}",
+            "t_open_us": f"{res.t_open_s[0] * 1e6:.4f}", "source": "sim_bench simulate (fast simulator)"}
+    write_trace(args.out, {"t_s": res.t_s, "current_A": res.current_a, "voltage_V": res.voltage_v[0],
+                           "s3_m": res.s3_m[0], "s4_m": res.s4_m[0], "mode": res.mode[0]}, meta)
+    print(f"wrote {args.out}: {t.size} samples, contact {res.t_contact_s[0] * 1e6:.2f} µs, "
+          f"opening {res.t_open_s[0] * 1e6:.2f} µs, peak voltage {np.nanmax(res.voltage_v):.2f} V")
+    return 0
+
+
+def cmd_speed_sim(args: argparse.Namespace) -> int:
+    """Benchmark the fast simulator (candidates per second, batch 1/16/256)."""
+    from sim_bench import speed
+
+    report = speed.measure(tuple(args.batch), seconds=args.seconds)
+    print(speed.format_table(report))
+    _write_json(args.json_out, report)
+    return 0
+
+
+def cmd_table3(args: argparse.Namespace) -> int:
+    """Reproduce Table 3 (PSA No. 1, "sim" column) with the standard drive."""
+    from sim_bench import table3
+
+    if args.fit_drive:
+        amp = table3.fit_drive_amplitude()
+        print(f"standard drive amplitude for 24.50 µm at N_u=16.39 N/V, L_h=0.6 µm: {amp:.7f} A")
+        rows = table3.reproduce(amplitude_a=amp)
+    else:
+        rows = table3.reproduce()
+    print(table3.format_table(rows))
+    worst = max(abs(r.diff_um) for r in rows)
+    print(f"largest |ours - paper sim| = {worst:.3f} µm (tolerance 0.15 µm)")
+    if args.json_out:
+        _write_json(args.json_out, {"benchmark": "table3-sim", "rows": [r.__dict__ for r in rows],
+                                    "max_abs_diff_um": worst})
+    return 0 if worst <= 0.15 else 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser with all subcommands."""
+    p = argparse.ArgumentParser(prog="python -m sim_bench", description=__doc__)
+    p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("simulate", help="simulate one injection and write a trace CSV")
+    s.add_argument("--current", type=Path, help="CSV with columns t_s,current_A (resampled to 0.5 µs)")
+    s.add_argument("--nu", type=float, default=16.39, help="coupling factor N_u in N/V (default 16.39)")
+    s.add_argument("--lh-um", type=float, default=2.5, help="idle stroke L_h in µm (default 2.5)")
+    s.add_argument("--preload-n", type=float, default=28.0, help="valve preload F_open in N (default 28)")
+    s.add_argument("--t-end-us", type=float, default=500.0, help="simulated time in µs (default 500)")
+    s.add_argument("--out", type=Path, required=True, help="output trace CSV")
+    s.set_defaults(func=cmd_simulate)
+
+    s = sub.add_parser("speed-sim", help="benchmark the fast simulator")
+    s.add_argument("--batch", type=int, nargs="+", default=[1, 16, 256])
+    s.add_argument("--seconds", type=float, default=2.0, help="time per batch size (s)")
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "speed-sim.json")
+    s.set_defaults(func=cmd_speed_sim)
+
+    s = sub.add_parser("table3", help="reproduce the paper's Table 3 (PSA No. 1, sim column)")
+    s.add_argument("--fit-drive", action="store_true", help="re-derive the standard drive amplitude first")
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "table3-sim.json")
+    s.set_defaults(func=cmd_table3)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the process exit code."""
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.debug else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    func: Callable[[argparse.Namespace], int] = args.func
+    try:
+        return func(args)
+    except (EstimatorError, OSError) as exc:
+        if args.debug:
+            raise
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
