@@ -152,6 +152,8 @@ class FastSimulator:
         """Validate N_u values (N/V) against the parameter range; returns a 1-D float array."""
         nu = np.atleast_1d(np.asarray(nu, dtype=float))
         psa = self.params.psa
+        if np.isfinite(nu.sum()) and nu.min() >= psa.nu_min_n_per_v and nu.max() <= psa.nu_max_n_per_v:
+            return nu
         bad = ~np.isfinite(nu) | (nu < psa.nu_min_n_per_v) | (nu > psa.nu_max_n_per_v)
         if np.any(bad):
             raise ParameterError(
@@ -166,32 +168,42 @@ class FastSimulator:
         ``current_a`` holds the current at t = 0, dt, 2 dt, ... (A); it is linear in between.
         Candidates whose initial state is infeasible get ``success=False`` and NaN outputs.
         """
-        cur = np.ascontiguousarray(np.asarray(current_a, dtype=float))
-        if cur.ndim != 1 or cur.size < 2 or not np.all(np.isfinite(cur)):
+        cur = np.ascontiguousarray(current_a, dtype=float)
+        if cur.ndim != 1 or cur.size < 2 or not np.isfinite(cur.sum()):
             raise ParameterError("current must be a 1-D array of at least 2 finite samples (A)")
         if f_open_n is None:
             f_open_n = self.params.valve.f_open_n
-        nu, lh, fo = np.broadcast_arrays(np.atleast_1d(np.asarray(nu_n_per_v, float)),
-                                         np.atleast_1d(np.asarray(lh_m, float)),
-                                         np.atleast_1d(np.asarray(f_open_n, float)))
-        nu, lh, fo = nu.ravel().copy(), lh.ravel().copy(), fo.ravel().copy()
-        if not np.all(np.isfinite(lh)) or not np.all(np.isfinite(fo)) or np.any(fo < 0):
+        nu = np.asarray(nu_n_per_v, dtype=float).ravel()
+        lh = np.asarray(lh_m, dtype=float).ravel()
+        fo = np.asarray(f_open_n, dtype=float).ravel()
+        nb = max(nu.size, lh.size, fo.size)
+        if nu.size != nb or lh.size != nb or fo.size != nb:
+            try:
+                nu, lh, fo = (a if a.size == nb else np.full(nb, a[0]) if a.size == 1 else
+                              np.broadcast_to(a, (nb,)) for a in (nu, lh, fo))
+            except ValueError:
+                raise ParameterError(f"candidate arrays of sizes {nu.size}, {lh.size}, {fo.size} "
+                                     "do not broadcast") from None
+        if not (np.isfinite(lh.sum()) and np.isfinite(fo.sum())) or fo.min() < 0:
             raise ParameterError("L_h (m) and F_open (N >= 0) must be finite")
-        nb, n = nu.size, cur.size
+        n = cur.size
         src, idx, w = self._phi_source(self.check_nu(nu), exact)
 
-        z0 = np.zeros((nb, dyn.NZ))
-        z0[:, dyn.ZL], z0[:, dyn.ZF], z0[:, dyn.Z1] = lh, fo, 1.0
+        d = self._d
+        z0s = np.empty((nb, dyn.NZ))
+        couts = np.empty((nb, dyn.NZ))
+        psa = self.params.psa
+        kernel.setup_candidates(nu, lh * d[dyn.ZL], fo, dyn.ZL, psa.ks_n_per_m, psa.r0a_ohm, psa.r0b_v_per_n,
+                                d[dyn.S2], d[dyn.S3], d[dyn.Q], z0s, couts)
         region0 = np.zeros(nb, dtype=np.int64)
         feasible = np.ones(nb, dtype=bool)
-        for b in np.flatnonzero(lh <= 0.0):
-            try:
-                z0[b], region0[b] = dyn.initial_state(self.params, nu[b], lh[b], fo[b])
-            except InfeasibleError:
-                feasible[b] = False
-        cout = dyn.output_rows(self.params, nu)
-        z0s = z0 * self._d
-        couts = cout / self._d
+        if lh.min() <= 0.0:
+            for b in np.flatnonzero(lh <= 0.0):
+                try:
+                    z0, region0[b] = dyn.initial_state(self.params, nu[b], lh[b], fo[b])
+                    z0s[b] = z0 * d
+                except InfeasibleError:
+                    feasible[b] = False
 
         u = np.empty((nb, n))
         s3 = np.empty((nb, n))
@@ -201,17 +213,14 @@ class FastSimulator:
         to = np.empty(nb)
         status = np.empty(nb, dtype=np.int64)
         h_us = self.dt_s * dyn.TIME_SCALE
-        psa = self.params.psa
         kernel.simulate_kernel(src, idx, w, self._a_const, self._a_coup, self._a_damp,
                                psa.ks_n_per_m / nu, psa.rb_v2s_per_mn * nu ** 2,
                                self._guards, self._target, self._reset, self._mode,
-                               np.ascontiguousarray(z0s), region0, cur, h_us, np.ascontiguousarray(couts),
-                               u, s3, s4, mode, tc, to, status)
-        status[~feasible] = STATUS_INFEASIBLE
-        for arr in (u, s3, s4):
-            arr[~feasible] = np.nan
-        tc[~feasible] = np.nan
-        to[~feasible] = np.nan
+                               z0s, region0, cur, h_us, couts, u, s3, s4, mode, tc, to, status)
+        if not feasible.all():
+            status[~feasible] = STATUS_INFEASIBLE
+            for arr in (u, s3, s4, tc, to):
+                arr[~feasible] = np.nan
         return BatchResult(
             t_s=np.arange(n) * self.dt_s, current_a=cur, nu_n_per_v=nu, lh_m=lh, f_open_n=fo,
             voltage_v=u, s3_m=s3 / 1e6, s4_m=s4 / 1e6, mode=mode,

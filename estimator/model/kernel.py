@@ -126,12 +126,17 @@ def _apply_reset(z, code):
 
 
 @njit(cache=True)
-def _region_phi(phi_src, idx, w, b, r, out):
-    """Rows 0..NX-1 of the transition matrix of region r for candidate b (weighted table rows)."""
+def _region_phi(phi_src, idx, w, b, r, z, out, const):
+    """Rows 0..NX-1 of the transition matrix of region r for candidate b (weighted table rows),
+    and ``const[r]``: the contribution of the constant inputs L_h, F_open, 1 (columns 11..13)."""
     for i in range(NX):
         for j in range(NZ):
             out[r, i, j] = (w[b, 0] * phi_src[idx[b, 0], r, i, j] + w[b, 1] * phi_src[idx[b, 1], r, i, j]
                             + w[b, 2] * phi_src[idx[b, 2], r, i, j] + w[b, 3] * phi_src[idx[b, 3], r, i, j])
+        c = 0.0
+        for j in range(ZID + 1, NZ):
+            c += out[r, i, j] * z[j]
+        const[r, i] = c
 
 
 @njit(cache=True)
@@ -162,6 +167,7 @@ def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, 
     zt = np.empty(NZ)
     zb = np.empty(NZ)
     phi = np.empty((nreg, NX, NZ))
+    const = np.empty((nreg, NX))
     have = np.zeros(nreg, dtype=np.bool_)
     amat = np.empty((nreg, NZ, NZ))
     have_a = np.zeros(nreg, dtype=np.bool_)
@@ -189,16 +195,20 @@ def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, 
             while True:
                 if rem == h:
                     if not have[r]:
-                        _region_phi(phi_src, idx, w, b, r, phi)
+                        _region_phi(phi_src, idx, w, b, r, z, phi, const)
                         have[r] = True
-                    for i in range(NX):
-                        s = 0.0
-                        for j in range(NZ):
+                    # the valve plunger states are held at rest while the valve is closed
+                    nx = NX if region_mode[r] >= 3 else S4
+                    zi = z[ZI]
+                    zd = z[ZID]
+                    for i in range(nx):
+                        s = const[r, i] + phi[r, i, ZI] * zi + phi[r, i, ZID] * zd
+                        for j in range(nx):
                             s += phi[r, i, j] * z[j]
                         zn[i] = s
-                    for i in range(NX, NZ):
+                    for i in range(nx, NZ):
                         zn[i] = z[i]
-                    zn[ZI] = z[ZI] + h * z[ZID]
+                    zn[ZI] = zi + h * zd
                 else:
                     if not have_a[r]:
                         _region_a(a_const, a_coup, a_damp, cpl[b], dmp[b], r, amat[r])
@@ -260,12 +270,62 @@ def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, 
             out_mode[b, k + 1] = region_mode[r]
 
 
-def lagrange_stencil(nu: np.ndarray, nu0: float, dnu: float) -> tuple[np.ndarray, np.ndarray]:
+@njit(cache=True)
+def lagrange_stencil(nu, nu0, dnu):
     """Indices (B, 4) and weights (B, 4) of 4-point Lagrange interpolation on the grid nu0 + i*dnu."""
-    t = (np.asarray(nu, dtype=float) - nu0) / dnu
-    i = np.floor(t).astype(np.int64)
-    f = t - i
-    idx = i[:, None] + np.arange(-1, 3)[None, :]
-    w = np.stack([-f * (f - 1.0) * (f - 2.0) / 6.0, (f + 1.0) * (f - 1.0) * (f - 2.0) / 2.0,
-                  -(f + 1.0) * f * (f - 2.0) / 2.0, (f + 1.0) * f * (f - 1.0) / 6.0], axis=1)
-    return np.ascontiguousarray(idx), np.ascontiguousarray(w)
+    nb = nu.shape[0]
+    idx = np.empty((nb, 4), dtype=np.int64)
+    w = np.empty((nb, 4))
+    for b in range(nb):
+        t = (nu[b] - nu0) / dnu
+        i = int(np.floor(t))
+        f = t - i
+        for q in range(4):
+            idx[b, q] = i - 1 + q
+        w[b, 0] = -f * (f - 1.0) * (f - 2.0) / 6.0
+        w[b, 1] = (f + 1.0) * (f - 1.0) * (f - 2.0) / 2.0
+        w[b, 2] = -(f + 1.0) * f * (f - 2.0) / 2.0
+        w[b, 3] = (f + 1.0) * f * (f - 1.0) / 6.0
+    return idx, w
+
+
+@njit(cache=True)
+def setup_candidates(nu, lh_scaled, fo, zl, ks, r0a, r0b, d_s2, d_s3, d_q, z0, cout):
+    """Initial states at rest (valid for L_h > 0) and output rows, scaled units, for B candidates."""
+    for b in range(nu.shape[0]):
+        for i in range(NZ):
+            z0[b, i] = 0.0
+            cout[b, i] = 0.0
+        z0[b, zl] = lh_scaled[b]
+        z0[b, zl + 1] = fo[b]
+        z0[b, zl + 2] = 1.0
+        ks_nu = ks / nu[b]
+        cout[b, S3] = -ks_nu / d_s3
+        cout[b, S3 - 2] = ks_nu / d_s2
+        cout[b, Q] = ks_nu / nu[b] / d_q
+        cout[b, ZI] = r0a * np.exp(-r0b * nu[b])
+
+
+@njit(cache=True)
+def lti_foh_kernel(phi, g0, g1, c, d, cur, h, out_y, out_x):
+    """x_{k+1} = phi x_k + g0 I_k + g1 (I_{k+1} - I_k)/h from x_0 = 0; y_k = c x_k + d I_k; out_x = x."""
+    n = cur.shape[0]
+    m = phi.shape[0]
+    x = np.zeros(m)
+    xn = np.empty(m)
+    for k in range(n):
+        y = d * cur[k]
+        for i in range(m):
+            y += c[i] * x[i]
+            out_x[k, i] = x[i]
+        out_y[k] = y
+        if k == n - 1:
+            break
+        slope = (cur[k + 1] - cur[k]) / h
+        for i in range(m):
+            s = g0[i] * cur[k] + g1[i] * slope
+            for j in range(m):
+                s += phi[i, j] * x[j]
+            xn[i] = s
+        for i in range(m):
+            x[i] = xn[i]

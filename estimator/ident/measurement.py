@@ -1,0 +1,99 @@
+"""One measured injection (sampled current and voltage) and its validity checks.
+
+Checks return a reason instead of raising deep inside the estimator: a bad trace becomes a
+``rejected`` result with that reason, never an exception escaping the update.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimator.errors import TraceError
+
+MIN_WINDOW_S = 40e-6          # shorter windows hold too little of the charging phase to identify anything
+MAX_ABS_CURRENT_A = 100.0     # beyond any injector amplifier
+MAX_ABS_VOLTAGE_V = 1000.0
+MIN_PEAK_CURRENT_A = 0.2      # a "flat" current does not excite the actuator
+SAMPLE_PERIOD_REL_TOL = 1e-6  # relative jitter accepted in the sample times
+
+
+@dataclass(frozen=True)
+class Injection:
+    """Sampled amplifier signals of one injection, uniformly sampled from t = 0 (SI units).
+
+    Attributes
+    ----------
+    current_a, voltage_v : (N,) samples at t = k * dt_s.
+    dt_s : sample period in s.
+    f_open_n : valve preload for this injection in N (spring + rail pressure).
+    injector_id, counter : identification on the bus (informative).
+    temperature_c : fuel temperature in degC if known (informative, NaN otherwise).
+    """
+
+    current_a: np.ndarray
+    voltage_v: np.ndarray
+    dt_s: float
+    f_open_n: float = 28.0
+    injector_id: int = 0
+    counter: int = 0
+    temperature_c: float = float("nan")
+
+    @property
+    def n(self) -> int:
+        """Number of samples."""
+        return int(self.current_a.size)
+
+    @property
+    def t_s(self) -> np.ndarray:
+        """Sample times in s."""
+        return np.arange(self.n) * self.dt_s
+
+    @property
+    def duration_s(self) -> float:
+        """Time of the last sample in s."""
+        return (self.n - 1) * self.dt_s
+
+    def problem(self) -> str | None:
+        """Why this injection cannot be identified (one short phrase), or None if it can."""
+        i, u = self.current_a, self.voltage_v
+        if i.ndim != 1 or u.shape != i.shape:
+            return "current and voltage differ in length"
+        if not (np.isfinite(self.dt_s) and self.dt_s > 0):
+            return "invalid sample period"
+        if not (np.all(np.isfinite(i)) and np.all(np.isfinite(u))):
+            return "NaN or infinite samples"
+        if not np.isfinite(self.f_open_n) or not (0.0 <= self.f_open_n <= 5000.0):
+            return "preload force out of range"
+        if self.duration_s < MIN_WINDOW_S - 1e-12:
+            return f"too short ({self.duration_s * 1e6:.1f} µs < {MIN_WINDOW_S * 1e6:.0f} µs)"
+        if np.max(np.abs(i)) > MAX_ABS_CURRENT_A or np.max(np.abs(u)) > MAX_ABS_VOLTAGE_V:
+            return "sample values out of range"
+        if np.max(i) < MIN_PEAK_CURRENT_A or np.ptp(i) < MIN_PEAK_CURRENT_A:
+            return "flat current (no charging pulse)"
+        return None
+
+    def window(self, t_end_s: float) -> "Injection":
+        """The samples with t <= t_end_s (a view-sized copy)."""
+        k = min(self.n, int(round(t_end_s / self.dt_s)) + 1)
+        return Injection(self.current_a[:k], self.voltage_v[:k], self.dt_s, self.f_open_n,
+                         self.injector_id, self.counter, self.temperature_c)
+
+    @classmethod
+    def from_samples(cls, t_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray,
+                     f_open_n: float = 28.0, **kw: object) -> "Injection":
+        """Build from sample times; raises :class:`TraceError` unless they are uniform and start at 0."""
+        t = np.asarray(t_s, dtype=float)
+        if t.ndim != 1 or t.size < 3:
+            raise TraceError("too short (fewer than 3 samples)")
+        if not np.all(np.isfinite(t)):
+            raise TraceError("NaN in sample times")
+        d = np.diff(t)
+        dt = float(np.median(d))
+        if dt <= 0 or np.max(np.abs(d - dt)) > max(SAMPLE_PERIOD_REL_TOL * dt, 1e-12):
+            raise TraceError("wrong sampling: sample times are not uniform")
+        if abs(t[0]) > 1e-3 * dt:
+            raise TraceError(f"wrong sampling: first sample at {t[0] * 1e6:.3f} µs, expected 0")
+        return cls(np.asarray(current_a, dtype=float), np.asarray(voltage_v, dtype=float), dt,
+                   float(f_open_n), **kw)  # type: ignore[arg-type]
