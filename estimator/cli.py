@@ -3,13 +3,37 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
+from pathlib import Path
 from typing import Callable
 
 from estimator.errors import EstimatorError
 
 log = logging.getLogger("estimator")
+
+
+def _config(args: argparse.Namespace):
+    from estimator.ident.idle_stroke import IdentConfig
+
+    kw = {}
+    if getattr(args, "window_us", None) is not None:
+        kw["window_s"] = args.window_us * 1e-6
+    if getattr(args, "robust", None):
+        kw["robust"] = args.robust
+    if getattr(args, "norm", None):
+        kw["norm"] = args.norm
+    try:
+        return IdentConfig(**kw)
+    except ValueError as exc:
+        raise EstimatorError(str(exc)) from None
+
+
+def _load(path: Path):
+    from estimator.trace_io import injection_from_trace, read_trace
+
+    return injection_from_trace(read_trace(path))
 
 
 def cmd_params(args: argparse.Namespace) -> int:
@@ -27,14 +51,134 @@ def cmd_params(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_identify(args: argparse.Namespace) -> int:
+    """Identify N_u and L_h of one trace (eq. 28)."""
+    from estimator.errors import TraceError
+    from estimator.ident.idle_stroke import identify, rejected
+
+    config = _config(args)
+    try:
+        inj = _load(args.trace)
+    except TraceError as exc:
+        if "cannot read" in str(exc):
+            raise
+        est = rejected(str(exc))
+    else:
+        est = identify(inj, config=config)
+    d = est.to_dict()
+    if args.json:
+        print(json.dumps(d))
+    else:
+        if est.status == "rejected":
+            print(f"{args.trace}: rejected: {est.message}")
+        else:
+            print(f"{args.trace}: N_u = {d['nu_n_per_v']:.4f} ± {d['sigma_nu_n_per_v']:.4f} N/V, "
+                  f"L_h = {d['lh_um']:.3f} ± {d['sigma_lh_um']:.3f} µm, cost {d['cost_uvs']:.2f} µV·s, "
+                  f"contact {d['t_contact_us']} µs, opening {d['t_open_us']} µs, stroke {d['stroke_um']} µm, "
+                  f"status {est.status}{' (robust: model error detected)' if est.robust else ''}")
+    return 1 if est.status == "rejected" else 0
+
+
+def cmd_track(args: argparse.Namespace) -> int:
+    """Run the recursive estimator over trace files in order; one JSON line per injection."""
+    from estimator.errors import TraceError
+    from estimator.ident.idle_stroke import rejected
+    from estimator.ident.tracker import Tracker, TrackerConfig, TrackResult
+
+    tracker = Tracker(TrackerConfig(ident=_config(args)))
+    nan = float("nan")
+    for path in args.traces:
+        try:
+            res = tracker.update(_load(path))
+        except TraceError as exc:
+            res = TrackResult(rejected(str(exc)), nan, nan, nan, nan, "rejected", str(exc), 0)
+        filt = res.filtered_dict()
+        out = {"file": str(path), "raw": res.raw.to_dict(),
+               "filtered": {k: filt[k] for k in ("nu_n_per_v", "lh_um", "sigma_nu_n_per_v", "sigma_lh_um")},
+               "status": res.status, "reason": res.reason,
+               "prediction": {k: filt[k] for k in ("t_contact_us", "t_open_us", "stroke_um")}}
+        print(json.dumps(out), flush=True)
+    return 0
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    """Calibrate k_p, k_s, R_b and the temperature laws from traces with s3 (eq. 25)."""
+    from estimator.ident.calibration import CalibrationTrace, calibrate, report, to_toml
+    from estimator.model.parameters import load_nominal
+    from estimator.trace_io import injection_from_trace, read_trace
+
+    traces = []
+    for path in args.traces:
+        tr = read_trace(path)
+        temp = tr.meta_float("temperature_c")
+        if temp is None:
+            raise EstimatorError(f"{path}: calibration traces need '# temperature_c=...'")
+        traces.append(CalibrationTrace(injection_from_trace(tr), tr.column("s3_m"), temp))
+    try:
+        res = calibrate(traces, window_s=args.window_us * 1e-6, gamma_v_per_m=args.gamma)
+    except ValueError as exc:
+        raise EstimatorError(str(exc)) from None
+    toml = to_toml(res, load_nominal())
+    if args.out:
+        args.out.write_text(toml)
+        print(f"wrote {args.out}")
+    else:
+        print(toml)
+    print(report(res))
+    return 0
+
+
+def cmd_plot(args: argparse.Namespace) -> int:
+    """Figures 7/13 (voltage fit and error) and 14 (cost contour) for one trace."""
+    from estimator.plots import plot_identification
+
+    config = _config(args)
+    paths = plot_identification(_load(args.trace), args.out, config, args.grid)
+    for p in paths:
+        print(f"wrote {p}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with all subcommands."""
     p = argparse.ArgumentParser(prog="python -m estimator", description=__doc__)
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
     sub = p.add_subparsers(dest="command", required=True)
+
+    def ident_opts(s: argparse.ArgumentParser) -> None:
+        s.add_argument("--window-us", type=float, default=None, help="cost window 0..t1 in µs (default 100)")
+        s.add_argument("--robust", choices=("auto", "on", "off"), default=None,
+                       help="model-error handling (default auto: likelihood-ratio test)")
+        s.add_argument("--norm", choices=("l2", "l1"), default=None, help="search criterion (default l2)")
+
     s = sub.add_parser("params", help="print the nominal model parameters")
     s.add_argument("--nu", type=float, default=16.39, help="N_u in N/V for the derived values")
     s.set_defaults(func=cmd_params)
+
+    s = sub.add_parser("identify", help="identify N_u and L_h from one trace CSV (eq. 28)")
+    s.add_argument("trace", type=Path)
+    s.add_argument("--json", action="store_true", help="print one JSON object")
+    ident_opts(s)
+    s.set_defaults(func=cmd_identify)
+
+    s = sub.add_parser("track", help="recursive estimator over trace CSVs, one JSON line each")
+    s.add_argument("traces", type=Path, nargs="+")
+    ident_opts(s)
+    s.set_defaults(func=cmd_track)
+
+    s = sub.add_parser("calibrate", help="calibrate the PSA parameters from traces with s3_m (eq. 25)")
+    s.add_argument("traces", type=Path, nargs="+")
+    s.add_argument("--window-us", type=float, default=170.0, help="cost window in µs (default 170)")
+    s.add_argument("--gamma", type=float, default=1e6, help="weight of the s3 error in V/m (default 1e6)")
+    s.add_argument("--out", type=Path, help="write the TOML here (default: print it)")
+    s.set_defaults(func=cmd_calibrate)
+
+    s = sub.add_parser("plot", help="PNG figures: voltage fit and error, cost contour")
+    s.add_argument("trace", type=Path)
+    s.add_argument("--out", type=Path, required=True, help="output directory")
+    s.add_argument("--grid", type=int, default=41, help="contour grid points per axis (default 41)")
+    ident_opts(s)
+    s.set_defaults(func=cmd_plot)
     return p
 
 

@@ -83,3 +83,15 @@ def write_trace(path: str | Path, columns: dict[str, np.ndarray], meta: dict[str
     buf = io.StringIO()
     np.savetxt(buf, data, delimiter=",", fmt="%.10g")
     Path(path).write_text("\n".join(lines) + "\n" + buf.getvalue())
+
+
+def injection_from_trace(trace: Trace, default_preload_n: float = 28.0):
+    """The :class:`~estimator.ident.measurement.Injection` of a trace (columns t_s, current_A, voltage_V;
+    metadata preload_force_n, temperature_c, injector_id). Raises TraceError for unusable files."""
+    from estimator.ident.measurement import Injection
+
+    preload = trace.meta_float("preload_force_n", default_preload_n)
+    temp = trace.meta_float("temperature_c", float("nan"))
+    inj_id = int(trace.meta_float("injector_id", 0.0) or 0)
+    return Injection.from_samples(trace.column("t_s"), trace.column("current_A"), trace.column("voltage_V"),
+                                  float(preload), injector_id=inj_id, temperature_c=float(temp))

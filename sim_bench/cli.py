@@ -64,8 +64,8 @@ def cmd_speed_sim(args: argparse.Namespace) -> int:
 
 
 def cmd_table3(args: argparse.Namespace) -> int:
-    """Reproduce Table 3 (PSA No. 1, "sim" column) with the standard drive."""
-    from sim_bench import table3
+    """Reproduce Table 3 (PSA No. 1, "sim" column), then identify ten simulated actuators (section 5.4)."""
+    from sim_bench import ident_bench, table3
 
     if args.fit_drive:
         amp = table3.fit_drive_amplitude()
@@ -76,10 +76,58 @@ def cmd_table3(args: argparse.Namespace) -> int:
     print(table3.format_table(rows))
     worst = max(abs(r.diff_um) for r in rows)
     print(f"largest |ours - paper sim| = {worst:.3f} µm (tolerance 0.15 µm)")
+    report = {"benchmark": "table3", "paper_psa1": [r.__dict__ for r in rows], "max_abs_diff_um": worst}
+    if not args.paper_only:
+        print()
+        ident = ident_bench.table3(seed=args.seed, mismatch=not args.matched)
+        print(ident_bench.format_table3(ident))
+        report["identified"] = ident
     if args.json_out:
-        _write_json(args.json_out, {"benchmark": "table3-sim", "rows": [r.__dict__ for r in rows],
-                                    "max_abs_diff_um": worst})
+        _write_json(args.json_out, report)
     return 0 if worst <= 0.15 else 1
+
+
+def cmd_accuracy(args: argparse.Namespace) -> int:
+    """Single-injection accuracy against truth and the Cramér–Rao bound."""
+    from sim_bench import ident_bench
+
+    scen = {"matched": [False], "mismatch": [True], "both": [False, True]}[args.scenario]
+    reports = [ident_bench.accuracy(args.n, args.seed, m, args.window_us * 1e-6) for m in scen]
+    print(ident_bench.format_accuracy(reports))
+    _write_json(args.json_out, {"benchmark": "accuracy", "reports": reports})
+    return 0
+
+
+def cmd_tracking(args: argparse.Namespace) -> int:
+    """The recursive estimator on steady, temperature-ramp and wear sequences."""
+    from sim_bench import ident_bench
+
+    names = list(ident_bench.TRACKING) if args.scenario == "all" else [args.scenario]
+    plants = {"matched": [False], "mismatch": [True], "both": [False, True]}[args.plant]
+    reports = [ident_bench.tracking(n, args.seed, m, args.injections) for m in plants for n in names]
+    print(ident_bench.format_tracking(reports))
+    _write_json(args.json_out, {"benchmark": "tracking", "reports": reports})
+    return 0
+
+
+def cmd_speed(args: argparse.Namespace) -> int:
+    """Timing of the recursive estimator (warm update, cold start)."""
+    from sim_bench import ident_bench
+
+    rep = ident_bench.speed(args.seed, args.injections)
+    print(ident_bench.format_speed(rep))
+    _write_json(args.json_out, rep)
+    return 0
+
+
+def cmd_calibration_traces(args: argparse.Namespace) -> int:
+    """Write traces of an actuator without valve at several temperatures, with s3, for eq. 25."""
+    from sim_bench import calibration_traces
+
+    paths = calibration_traces.write(args.out, args.temps, args.seed, args.noise_v)
+    for p in paths:
+        print(f"wrote {p}")
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -103,10 +151,42 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "speed-sim.json")
     s.set_defaults(func=cmd_speed_sim)
 
-    s = sub.add_parser("table3", help="reproduce the paper's Table 3 (PSA No. 1, sim column)")
+    s = sub.add_parser("table3", help="Table 3: the paper's PSA No. 1 reproduced, then ten simulated actuators identified")
     s.add_argument("--fit-drive", action="store_true", help="re-derive the standard drive amplitude first")
-    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "table3-sim.json")
+    s.add_argument("--paper-only", action="store_true", help="only the PSA No. 1 reproduction")
+    s.add_argument("--matched", action="store_true", help="plant without model error (default: with mismatch)")
+    s.add_argument("--seed", type=int, default=3)
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "table3.json")
     s.set_defaults(func=cmd_table3)
+
+    s = sub.add_parser("accuracy", help="single-injection accuracy vs the Cramér–Rao bound")
+    s.add_argument("--scenario", choices=("matched", "mismatch", "both"), default="both")
+    s.add_argument("--n", type=int, default=100, help="number of random injectors (default 100)")
+    s.add_argument("--seed", type=int, default=1)
+    s.add_argument("--window-us", type=float, default=100.0)
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "accuracy.json")
+    s.set_defaults(func=cmd_accuracy)
+
+    s = sub.add_parser("tracking", help="recursive estimator on injection sequences")
+    s.add_argument("--scenario", choices=("all", "steady", "temperature-ramp", "wear"), default="all")
+    s.add_argument("--plant", choices=("matched", "mismatch", "both"), default="both")
+    s.add_argument("--injections", type=int, default=None, help="override the scenario's length")
+    s.add_argument("--seed", type=int, default=2)
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "tracking.json")
+    s.set_defaults(func=cmd_tracking)
+
+    s = sub.add_parser("speed", help="update time of the recursive estimator")
+    s.add_argument("--injections", type=int, default=300)
+    s.add_argument("--seed", type=int, default=4)
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "speed.json")
+    s.set_defaults(func=cmd_speed)
+
+    s = sub.add_parser("calibration-traces", help="traces for eq. 25 (no valve, with s3) at several temperatures")
+    s.add_argument("--out", type=Path, required=True, help="output directory")
+    s.add_argument("--temps", type=float, nargs="+", default=[0.0, 25.0, 50.0, 75.0, 100.0], help="degC")
+    s.add_argument("--noise-v", type=float, default=0.02, help="voltage noise (V, 1 sigma)")
+    s.add_argument("--seed", type=int, default=5)
+    s.set_defaults(func=cmd_calibration_traces)
     return p
 
 

@@ -138,10 +138,10 @@ def to_toml(result: CalibrationResult, base: InjectorParameters) -> str:
              f"# N_u(T) = {result.nu_of_t[0]:.5f} + {result.nu_of_t[1]:.6f} * T [N/V, T in degC]",
              f"# R(T) = {result.r_of_t[0]:.5f} * exp({result.r_of_t[1]:.6f} * T) [Ohm]", "", "[psa]"]
     for k, v in p.psa.__dict__.items():
-        lines.append(f"{k} = {v!r}")
+        lines.append(f"{k} = {float(v)!r}")
     lines += ["", "[valve]"]
     for k, v in p.valve.__dict__.items():
-        lines.append(f"{k} = {v!r}")
+        lines.append(f"{k} = {float(v)!r}")
     return "\n".join(lines) + "\n"
 
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from estimator.ident.cost import CostModel, noise_sigma_v
 from estimator.ident.measurement import Injection
-from estimator.ident.search import Box, conjugate_directions, grid_search, line_search
+from estimator.ident.search import Box, conjugate_directions, conjugate_step, grid_search, line_search
 from estimator.model import dynamics as dyn
 from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
 
@@ -186,17 +186,28 @@ def local_fit(model: CostModel, x: np.ndarray, box: Box) -> LocalFit:
 
 
 def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.ndarray, box: Box,
-           config: IdentConfig, max_cycles: int | None = None, j0: float | None = None) -> tuple[LocalFit, bool, int]:
-    """Cycles of line searches along conjugate directions; returns (fit, converged, cycles)."""
+           config: IdentConfig, max_cycles: int | None = None, j0: float | None = None,
+           batched: bool = False) -> tuple[LocalFit, bool, int]:
+    """Cycles of line searches along conjugate directions; returns (fit, converged, cycles).
+
+    ``batched``: the directions are already conjugate (warm start), so both line searches of a
+    cycle are evaluated in one batch (:func:`conjugate_step`); a direction whose parabola is not
+    convex or leaves the trust region falls back to the bracketing line search.
+    """
     x, j = box.clip(x0.astype(float)), j0
     d, st = directions, steps
     tol = np.array(config.tol)
     converged = False
     cycles = 0
+    f = cost_fn(model)
     for cycles in range(1, (max_cycles or config.max_cycles) + 1):
         start = x.copy()
-        f = cost_fn(model)
-        for i in range(2):
+        todo = [0, 1]
+        if batched:
+            x, ok, _ = conjugate_step(f, x, d, st, box)
+            todo = [i for i in range(2) if not ok[i]]
+            j = None
+        for i in todo:
             # the vertex of the first search is the centre of the second, and the vertex of the
             # second is the centre of the local fit: both are evaluated there, not twice
             lr = line_search(f, x, d[:, i], float(st[i]), box, j0=j if i == 0 else None, evaluate_vertex=False)

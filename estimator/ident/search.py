@@ -145,3 +145,28 @@ def conjugate_directions(jtj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     w, v = np.linalg.eigh(0.5 * (jtj + jtj.T))
     return v, np.maximum(w, 0.0)
+
+
+def conjugate_step(f: CostFn, x0: np.ndarray, d: np.ndarray, steps: np.ndarray, box: Box,
+                   trust: float = 2.5) -> tuple[np.ndarray, np.ndarray, int]:
+    """Both line searches along conjugate directions in one batch of five points.
+
+    For a quadratic cost, minimising along d1 does not change the minimiser along d2 when the
+    two are conjugate, so the points {x0, x0 ± s1 d1, x0 ± s2 d2} give both parabolas at once.
+    Returns the combined vertex, a flag per direction (True = vertex found within ``trust`` steps)
+    and the number of evaluations. A direction without a convex, bracketed parabola keeps alpha 0.
+    """
+    cand = [x0]
+    for i in range(2):
+        cand += [x0 - steps[i] * d[:, i], x0 + steps[i] * d[:, i]]
+    pts = box.clip(np.array(cand))
+    j = f(pts)
+    x = x0.copy()
+    ok = np.zeros(2, dtype=bool)
+    for i in range(2):
+        a = (pts[[1 + 2 * i, 0, 2 + 2 * i]] - x0) @ d[:, i]
+        pv = _parabola(a, j[[1 + 2 * i, 0, 2 + 2 * i]])
+        if pv is not None and abs(pv[0]) <= trust * steps[i] and a[0] < a[1] < a[2]:
+            x = x + pv[0] * d[:, i]
+            ok[i] = True
+    return box.clip(x), ok, len(cand)

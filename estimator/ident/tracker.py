@@ -139,7 +139,7 @@ def _warm_estimate(state: TrackerState, inj: Injection, sim: FastSimulator, conf
     model = CostModel(sim, inj, effective_window_s(ic, inj, state.robust), ic.norm, state.robust)
     x0 = box.clip(np.array(state.x, dtype=float))
     fit, converged, _ = refine(model, x0, np.array(state.directions), np.array(state.steps), box, ic,
-                               max_cycles=config.warm_cycles)
+                               max_cycles=config.warm_cycles, batched=True)
     stat = model_error_statistic(fit.residual, model.basis) if fit.success else float("nan")
     # the published prediction is made once, with the filtered estimate (``_result``)
     return finish(sim, inj, fit, converged, model.evaluations, box, state.robust, stat, ic, predict=False)

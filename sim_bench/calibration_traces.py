@@ -1,0 +1,45 @@
+"""Calibration traces (eq. 25): an actuator without valve at several temperatures, with s3 measured.
+
+The temperature law of the simulated actuator (documented in the README): N_u(T) = 15 + 0.06 T
+(N/V, T in degC; 15 N/V at 0 degC to 21 N/V at 100 degC, the range of Table 1), and
+R = R(N_u(T)) from eq. 22 with Table 1's R0a, R0b.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from estimator.model.drive import SAMPLE_PERIOD_S, sample_times, standard_drive
+from estimator.model.parameters import load_nominal
+from estimator.model.psa_lti import simulate_psa
+from estimator.trace_io import write_trace
+
+NU_AT_0C = 15.0
+NU_PER_DEGC = 0.06
+
+
+def nu_of_temperature(t_c: float) -> float:
+    """The simulated actuators' coupling factor at temperature t_c (degC), N/V."""
+    return NU_AT_0C + NU_PER_DEGC * t_c
+
+
+def write(out_dir: Path, temperatures_c: list[float], seed: int = 5, noise_v: float = 0.02,
+          t_end_s: float = 200e-6) -> list[Path]:
+    """Write one trace CSV per temperature into ``out_dir``; returns the paths."""
+    p = load_nominal()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    t = sample_times(t_end_s)
+    cur = standard_drive(t)
+    paths = []
+    for temp in temperatures_c:
+        nu = nu_of_temperature(temp)
+        u, s3 = simulate_psa(p, nu, p.psa.resistance_ohm(nu), cur, SAMPLE_PERIOD_S)
+        u = u + noise_v * rng.standard_normal(u.size)
+        path = out_dir / f"calib_{temp:+06.1f}C.csv"
+        write_trace(path, {"t_s": t, "current_A": cur, "voltage_V": u, "s3_m": s3},
+                    {"temperature_c": temp, "true_nu_n_per_v": nu, "source": "sim_bench calibration-traces"})
+        paths.append(path)
+    return paths
