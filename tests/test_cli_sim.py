@@ -52,12 +52,13 @@ def test_simulate_bad_input_one_line_nonzero(tmp_path):
 
 def test_table3_cli_prints_all_rows_and_writes_json(tmp_path):
     js = tmp_path / "t3.json"
-    r = run("-m", "sim_bench", "table3", "--json-out", str(js))
+    r = run("-m", "sim_bench", "table3", "--paper-only", "--json-out", str(js))
     assert r.returncode == 0, r.stderr
     for lh in ("0.6", "2.5", "6.8", "8.4"):
         assert f" {lh} " in r.stdout
     rep = json.loads(js.read_text())
-    assert len(rep["rows"]) == 4 and rep["max_abs_diff_um"] <= 0.15
+    assert len(rep["paper_psa1"]) == 4 and rep["max_abs_diff_um"] <= 0.15
+    assert "identified" not in rep
 
 
 def test_speed_sim_cli_writes_json(tmp_path):
