@@ -33,15 +33,21 @@ NUISANCE_NAMES = ("I", "Q") + tuple(f"max(Q-{r:.2f}Qend,0)" for r in NUISANCE_TH
 
 def charge_c(current_a: np.ndarray, dt_s: float) -> np.ndarray:
     """Cumulative charge (C) of a current that is linear between samples (trapezoidal rule)."""
-    return np.concatenate(([0.0], np.cumsum(0.5 * (current_a[1:] + current_a[:-1]) * dt_s)))
+    q = np.empty(current_a.size)
+    q[0] = 0.0
+    np.cumsum((current_a[1:] + current_a[:-1]) * (0.5 * dt_s), out=q[1:])
+    return q
 
 
 def nuisance_basis(current_a: np.ndarray, dt_s: float) -> np.ndarray:
     """Orthonormal basis (N, 6) of span{I, Q, max(Q - r_i, 0)} (columns normalised before QR)."""
     q = charge_c(current_a, dt_s)
     q_end = max(float(q[-1]), 1e-12)
-    cols = [current_a, q] + [np.maximum(q - r * q_end, 0.0) for r in NUISANCE_THRESHOLDS]
-    b = np.column_stack([c / max(np.max(np.abs(c)), 1e-300) for c in cols])
+    b = np.empty((q.size, 2 + len(NUISANCE_THRESHOLDS)))
+    b[:, 0] = current_a / max(float(np.abs(current_a).max()), 1e-300)
+    b[:, 1] = q / q_end
+    for k, r in enumerate(NUISANCE_THRESHOLDS):
+        np.maximum(q / q_end - r, 0.0, out=b[:, 2 + k])
     qb, _ = np.linalg.qr(b)
     return qb
 

@@ -224,9 +224,21 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
         # converged when the last cycle hardly moved, or when the Gauss–Newton model puts the
         # minimum within a quarter standard deviation (or the tolerance) of where we are
         sigma_x = np.sqrt(np.abs(np.diag(fit.cov_x)))
-        if np.all(move <= tol) or np.all(np.abs(fit.gn_step) <= np.maximum(tol, 0.25 * sigma_x)):
+        close = np.maximum(tol, 0.25 * sigma_x)
+        if np.all(move <= tol) or np.all(np.abs(fit.gn_step) <= close):
             converged = True
             break
+        if batched and np.all(np.abs(fit.gn_step) <= 4.0 * np.maximum(sigma_x, tol)):
+            # near the minimum already: one Gauss–Newton step is cheaper than another cycle
+            x_gn = box.clip(x + fit.gn_step)
+            fit_gn = local_fit(model, x_gn, box)
+            if fit_gn.success and fit_gn.criterion <= fit.criterion:
+                fit, x = fit_gn, x_gn
+                sigma_x = np.sqrt(np.abs(np.diag(fit.cov_x)))
+                if np.all(np.abs(fit.gn_step) <= np.maximum(tol, 0.25 * sigma_x)):
+                    converged = True
+                    break
+            j = fit.criterion
     return fit, converged, cycles
 
 

@@ -228,9 +228,13 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator, config: Trac
     st.initialized = True
     st.x, st.p = x.tolist(), p.tolist()
     st.accepted += 1
-    if np.all(np.isfinite(raw.jtj)) and np.linalg.cond(raw.jtj) < 1e14:
-        w, v = np.linalg.eigh(raw.jtj)
-        sd = raw.noise_sigma_v / np.sqrt(np.maximum(w, 1e-300))
+    if np.all(np.isfinite(raw.jtj)) and np.linalg.det(raw.jtj) > 1e-14 * raw.jtj[0, 0] * raw.jtj[1, 1]:
+        # directions: conjugate for the cost (eigenvectors of the Gauss–Newton matrix); steps: two
+        # standard deviations of where the next injection's optimum is expected along each, i.e. of
+        # the predicted covariance (filter + random walk) plus the raw estimate's own scatter
+        _, v = np.linalg.eigh(raw.jtj)
+        expected = p + np.diag([config.q_nu_n_per_v ** 2, config.q_lh_um ** 2]) + r_cov
+        sd = np.sqrt(np.einsum("ji,jk,ki->i", v, expected, v))
         st.directions = v.tolist()
         st.steps = np.clip(2.0 * sd, 1e-3, 2.0).tolist()
     if raw.status == STATUS_AT_BOUND:
