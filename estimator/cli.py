@@ -139,6 +139,58 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_run(args: argparse.Namespace) -> int:
+    """Run the estimator daemon on a CAN bus."""
+    from estimator.service.config import DaemonConfig
+    from estimator.service.daemon import run_daemon
+
+    cfg = DaemonConfig.load(args.config, bus=args.bus, state_dir=args.state_dir, dbc=args.dbc)
+    return run_daemon(cfg)
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    """Replay a capture through the daemon's pipeline, offline."""
+    from estimator.service.config import DaemonConfig
+    from estimator.service.replay import replay
+
+    cfg = DaemonConfig.load(args.config, dbc=args.dbc)
+    if not args.capture.exists():
+        raise EstimatorError(f"capture {args.capture} does not exist")
+    out_json = open(args.json, "w") if args.json and str(args.json) != "-" else (sys.stdout if args.json else None)
+    try:
+        res = replay(args.capture, cfg, args.out, out_json)
+    except (ValueError, can_errors()) as exc:
+        raise EstimatorError(f"cannot replay {args.capture}: {exc}") from None
+    finally:
+        if out_json not in (None, sys.stdout):
+            out_json.close()
+    c = res.counters
+    print(f"replayed {res.frames_in} frames: {res.published} injections estimated; rejected crc {c.rejected_crc}, "
+          f"missing {c.rejected_missing}, timeout {c.rejected_timeout}, invalid {c.rejected_invalid}, outlier "
+          f"{c.rejected_outlier}; malformed frames {c.frames_malformed}", file=sys.stderr)
+    return 0
+
+
+def can_errors() -> type:
+    """python-can's base error (imported lazily: only the service layer needs python-can)."""
+    import can
+
+    return can.CanError
+
+
+def cmd_check_dbc(args: argparse.Namespace) -> int:
+    """Validate the DBC against the contract."""
+    from estimator.codec.database import default_dbc_path, load_database
+    from estimator.codec.records import Codec
+
+    path = args.dbc or default_dbc_path()
+    db = load_database(path)
+    codec = Codec(db)
+    print(f"{path}: ok - {len(db.messages)} messages, CAN FD, {codec.layout.per_block} samples per "
+          f"InjectionSamples frame ({codec.layout.current_scale * 1e3:g} mA, {codec.layout.voltage_scale * 1e3:g} mV)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with all subcommands."""
     p = argparse.ArgumentParser(prog="python -m estimator", description=__doc__)
@@ -172,6 +224,27 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--gamma", type=float, default=1e6, help="weight of the s3 error in V/m (default 1e6)")
     s.add_argument("--out", type=Path, help="write the TOML here (default: print it)")
     s.set_defaults(func=cmd_calibrate)
+
+    s = sub.add_parser("run", help="run the estimator daemon on a CAN bus")
+    s.add_argument("--bus", default=None, help="socketcan:IFACE | remote:ws://HOST:PORT/ | virtual:NAME "
+                   "(default socketcan:vcan0)")
+    s.add_argument("--config", type=Path, help="TOML file with an [estimator] table")
+    s.add_argument("--state-dir", type=Path, default=None, help="where per-injector state persists "
+                   "(default $STATE_DIRECTORY, else not persisted)")
+    s.add_argument("--dbc", type=Path, default=None, help="CAN database (default dbc/injector.dbc)")
+    s.set_defaults(func=cmd_run)
+
+    s = sub.add_parser("replay", help="run a capture (any python-can log, candump -L too) through the pipeline")
+    s.add_argument("capture", type=Path)
+    s.add_argument("--out", type=Path, help="write the output frames as a candump -L log")
+    s.add_argument("--json", type=Path, help="write one JSON line per injection ('-' for stdout)")
+    s.add_argument("--config", type=Path)
+    s.add_argument("--dbc", type=Path, default=None)
+    s.set_defaults(func=cmd_replay)
+
+    s = sub.add_parser("check-dbc", help="validate the DBC against the contract")
+    s.add_argument("--dbc", type=Path, default=None)
+    s.set_defaults(func=cmd_check_dbc)
 
     s = sub.add_parser("plot", help="PNG figures: voltage fit and error, cost contour")
     s.add_argument("trace", type=Path)

@@ -1,0 +1,275 @@
+"""Typed records of the contract's messages and their conversion to and from frames (cantools).
+
+Encoding is strict (cantools ``strict=True``); values outside a signal's range are saturated to
+the range first, so a publisher never fails on an extreme value (a cost above 6553.5 µV·s is sent
+as 6553.5). NaN has no wire form: ``ValvePrediction`` carries validity bits, the others send 0 with
+a status that says there is no estimate. Decoding range-checks every value against the DBC.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import ClassVar
+
+import numpy as np
+from cantools.database.can import Database, Message
+
+from estimator.codec.database import Messages, load_database
+from estimator.codec.frame import Frame
+from estimator.codec.samples import SampleLayout
+from estimator.errors import EstimatorError
+
+STATUS_CODES = {"ok": 0, "at_bound": 1, "not_converged": 2, "rejected": 3, "no_estimate": 4}
+STATUS_NAMES = {v: k for k, v in STATUS_CODES.items()}
+COMMAND_NONE, COMMAND_RESET, COMMAND_SET_PRIOR = 0, 1, 2
+
+
+class MalformedFrame(EstimatorError):
+    """A frame with a known identifier that cannot be decoded (length, format, value range)."""
+
+
+@dataclass(frozen=True)
+class Record:
+    """Base of the typed records: ``MESSAGE`` names the DBC message, ``SIGNALS`` maps field -> signal."""
+
+    MESSAGE: ClassVar[str] = ""
+    SIGNALS: ClassVar[dict[str, str]] = {}
+
+
+@dataclass(frozen=True)
+class InjectionHeader(Record):
+    injector_id: int
+    counter: int
+    sample_period_ns: int
+    sample_count: int
+    preload_force_n: float
+    fuel_temperature_c: float
+    MESSAGE: ClassVar[str] = "InjectionHeader"
+    SIGNALS: ClassVar[dict[str, str]] = {
+        "injector_id": "InjectorId", "counter": "InjectionCounter", "sample_period_ns": "SamplePeriod",
+        "sample_count": "SampleCount", "preload_force_n": "PreloadForce", "fuel_temperature_c": "FuelTemperature"}
+
+
+@dataclass(frozen=True)
+class InjectionTrailer(Record):
+    injector_id: int
+    counter: int
+    crc32: int
+    MESSAGE: ClassVar[str] = "InjectionTrailer"
+    SIGNALS: ClassVar[dict[str, str]] = {"injector_id": "InjectorId", "counter": "InjectionCounter", "crc32": "Crc32"}
+
+
+@dataclass(frozen=True)
+class EstimateState(Record):
+    injector_id: int
+    counter: int
+    nu_n_per_v: float
+    lh_um: float
+    status: int
+    MESSAGE: ClassVar[str] = "EstimateState"
+    SIGNALS: ClassVar[dict[str, str]] = {"injector_id": "InjectorId", "counter": "InjectionCounter",
+                                         "nu_n_per_v": "CouplingNu", "lh_um": "IdleStroke", "status": "Status"}
+
+
+@dataclass(frozen=True)
+class EstimateQuality(Record):
+    injector_id: int
+    counter: int
+    cost_uvs: float
+    sigma_nu_n_per_v: float
+    sigma_lh_um: float
+    evaluations: int
+    robust: int
+    MESSAGE: ClassVar[str] = "EstimateQuality"
+    SIGNALS: ClassVar[dict[str, str]] = {
+        "injector_id": "InjectorId", "counter": "InjectionCounter", "cost_uvs": "Cost",
+        "sigma_nu_n_per_v": "SigmaNu", "sigma_lh_um": "SigmaIdleStroke", "evaluations": "Evaluations",
+        "robust": "Robust"}
+
+
+@dataclass(frozen=True)
+class ValvePrediction(Record):
+    injector_id: int
+    counter: int
+    contact_us: float
+    opening_us: float
+    stroke_um: float
+    MESSAGE: ClassVar[str] = "ValvePrediction"
+    SIGNALS: ClassVar[dict[str, str]] = {"injector_id": "InjectorId", "counter": "InjectionCounter",
+                                         "contact_us": "ContactTime", "opening_us": "OpeningTime",
+                                         "stroke_um": "PlungerStroke"}
+
+
+@dataclass(frozen=True)
+class EstimatorStatus(Record):
+    accepted: int = 0
+    rejected_crc: int = 0
+    rejected_missing: int = 0
+    rejected_timeout: int = 0
+    rejected_invalid: int = 0
+    rejected_outlier: int = 0
+    frames_dropped: int = 0
+    frames_malformed: int = 0
+    queue_depth: int = 0
+    latency_p99_ms: float = 0.0
+    uptime_s: int = 0
+    bus_errors: int = 0
+    MESSAGE: ClassVar[str] = "EstimatorStatus"
+    SIGNALS: ClassVar[dict[str, str]] = {
+        "accepted": "InjectionsAccepted", "rejected_crc": "RejectedCrc", "rejected_missing": "RejectedMissing",
+        "rejected_timeout": "RejectedTimeout", "rejected_invalid": "RejectedInvalid",
+        "rejected_outlier": "RejectedOutlier", "frames_dropped": "FramesDropped",
+        "frames_malformed": "FramesMalformed", "queue_depth": "QueueDepth", "latency_p99_ms": "LatencyP99",
+        "uptime_s": "Uptime", "bus_errors": "BusErrors"}
+
+
+@dataclass(frozen=True)
+class EstimatorCommand(Record):
+    injector_id: int
+    command: int
+    prior_nu_n_per_v: float = 0.0
+    prior_lh_um: float = 0.0
+    MESSAGE: ClassVar[str] = "EstimatorCommand"
+    SIGNALS: ClassVar[dict[str, str]] = {"injector_id": "InjectorId", "command": "Command",
+                                         "prior_nu_n_per_v": "PriorNu", "prior_lh_um": "PriorIdleStroke"}
+
+
+@dataclass(frozen=True)
+class SimTruth(Record):
+    injector_id: int
+    counter: int
+    nu_n_per_v: float
+    lh_um: float
+    contact_us: float
+    opening_us: float
+    stroke_um: float
+    temperature_c: float
+    preload_force_n: float
+    MESSAGE: ClassVar[str] = "SimTruth"
+    SIGNALS: ClassVar[dict[str, str]] = {
+        "injector_id": "InjectorId", "counter": "InjectionCounter", "nu_n_per_v": "TrueNu",
+        "lh_um": "TrueIdleStroke", "contact_us": "TrueContactTime", "opening_us": "TrueOpeningTime",
+        "stroke_um": "TrueStroke", "temperature_c": "Temperature", "preload_force_n": "TruePreloadForce"}
+
+
+@dataclass(frozen=True)
+class SampleBlock:
+    """One InjectionSamples frame: raw int16 current/voltage of up to ``per_block`` samples."""
+
+    injector_id: int
+    counter: int
+    block_index: int
+    current_raw: np.ndarray
+    voltage_raw: np.ndarray
+
+
+RECORD_TYPES: tuple[type[Record], ...] = (InjectionHeader, InjectionTrailer, EstimateState, EstimateQuality,
+                                          ValvePrediction, EstimatorStatus, EstimatorCommand, SimTruth)
+_VALID_BITS = (("contact_us", 1), ("opening_us", 2), ("stroke_um", 4))
+
+
+class Codec:
+    """Typed records <-> frames for the contract's messages, resolved once from the DBC."""
+
+    def __init__(self, db: Database | None = None) -> None:
+        self.db = db or load_database()
+        self.messages = Messages.from_db(self.db)
+        self.layout = SampleLayout.from_message(self.messages.samples)
+        self._by_id: dict[int, tuple[Message, type[Record] | None]] = {}
+        for rt in RECORD_TYPES:
+            msg = self.db.get_message_by_name(rt.MESSAGE)
+            self._by_id[msg.frame_id] = (msg, rt)
+        self._by_id[self.messages.samples.frame_id] = (self.messages.samples, None)
+        self._sample_prefix = self.messages.samples.get_signal_by_name("BlockIndex")
+
+    # ---- encode ---------------------------------------------------------------------------
+    def encode(self, rec: Record) -> Frame:
+        """The frame of a record (saturating values to the signal ranges)."""
+        msg = self.db.get_message_by_name(rec.MESSAGE)
+        values: dict[str, float | int] = {}
+        for fname, sname in rec.SIGNALS.items():
+            values[sname] = self._wire_value(msg, sname, getattr(rec, fname))
+        if isinstance(rec, ValvePrediction):
+            valid = 0
+            for fname, bit in _VALID_BITS:
+                if math.isfinite(getattr(rec, fname)):
+                    valid |= bit
+            values["Valid"] = valid
+        for s in msg.signals:   # signals the record does not carry (none today) go out as their minimum
+            values.setdefault(s.name, s.minimum if s.minimum is not None else 0)
+        data = msg.encode(values, strict=True)
+        return Frame(msg.frame_id, bytes(data), msg.is_fd)
+
+    @staticmethod
+    def _wire_value(msg: Message, sname: str, value: float) -> float | int:
+        sig = msg.get_signal_by_name(sname)
+        v = float(value) if value is not None else float("nan")
+        if not math.isfinite(v):
+            v = 0.0
+        lo = sig.minimum if sig.minimum is not None else -math.inf
+        hi = sig.maximum if sig.maximum is not None else math.inf
+        v = min(max(v, lo), hi)
+        if sig.scale == 1 and sig.offset == 0:
+            return int(round(v))
+        # round to the wire grid so that strict encoding never sees an off-grid value
+        return round((v - sig.offset) / sig.scale) * sig.scale + sig.offset
+
+    def encode_samples(self, injector_id: int, counter: int, block_index: int, current_raw: np.ndarray,
+                       voltage_raw: np.ndarray) -> Frame:
+        """One InjectionSamples frame from raw int16 pairs (numpy packing; layout from the DBC)."""
+        msg = self.messages.samples
+        head = {"InjectorId": injector_id, "InjectionCounter": counter, "BlockIndex": block_index}
+        zeros = {s.name: 0 for s in msg.signals if s.name not in head}
+        prefix = msg.encode({**zeros, **head}, strict=True)
+        return Frame(msg.frame_id, self.layout.encode(bytes(prefix), current_raw, voltage_raw), True)
+
+    # ---- decode ---------------------------------------------------------------------------
+    def is_known(self, arbitration_id: int) -> bool:
+        """True for identifiers of the contract."""
+        return arbitration_id in self._by_id
+
+    def decode(self, frame: Frame) -> Record | SampleBlock | None:
+        """The record of a frame; None for unknown identifiers; MalformedFrame if it cannot be decoded."""
+        entry = self._by_id.get(frame.arbitration_id)
+        if entry is None or frame.is_extended_id:
+            return None
+        msg, rt = entry
+        if len(frame.data) != msg.length:
+            raise MalformedFrame(f"{msg.name}: {len(frame.data)} bytes, expected {msg.length}")
+        if msg.is_fd and not frame.is_fd:
+            raise MalformedFrame(f"{msg.name}: expected a CAN FD frame")
+        if rt is None:
+            return self.decode_samples(frame.data)
+        try:
+            values = msg.decode(frame.data, decode_choices=False, scaling=True)
+        except Exception as exc:   # cantools raises DecodeError and ValueError subclasses
+            raise MalformedFrame(f"{msg.name}: {exc}") from None
+        for s in msg.signals:
+            v = values[s.name]
+            if (s.minimum is not None and v < s.minimum - 1e-9) or (s.maximum is not None and v > s.maximum + 1e-9):
+                raise MalformedFrame(f"{msg.name}.{s.name} = {v} outside [{s.minimum}, {s.maximum}]")
+        kw = {}
+        for f in fields(rt):
+            sname = rt.SIGNALS[f.name]
+            v = values[sname]
+            kw[f.name] = int(v) if f.type in ("int", int) else float(v)
+        rec = rt(**kw)
+        if isinstance(rec, ValvePrediction):
+            valid = int(values["Valid"])
+            rec = ValvePrediction(rec.injector_id, rec.counter,
+                                  *(getattr(rec, n) if valid & b else float("nan") for n, b in _VALID_BITS))
+        return rec
+
+    def decode_samples(self, data: bytes) -> SampleBlock:
+        """An InjectionSamples payload with numpy (identification fields with cantools' start bits)."""
+        head = int.from_bytes(data[:4], "little")
+        msg = self.messages.samples
+        vals = []
+        for name in ("InjectorId", "InjectionCounter", "BlockIndex"):
+            s = msg.get_signal_by_name(name)
+            vals.append((head >> s.start) & ((1 << s.length) - 1))
+        if vals[2] > (self._sample_prefix.maximum or 255):
+            raise MalformedFrame(f"InjectionSamples.BlockIndex = {vals[2]} out of range")
+        cur, vol = self.layout.raw_pairs(data)
+        return SampleBlock(vals[0], vals[1], vals[2], cur, vol)

@@ -1,0 +1,253 @@
+"""The estimator daemon: bus -> Notifier -> bounded queue -> worker (estimator) -> bus.
+
+Lifecycle, in order (python-can ``notifier.py``; issues #1526, #1667): the bus is opened first and
+shut last; the Notifier runs inside it and is stopped first; one worker thread does everything
+else. Signal handlers only set an Event. sd_notify: READY=1 once running, WATCHDOG=1 only while
+the worker makes progress, STOPPING=1 at shutdown.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import can
+import numpy as np
+
+from estimator.codec.database import load_database
+from estimator.codec.frame import Frame
+from estimator.codec.ingest import Ingest
+from estimator.codec.records import Codec
+from estimator.ident.idle_stroke import IdentConfig
+from estimator.ident.tracker import Tracker, TrackerConfig
+from estimator.service.bus import open_bus, to_frame, to_message
+from estimator.service.config import DaemonConfig
+from estimator.service.processor import Processor
+from estimator.service.ratelimit import RateLimitedLog
+from estimator.service.sdnotify import SdNotify
+from estimator.service.state_store import load_states, save_states
+
+log = logging.getLogger(__name__)
+STATE_FILE = "estimator-state.json"
+
+
+class QueueListener(can.Listener):
+    """Notifier callback: frames into a bounded deque (drop-oldest, counted); errors handled here.
+
+    Each entry is (frame, monotonic arrival time). ``on_error`` counts the error, logs it rate-limited
+    and backs off (so a dead interface does not spin the receive thread), then lets the Notifier go on.
+    """
+
+    def __init__(self, maxlen: int) -> None:
+        self.queue: collections.deque[tuple[Frame, float]] = collections.deque(maxlen=maxlen)
+        self.ready = threading.Event()
+        self.dropped = 0
+        self.errors = 0
+        self._backoff = 0.01
+        self.rlog = RateLimitedLog(log)
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.is_error_frame or msg.is_remote_frame:
+            return
+        if len(self.queue) == self.queue.maxlen:
+            self.dropped += 1
+        self.queue.append((to_frame(msg), time.monotonic()))
+        self._backoff = 0.01
+        self.ready.set()
+
+    def on_error(self, exc: Exception) -> None:
+        self.errors += 1
+        self.rlog.log(logging.ERROR, "rx", "bus receive error: %s; retrying in %.2f s", exc, self._backoff)
+        time.sleep(self._backoff)
+        self._backoff = min(self._backoff * 2, 1.0)
+
+    def get(self, timeout: float) -> tuple[Frame, float] | None:
+        try:
+            return self.queue.popleft()
+        except IndexError:
+            self.ready.clear()
+            if self.queue:
+                return self.queue.popleft()
+            self.ready.wait(timeout)
+            try:
+                return self.queue.popleft()
+            except IndexError:
+                return None
+
+
+@dataclass
+class Stats:
+    """Latency samples (last 10 s) for the heartbeat's p99."""
+
+    window_s: float = 10.0
+
+    def __post_init__(self) -> None:
+        self.samples: collections.deque[tuple[float, float]] = collections.deque()
+
+    def add(self, t: float, latency_s: float) -> None:
+        self.samples.append((t, latency_s))
+        while self.samples and self.samples[0][0] < t - self.window_s:
+            self.samples.popleft()
+
+    def p99_ms(self) -> float:
+        if not self.samples:
+            return 0.0
+        return float(np.percentile([s for _, s in self.samples], 99)) * 1e3
+
+
+def build_tracker(cfg: DaemonConfig) -> Tracker:
+    """The recursive estimator as configured."""
+    ident = IdentConfig(window_s=cfg.window_us * 1e-6, robust=cfg.robust)
+    return Tracker(TrackerConfig(ident=ident, q_nu_n_per_v=cfg.q_nu_n_per_v, q_lh_um=cfg.q_lh_um))
+
+
+class Daemon:
+    """One estimator instance on one bus."""
+
+    def __init__(self, cfg: DaemonConfig) -> None:
+        self.cfg = cfg
+        self.codec = Codec(load_database(cfg.dbc))
+        self.tracker = build_tracker(cfg)
+        self.ingest = Ingest(self.codec, cfg.assembly_timeout_ms * 1e-3, cfg.max_injectors)
+        self.processor = Processor(self.codec, self.tracker, self.ingest.counters)
+        self.stop = threading.Event()
+        self.notify = SdNotify()
+        self.stats = Stats()
+        self.progress = time.monotonic()
+        self.rlog = RateLimitedLog(log)
+        self.started = time.monotonic()
+        self._bus: can.BusABC | None = None
+        self._listener: QueueListener | None = None
+        self.state_path = cfg.state_dir / STATE_FILE if cfg.state_dir else None
+        self._dirty = False
+
+    # ---- state ------------------------------------------------------------------------------
+    def restore(self) -> None:
+        """Load persisted per-injector state (a bad file is reported and ignored)."""
+        if self.state_path is None:
+            return
+        states, problem = load_states(self.state_path)
+        if problem:
+            log.warning("%s", problem)
+        self.tracker.states.update(states)
+        if states:
+            log.info("restored the state of %d injector(s) from %s", len(states), self.state_path)
+
+    def persist(self) -> None:
+        """Write the state now (atomic); errors are logged, not fatal."""
+        if self.state_path is None:
+            return
+        try:
+            save_states(self.state_path, dict(self.tracker.states))
+            self._dirty = False
+        except OSError as exc:
+            self.rlog.log(logging.ERROR, "persist", "cannot write state %s: %s", self.state_path, exc)
+
+    # ---- bus output -------------------------------------------------------------------------
+    def send(self, frames: list[Frame]) -> None:
+        """Send frames; a failed send (ENOBUFS, interface down) is retried with backoff, then dropped."""
+        assert self._bus is not None
+        for fr in frames:
+            delay = 0.001
+            for attempt in range(4):
+                try:
+                    self._bus.send(to_message(fr), timeout=0.05)
+                    break
+                except (can.CanError, OSError) as exc:
+                    self.ingest.counters.bus_errors += 1
+                    self.rlog.log(logging.ERROR, "tx", "bus send error: %s (attempt %d)", exc, attempt + 1)
+                    if self.stop.wait(delay):
+                        return
+                    delay *= 4
+
+    # ---- worker -----------------------------------------------------------------------------
+    def _worker(self) -> None:
+        assert self._listener is not None
+        lst = self._listener
+        next_status = time.monotonic()
+        next_persist = time.monotonic() + self.cfg.persist_period_s
+        while not self.stop.is_set():
+            item = lst.get(timeout=0.01)
+            mono = time.monotonic()
+            self.progress = mono
+            try:
+                if item is not None:
+                    frame, arrived = item
+                    now = frame.timestamp or time.time()
+                    for pub in self.processor.handle(self.ingest.feed(frame, now)):
+                        self.send(pub.frames[:1])
+                        self.stats.add(mono, time.monotonic() - arrived)
+                        self.send(pub.frames[1:])
+                        self._dirty = True
+                else:
+                    self.processor.handle(self.ingest.poll(time.time()))
+                self.ingest.counters.frames_dropped = lst.dropped
+                mono = time.monotonic()
+                if mono >= next_status:
+                    next_status = mono + self.cfg.status_period_s
+                    self.send([self.processor.status_frame(len(lst.queue), self.stats.p99_ms(),
+                                                           mono - self.started)])
+                if mono >= next_persist:
+                    next_persist = mono + self.cfg.persist_period_s
+                    if self._dirty:
+                        self.persist()
+            except Exception:   # a bug must not kill the service silently: log it, keep serving
+                log.exception("worker error (continuing)")
+
+    # ---- lifecycle --------------------------------------------------------------------------
+    def install_signal_handlers(self) -> None:
+        """SIGTERM/SIGINT only set the stop Event."""
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: self.stop.set())
+
+    def run(self) -> int:
+        """Run until stopped; returns the exit code."""
+        self.restore()
+        with open_bus(self.cfg.bus) as bus:
+            self._bus = bus
+            self._listener = QueueListener(self.cfg.queue_frames)
+            notifier = can.Notifier(bus, [self._listener], timeout=0.05)
+            worker = threading.Thread(target=self._worker, name="estimator-worker", daemon=True)
+            worker.start()
+            log.info("estimator running on %s (state %s)", self.cfg.bus, self.state_path or "not persisted")
+            self.notify.notify("READY=1")
+            self.notify.notify(f"STATUS=running on {self.cfg.bus}")
+            ping = SdNotify.watchdog_interval_s()
+            try:
+                while not self.stop.wait(ping or 0.5):
+                    if ping and time.monotonic() - self.progress < 2 * ping:
+                        self.notify.notify("WATCHDOG=1")
+                    self.ingest.counters.bus_errors += self._listener.errors
+                    self._listener.errors = 0
+            finally:
+                self.notify.notify("STOPPING=1")
+                notifier.stop(timeout=0.5)
+                self.stop.set()
+                worker.join(timeout=1.0)
+                self.persist()
+                log.info("estimator stopped: %s", self.summary())
+        return 0
+
+    def summary(self) -> str:
+        """The counters in one line."""
+        c = self.ingest.counters
+        return (f"accepted {c.accepted}, rejected crc {c.rejected_crc} missing {c.rejected_missing} timeout "
+                f"{c.rejected_timeout} invalid {c.rejected_invalid} outlier {c.rejected_outlier}, frames dropped "
+                f"{c.frames_dropped} malformed {c.frames_malformed}, bus errors {c.bus_errors}")
+
+
+def run_daemon(cfg: DaemonConfig) -> int:
+    """CLI entry: build, install signal handlers, run."""
+    d = Daemon(cfg)
+    d.install_signal_handlers()
+    return d.run()
+
+
+def state_file(state_dir: Path) -> Path:
+    """Where the daemon keeps its state in ``state_dir``."""
+    return state_dir / STATE_FILE

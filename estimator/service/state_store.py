@@ -1,0 +1,68 @@
+"""Per-injector estimator state on disk: atomic (write, fsync, rename), validated on load."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import tempfile
+import time
+from pathlib import Path
+
+from estimator.ident.tracker import TrackerState
+
+log = logging.getLogger(__name__)
+FORMAT = "piezo-injector-estimator-state"
+VERSION = 1
+
+
+def save_states(path: Path, states: dict[int, TrackerState]) -> None:
+    """Write all injector states atomically: a crash leaves the old file or the new one, never a mix."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = {"format": FORMAT, "version": VERSION, "saved_at": time.time(),
+           "injectors": {str(k): v.to_dict() for k, v in sorted(states.items())}}
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(doc, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+        dfd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def load_states(path: Path) -> tuple[dict[int, TrackerState], str | None]:
+    """States from ``path`` and a problem description (None if fine or absent).
+
+    A corrupt, truncated or foreign file is reported and ignored (the estimator starts cold);
+    a single bad injector entry is skipped, the others are kept.
+    """
+    if not path.exists():
+        return {}, None
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        return {}, f"state file {path} unreadable ({exc}); starting without it"
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT or doc.get("version") != VERSION:
+        return {}, f"state file {path} is not a {FORMAT} v{VERSION} file; ignoring it"
+    states: dict[int, TrackerState] = {}
+    problems = []
+    for key, value in (doc.get("injectors") or {}).items():
+        try:
+            inj = int(key)
+            if not 0 <= inj <= 7:
+                raise ValueError("injector id out of range")
+            states[inj] = TrackerState.from_dict(value)
+        except (ValueError, TypeError) as exc:
+            problems.append(f"injector {key}: {exc}")
+    return states, ("; ".join(problems) if problems else None)
