@@ -130,6 +130,77 @@ def cmd_calibration_traces(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_node(args: argparse.Namespace) -> int:
+    """The simulated injector node on a bus."""
+    import signal
+    import threading
+
+    import can
+
+    from estimator.service.bus import open_bus, to_message
+    from sim_bench import scenarios
+    from sim_bench.node import InjectorNode
+
+    try:
+        sc = scenarios.get(args.scenario, injectors=args.injectors, rate_hz=args.rate, seconds=args.seconds)
+    except KeyError as exc:
+        raise EstimatorError(str(exc.args[0])) from None
+    if not (1 <= sc.injectors <= 8) or not (0 < sc.rate_hz <= 5000):
+        raise EstimatorError(f"--injectors {sc.injectors} must be 1..8 and --rate {sc.rate_hz} within (0, 5000] Hz")
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    with open_bus(args.bus) as bus:
+        def send(frame) -> None:
+            try:
+                bus.send(to_message(frame), timeout=0.05)
+            except can.CanError as exc:
+                raise OSError(str(exc)) from None
+        node = InjectorNode(send, sc, args.seed)
+        log.info("node: scenario %s, %d injectors at %.1f Hz on %s", sc.name, sc.injectors, sc.rate_hz, args.bus)
+        node.run(stop, seconds=None if args.count else sc.seconds, count=args.count)
+    print(node.summary_json(), flush=True)
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    """End-to-end bench: daemon + node processes on a real bus, scored against SimTruth."""
+    from sim_bench import bench, scenarios
+
+    names = list(scenarios.SCENARIOS) if args.scenario == "all" else [args.scenario]
+    for n in names:
+        if n not in scenarios.SCENARIOS:
+            raise EstimatorError(f"unknown scenario {n!r}; one of {', '.join(scenarios.SCENARIOS)}, all")
+    failed = False
+    summary = []
+    for n in names:
+        s = bench.run_bench(n, args.bus, args.seconds, args.out / n if len(names) > 1 else args.out, args.seed,
+                            progress=not args.quiet, plots=not args.no_plots)
+        print(bench.format_score(s))
+        summary.append(s)
+        failed |= bool(s["failures"])
+    if len(names) > 1:
+        _write_json(args.out / "bench-all.json", {"benchmark": "bench", "scores": summary})
+    print(f"results in {args.out}")
+    return 1 if failed else 0
+
+
+def cmd_hub(args: argparse.Namespace) -> int:
+    """Serve the loopback CAN hub until interrupted."""
+    import time
+
+    from sim_bench.hub import Hub
+
+    with Hub(args.port) as hub:
+        print(f"CAN hub: --bus {hub.spec}", flush=True)
+        try:
+            while hub.proc is not None and hub.proc.poll() is None:
+                time.sleep(0.5)
+        except KeyboardInterrupt:
+            pass
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with all subcommands."""
     p = argparse.ArgumentParser(prog="python -m sim_bench", description=__doc__)
@@ -158,6 +229,31 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=3)
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "table3.json")
     s.set_defaults(func=cmd_table3)
+
+    s = sub.add_parser("node", help="the simulated injector node on a CAN bus")
+    s.add_argument("--bus", required=True, help="socketcan:IFACE | remote:ws://HOST:PORT/ | virtual:NAME")
+    s.add_argument("--scenario", default="nominal")
+    s.add_argument("--injectors", type=int, default=None)
+    s.add_argument("--rate", type=float, default=None, help="injections per second per injector")
+    s.add_argument("--seconds", type=float, default=None, help="run time (default: the scenario's)")
+    s.add_argument("--count", type=int, default=None, help="stop after this many injections per injector")
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(func=cmd_node)
+
+    s = sub.add_parser("bench", help="end-to-end bench: daemon + node on a real bus, scored")
+    s.add_argument("--scenario", default="nominal", help="nominal, temperature-ramp, wear, mismatch, faults, "
+                   "multi-injector, overload, or all")
+    s.add_argument("--bus", default=None, help="default: socketcan:vcan0 if it exists, else a loopback hub")
+    s.add_argument("--seconds", type=float, default=None, help="node run time (default: the scenario's)")
+    s.add_argument("--out", type=Path, default=DEFAULT_OUT / "bench")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--quiet", action="store_true", help="no live progress line")
+    s.add_argument("--no-plots", action="store_true")
+    s.set_defaults(func=cmd_bench)
+
+    s = sub.add_parser("hub", help="serve a loopback CAN hub (python-can-remote) on 127.0.0.1")
+    s.add_argument("--port", type=int, default=None)
+    s.set_defaults(func=cmd_hub)
 
     s = sub.add_parser("accuracy", help="single-injection accuracy vs the Cramér–Rao bound")
     s.add_argument("--scenario", choices=("matched", "mismatch", "both"), default="both")

@@ -115,6 +115,10 @@ class Plant:
         self.cfg = cfg or PlantConfig()
         self.sim = FastSimulator(dt_s=self.cfg.dt_s / self.cfg.oversample)
 
+    def warm_up(self) -> None:
+        """One throw-away simulation: loads the compiled kernels before real-time work starts."""
+        self.measure(17.0, 3e-6, 28.0, np.random.default_rng(0))
+
     def measure(self, nu_n_per_v: float, lh_m: float, f_open_n: float, rng: np.random.Generator,
                 current_fn=None) -> Measurement:
         """One injection with truth. ``current_fn(t)`` overrides the drive (A)."""

@@ -15,7 +15,7 @@ from typing import ClassVar
 import numpy as np
 from cantools.database.can import Database, Message
 
-from estimator.codec.database import Messages, load_database
+from estimator.codec.database import ContractError, Messages, load_database
 from estimator.codec.frame import Frame
 from estimator.codec.samples import SampleLayout
 from estimator.errors import EstimatorError
@@ -182,6 +182,13 @@ class Codec:
             self._by_id[msg.frame_id] = (msg, rt)
         self._by_id[self.messages.samples.frame_id] = (self.messages.samples, None)
         self._sample_prefix = self.messages.samples.get_signal_by_name("BlockIndex")
+        self._prefix_signals = [self.messages.samples.get_signal_by_name(n)
+                                for n in ("InjectorId", "InjectionCounter", "BlockIndex")]
+        for sig in self._prefix_signals:   # the numpy packer/decoder assume this (checked, not hoped)
+            if sig.byte_order != "little_endian" or sig.start + sig.length > 8 * self.layout.current_offset \
+                    or sig.scale != 1 or sig.offset != 0:
+                raise ContractError(f"InjectionSamples.{sig.name}: must be a little-endian integer in the "
+                                    f"first {self.layout.current_offset} bytes")
 
     # ---- encode ---------------------------------------------------------------------------
     def encode(self, rec: Record) -> Frame:
@@ -219,10 +226,13 @@ class Codec:
                        voltage_raw: np.ndarray) -> Frame:
         """One InjectionSamples frame from raw int16 pairs (numpy packing; layout from the DBC)."""
         msg = self.messages.samples
-        head = {"InjectorId": injector_id, "InjectionCounter": counter, "BlockIndex": block_index}
-        zeros = {s.name: 0 for s in msg.signals if s.name not in head}
-        prefix = msg.encode({**zeros, **head}, strict=True)
-        return Frame(msg.frame_id, self.layout.encode(bytes(prefix), current_raw, voltage_raw), True)
+        word = 0
+        for sig, v in zip(self._prefix_signals, (injector_id, counter, block_index)):
+            if not (sig.minimum <= v <= sig.maximum):
+                raise ValueError(f"InjectionSamples.{sig.name} = {v} outside [{sig.minimum}, {sig.maximum}]")
+            word |= int(v) << sig.start
+        prefix = word.to_bytes(4, "little")
+        return Frame(msg.frame_id, self.layout.encode(prefix, current_raw, voltage_raw), True)
 
     # ---- decode ---------------------------------------------------------------------------
     def is_known(self, arbitration_id: int) -> bool:

@@ -71,18 +71,18 @@ class SampleLayout:
 
     def encode(self, header_bytes: bytes, current_raw: np.ndarray, voltage_raw: np.ndarray) -> bytes:
         """A frame from the encoded identification bytes (InjectorId, counter, block) and raw pairs."""
-        buf = bytearray(self.length)
-        buf[: self.current_offset] = header_bytes[: self.current_offset]
+        buf = np.zeros(self.length, dtype=np.uint8)
+        buf[: self.current_offset] = np.frombuffer(header_bytes[: self.current_offset], dtype=np.uint8)
         c = np.zeros(self.per_block, dtype="<i2")
         v = np.zeros(self.per_block, dtype="<i2")
         c[: current_raw.size] = current_raw
         v[: voltage_raw.size] = voltage_raw
-        for k in range(self.per_block):
-            o = self.current_offset + self.stride * k
-            buf[o:o + 2] = c[k].tobytes()
-            o = self.voltage_offset + self.stride * k
-            buf[o:o + 2] = v[k].tobytes()
-        return bytes(buf)
+        cb, vb = c.view(np.uint8).reshape(-1, 2), v.view(np.uint8).reshape(-1, 2)
+        idx_c = self.current_offset + self.stride * np.arange(self.per_block)
+        idx_v = self.voltage_offset + self.stride * np.arange(self.per_block)
+        buf[idx_c], buf[idx_c + 1] = cb[:, 0], cb[:, 1]
+        buf[idx_v], buf[idx_v + 1] = vb[:, 0], vb[:, 1]
+        return buf.tobytes()
 
     def to_raw(self, current_a: np.ndarray, voltage_v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Physical samples -> raw int16 (rounded, saturated; NaN -> INVALID_RAW)."""

@@ -205,9 +205,18 @@ class Daemon:
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: self.stop.set())
 
+    def warm_up(self) -> None:
+        """Load the compiled kernels and the N_u table before READY, so the first injection is not late."""
+        from estimator.model.drive import sample_times, standard_drive
+
+        sim = self.tracker.simulator(0.5e-6)
+        cur = standard_drive(sample_times(100e-6))
+        sim.simulate(cur, [16.0, 17.0, 18.0], [-0.5e-6, 2e-6, 6e-6])
+
     def run(self) -> int:
         """Run until stopped; returns the exit code."""
         self.restore()
+        self.warm_up()
         with open_bus(self.cfg.bus) as bus:
             self._bus = bus
             self._listener = QueueListener(self.cfg.queue_frames)

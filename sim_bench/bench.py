@@ -1,0 +1,300 @@
+"""The end-to-end bench: estimator daemon and simulated node as processes on a real bus, scored.
+
+Bus: ``vcan0`` when it exists (and carries CAN FD), otherwise a loopback hub (python-can-remote on
+127.0.0.1, started and stopped here). The bench process listens to everything like ``candump``,
+writes the capture as a candump log, joins every estimate with the node's SimTruth by
+(injector, counter) and scores it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import can
+import numpy as np
+
+from estimator.codec.records import (Codec, EstimateQuality, EstimateState, EstimatorStatus, InjectionTrailer,
+                                     SimTruth, ValvePrediction)
+from estimator.service.bus import BusSetupError, check_socketcan, open_bus, to_frame
+from sim_bench import scenarios
+from sim_bench.hub import Hub
+
+# Targets per scenario: max |L_h error| (µm) after 30 injections of each injector, max |N_u error| (%).
+TARGETS = {
+    "nominal": (0.2, 0.3), "temperature-ramp": (0.2, 0.3), "wear": (0.2, 0.3), "mismatch": (0.5, None),
+    "faults": (0.2, 0.3), "multi-injector": (0.2, 0.3), "overload": (None, None),
+}
+SETTLE = 30
+
+
+@dataclass
+class Capture:
+    """What the listener saw, decoded."""
+
+    truth: dict = field(default_factory=dict)          # (inj, counter) -> SimTruth (latest)
+    trailer_t: dict = field(default_factory=dict)      # (inj, counter) -> monotonic time of the trailer
+    rows: list = field(default_factory=list)           # joined estimate rows
+    pending: dict = field(default_factory=dict)        # (inj, counter) -> partial row
+    status: EstimatorStatus | None = None
+    frames: int = 0
+    seen_per_injector: dict = field(default_factory=lambda: defaultdict(int))
+
+
+def default_bus() -> tuple[str, bool]:
+    """('socketcan:vcan0', False) if vcan0 can carry CAN FD, else ('', True): start a hub."""
+    try:
+        check_socketcan("vcan0")
+        return "socketcan:vcan0", False
+    except BusSetupError:
+        return "", True
+
+
+class Listener(threading.Thread):
+    """Receives everything, writes the candump log, joins estimates with truth."""
+
+    def __init__(self, bus_spec: str, log_path: Path, codec: Codec) -> None:
+        super().__init__(daemon=True, name="bench-listener")
+        self.bus = open_bus(bus_spec)
+        self.writer = can.CanutilsLogWriter(str(log_path), channel="vcan0")
+        self.codec = codec
+        self.cap = Capture()
+        self.stop_event = threading.Event()
+        self.lock = threading.Lock()
+
+    def run(self) -> None:
+        while not self.stop_event.is_set():
+            try:
+                msg = self.bus.recv(0.05)
+            except can.CanError:
+                continue
+            if msg is None:
+                continue
+            now = time.monotonic()
+            self.writer.on_message_received(msg)
+            try:
+                rec = self.codec.decode(to_frame(msg))
+            except Exception:   # malformed frames (the faults scenario sends them on purpose)
+                continue
+            with self.lock:
+                self._handle(rec, now)
+
+    def _handle(self, rec, now: float) -> None:
+        c = self.cap
+        c.frames += 1
+        if isinstance(rec, InjectionTrailer):
+            c.trailer_t[(rec.injector_id, rec.counter)] = now
+        elif isinstance(rec, SimTruth):
+            c.truth[(rec.injector_id, rec.counter)] = rec
+        elif isinstance(rec, EstimatorStatus):
+            c.status = rec
+        elif isinstance(rec, (EstimateState, EstimateQuality, ValvePrediction)):
+            key = (rec.injector_id, rec.counter)
+            row = c.pending.setdefault(key, {"injector": rec.injector_id, "counter": rec.counter})
+            if isinstance(rec, EstimateState):
+                t_tr = c.trailer_t.get(key)
+                row.update(nu=rec.nu_n_per_v, lh_um=rec.lh_um, status=rec.status, t=now,
+                           latency_ms=(now - t_tr) * 1e3 if t_tr is not None else float("nan"))
+            elif isinstance(rec, EstimateQuality):
+                row.update(sigma_lh_um=rec.sigma_lh_um, evaluations=rec.evaluations, cost_uvs=rec.cost_uvs,
+                           robust=rec.robust)
+            else:
+                row.update(t_open_us=rec.opening_us, stroke_um=rec.stroke_um, t_contact_us=rec.contact_us)
+            if {"nu", "sigma_lh_um", "t_open_us"} <= row.keys():
+                del c.pending[key]
+                tr = c.truth.get(key)
+                if tr is not None:
+                    c.seen_per_injector[rec.injector_id] += 1
+                    row.update(k=c.seen_per_injector[rec.injector_id], nu_true=tr.nu_n_per_v, lh_true_um=tr.lh_um,
+                               t_open_true_us=tr.opening_us, stroke_true_um=tr.stroke_um,
+                               temperature_c=tr.temperature_c)
+                    c.rows.append(row)
+
+    def close(self) -> None:
+        self.stop_event.set()
+        self.join(timeout=2)
+        self.writer.stop()
+        self.bus.shutdown()
+
+
+def _rms(x) -> float:
+    x = np.asarray([v for v in x if v is not None and math.isfinite(v)])
+    return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
+
+
+def score(rows: list[dict], status: EstimatorStatus | None, scenario: str) -> dict:
+    """Scores of a run: errors over time and after settling, prediction errors, latency, counters."""
+    ok = [r for r in rows if r.get("status") in (0, 1)]
+    settled = [r for r in ok if r["k"] > SETTLE]
+    e_lh = [r["lh_um"] - r["lh_true_um"] for r in settled]
+    e_nu = [100 * (r["nu"] / r["nu_true"] - 1) for r in settled]
+    e_to = [r["t_open_us"] - r["t_open_true_us"] for r in settled if r["t_open_true_us"] > 0]
+    e_st = [r["stroke_um"] - r["stroke_true_um"] for r in settled if r["stroke_true_um"] > 0]
+    lat = [r["latency_ms"] for r in rows if math.isfinite(r.get("latency_ms", float("nan")))]
+    lat_settled = [r["latency_ms"] for r in rows if r.get("k", 0) > SETTLE and math.isfinite(r.get("latency_ms", float("nan")))]
+    s = {
+        "scenario": scenario, "estimates": len(rows), "settled": len(settled),
+        "max_abs_lh_um": float(np.max(np.abs(e_lh))) if e_lh else float("nan"), "rms_lh_um": _rms(e_lh),
+        "max_abs_nu_pct": float(np.max(np.abs(e_nu))) if e_nu else float("nan"), "rms_nu_pct": _rms(e_nu),
+        "rms_t_open_us": _rms(e_to), "rms_stroke_um": _rms(e_st),
+        "latency_p50_ms": float(np.percentile(lat, 50)) if lat else float("nan"),
+        "latency_p99_ms": float(np.percentile(lat, 99)) if lat else float("nan"),
+        "latency_settled_p50_ms": float(np.percentile(lat_settled, 50)) if lat_settled else float("nan"),
+        "latency_settled_p99_ms": float(np.percentile(lat_settled, 99)) if lat_settled else float("nan"),
+    }
+    if status is not None:
+        s.update({k: getattr(status, k) for k in ("accepted", "rejected_crc", "rejected_missing", "rejected_timeout",
+                                                  "rejected_invalid", "rejected_outlier", "frames_dropped",
+                                                  "frames_malformed")})
+    lh_t, nu_t = TARGETS.get(scenario, (None, None))
+    fails = []
+    if lh_t is not None and not (s["max_abs_lh_um"] <= lh_t):
+        fails.append(f"max |L_h error| {s['max_abs_lh_um']:.3f} µm > {lh_t} µm")
+    if nu_t is not None and not (s["max_abs_nu_pct"] <= nu_t):
+        fails.append(f"max |N_u error| {s['max_abs_nu_pct']:.3f} % > {nu_t} %")
+    if lh_t is not None and not settled:
+        fails.append("no settled estimates")
+    s["targets"] = {"lh_um": lh_t, "nu_pct": nu_t}
+    s["failures"] = fails
+    return s
+
+
+def format_score(s: dict) -> str:
+    """The final table of one run."""
+    rows = [("estimates (settled after 30/injector)", f"{s['estimates']} ({s['settled']})"),
+            ("L_h error max / rms [µm]", f"{s['max_abs_lh_um']:.3f} / {s['rms_lh_um']:.3f}"),
+            ("N_u error max / rms [%]", f"{s['max_abs_nu_pct']:.3f} / {s['rms_nu_pct']:.3f}"),
+            ("opening time / stroke prediction rms", f"{s['rms_t_open_us']:.2f} µs / {s['rms_stroke_um']:.3f} µm"),
+            ("latency p50 / p99 [ms], all (after settling)", f"{s['latency_p50_ms']:.2f} / {s['latency_p99_ms']:.2f} "
+             f"({s['latency_settled_p50_ms']:.2f} / {s['latency_settled_p99_ms']:.2f})"),
+            ("throughput [estimates/s]", f"{s.get('throughput_per_s', float('nan')):.1f}")]
+    if "accepted" in s:
+        rows.append(("accepted / rejected crc,missing,timeout,invalid,outlier",
+                     f"{s['accepted']} / {s['rejected_crc']},{s['rejected_missing']},{s['rejected_timeout']},"
+                     f"{s['rejected_invalid']},{s['rejected_outlier']}"))
+        rows.append(("frames dropped / malformed", f"{s['frames_dropped']} / {s['frames_malformed']}"))
+    if "node" in s:
+        rows.append(("node: injections, faults, late", f"{s['node'].get('injections')}, "
+                     f"{s['node'].get('faults')}, {s['node'].get('late')}"))
+    if "daemon_rss_mb" in s:
+        rows.append(("daemon memory [MB] / exit code / stop time", f"{s['daemon_rss_mb']:.0f} / "
+                     f"{s['daemon_exit']} / {s['daemon_stop_s']:.2f} s"))
+    t = s["targets"]
+    verdict = "PASS" if not s["failures"] else "FAIL: " + "; ".join(s["failures"])
+    lines = [f"bench {s['scenario']} - targets: |L_h error| <= {t['lh_um']} µm, |N_u error| <= {t['nu_pct']} % "
+             f"after {SETTLE} injections per injector"]
+    w = max(len(a) for a, _ in rows)
+    lines += [f"  {a:<{w}}  {b}" for a, b in rows]
+    lines.append(f"  {verdict}")
+    return "\n".join(lines)
+
+
+def _rss_mb(pid: int) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return float("nan")
+
+
+def run_bench(scenario_name: str, bus: str | None, seconds: float | None, out_dir: Path, seed: int = 0,
+              progress: bool = True, plots: bool = True) -> dict:
+    """Run one scenario end to end; returns the score dict (also written to out_dir)."""
+    sc = scenarios.get(scenario_name, seconds=seconds)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    hub = None
+    if bus is None:
+        bus, need_hub = default_bus()
+        if need_hub:
+            hub = Hub(log_path=out_dir / "hub.log").start()
+            bus = hub.spec
+    codec = Codec()
+    state_dir = out_dir / "state"
+    if state_dir.exists():
+        for f in state_dir.iterdir():
+            f.unlink()
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    daemon = node = None
+    listener = None
+    try:
+        listener = Listener(bus, out_dir / "capture.log", codec)
+        listener.start()
+        daemon = subprocess.Popen([sys.executable, "-m", "estimator", "run", "--bus", bus, "--state-dir",
+                                   str(state_dir)], stdout=subprocess.DEVNULL,
+                                  stderr=open(out_dir / "daemon.log", "w"), env=env)
+        t_end = time.monotonic() + 60
+        while listener.cap.status is None:          # ready: the first heartbeat is on the bus
+            if daemon.poll() is not None or time.monotonic() > t_end:
+                raise RuntimeError(f"estimator daemon did not start (see {out_dir / 'daemon.log'})")
+            time.sleep(0.05)
+        node = subprocess.Popen([sys.executable, "-m", "sim_bench", "node", "--bus", bus, "--scenario", sc.name,
+                                 "--seconds", str(sc.seconds), "--seed", str(seed)], stdout=subprocess.PIPE,
+                                stderr=open(out_dir / "node.log", "w"), env=env, text=True)
+        t0 = time.monotonic()
+        peak_rss = 0.0
+        while node.poll() is None:
+            time.sleep(0.5)
+            peak_rss = max(peak_rss, _rss_mb(daemon.pid))
+            if progress:
+                with listener.lock:
+                    rows = list(listener.cap.rows[-200:])
+                    st = listener.cap.status
+                e = [abs(r["lh_um"] - r["lh_true_um"]) for r in rows[-20:]]
+                lat = [r["latency_ms"] for r in rows if math.isfinite(r["latency_ms"])]
+                line = (f"\r[{time.monotonic() - t0:5.1f}/{sc.seconds:.0f} s] estimates {len(listener.cap.rows):5d}  "
+                        f"|dL_h| now {max(e) if e else float('nan'):.3f} µm  p99 {np.percentile(lat, 99) if lat else 0:.1f} ms"
+                        f"  dropped {st.frames_dropped if st else 0}  rejected "
+                        f"{(st.rejected_crc + st.rejected_missing + st.rejected_timeout + st.rejected_invalid) if st else 0}")
+                print(line, end="", flush=True)
+        node_out = node.stdout.read() if node.stdout else ""
+        if progress:
+            print()
+        time.sleep(1.0)   # the last estimates and a final heartbeat
+        duration = time.monotonic() - t0
+        daemon.send_signal(signal.SIGTERM)
+        t_stop = time.monotonic()
+        daemon.wait(timeout=10)
+        stop_s = time.monotonic() - t_stop
+    finally:
+        for p in (node, daemon):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.wait()
+        if listener is not None:
+            listener.close()
+        if hub is not None:
+            hub.stop()
+    with listener.lock:
+        rows = list(listener.cap.rows)
+        status = listener.cap.status
+    s = score(rows, status, sc.name)
+    try:
+        s["node"] = json.loads(node_out.strip().splitlines()[-1])["node"]
+    except (ValueError, IndexError, KeyError):
+        s["node"] = {}
+    s.update(bus=bus, seconds=sc.seconds, seed=seed, throughput_per_s=len(rows) / max(duration, 1e-9),
+             daemon_exit=daemon.returncode, daemon_stop_s=stop_s, daemon_rss_mb=peak_rss,
+             description=sc.description)
+    if daemon.returncode != 0:
+        s["failures"].append(f"daemon exit code {daemon.returncode}")
+    if stop_s > 2.0:
+        s["failures"].append(f"daemon took {stop_s:.2f} s to stop")
+    (out_dir / f"bench-{sc.name}.json").write_text(json.dumps({"score": s, "rows": rows}, indent=1, default=float))
+    if plots:
+        try:
+            from sim_bench.bench_plots import plot_bench
+            s["plots"] = [str(p) for p in plot_bench(rows, sc, out_dir, seed)]
+        except ImportError:
+            s["plots"] = []
+    return s

@@ -1,0 +1,103 @@
+"""Bench scenarios: what the simulated injectors do over time, and what goes wrong on the bus.
+
+Temperature law of the simulated actuators (documented in the README): N_u(T) = 15 + 0.06 T
+(N/V, T in degC, so 15 N/V at 0 degC and 21 N/V at 100 degC, Table 1's range), plus a
+per-injector series-production offset. L_h per injector, drifting with wear. The preload is the
+valve spring's 28 N (Table 2) plus a rail-pressure share that varies per injection.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+NU_AT_0C = 15.0
+NU_PER_DEGC = 0.06
+
+
+def nu_of_temperature(t_c: float) -> float:
+    """Coupling factor of a nominal actuator at temperature t_c (degC), N/V."""
+    return NU_AT_0C + NU_PER_DEGC * t_c
+
+
+@dataclass(frozen=True)
+class FaultRates:
+    """Per-frame probabilities of bus faults, and bus stalls (the node pauses sending)."""
+
+    drop: float = 0.0
+    duplicate: float = 0.0
+    reorder: float = 0.0         # swap with the next frame
+    corrupt: float = 0.0         # flip one payload bit (sample pairs only, so the CRC must catch it)
+    stall_every_s: float = 0.0   # 0: never
+    stall_s: float = 0.0
+
+    @property
+    def any(self) -> bool:
+        return any((self.drop, self.duplicate, self.reorder, self.corrupt, self.stall_every_s))
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One bench scenario (all injectors share rate and profiles; they differ in N_u offset and L_h)."""
+
+    name: str
+    injectors: int = 4
+    rate_hz: float = 25.0                    # injections per second per injector
+    seconds: float = 20.0
+    temperature_c: tuple[float, float] = (40.0, 40.0)   # from, to over ``seconds``
+    lh_um: tuple[float, ...] = (1.5, 3.0, 5.0, 7.0, 2.2, 6.1, 4.0, 0.8)
+    nu_offset: tuple[float, ...] = (0.0, 0.04, -0.05, 0.02, -0.03, 0.05, -0.01, 0.03)
+    wear_um: float = 0.0                     # L_h drift over ``seconds``
+    rail_force_n: tuple[float, float] = (0.0, 0.0)   # extra preload: mean, std per injection
+    mismatch: bool = False
+    faults: FaultRates = field(default_factory=FaultRates)
+    window_s: float = 100e-6
+    decimation: int = 1                      # send every n-th sample (slower buses)
+    pool: int = 0                            # >0: precompute this many injections per injector and cycle
+    description: str = ""
+
+    def temperature(self, t: float) -> float:
+        """Temperature at time t (s) since start, degC."""
+        a, b = self.temperature_c
+        return a + (b - a) * min(max(t / self.seconds, 0.0), 1.0)
+
+    def truth(self, injector: int, t: float, rng: np.random.Generator) -> tuple[float, float, float, float]:
+        """(N_u N/V, L_h m, F_open N, temperature degC) of an injection at time t."""
+        temp = self.temperature(t)
+        nu = nu_of_temperature(temp) + self.nu_offset[injector % len(self.nu_offset)]
+        nu = float(np.clip(nu, 15.0, 21.0))
+        lh = self.lh_um[injector % len(self.lh_um)] + self.wear_um * min(t / self.seconds, 1.0)
+        mean, std = self.rail_force_n
+        f_open = 28.0 + max(0.0, mean + std * float(rng.standard_normal())) if (mean or std) else 28.0
+        return nu, lh * 1e-6, f_open, temp
+
+
+# Bus budget assumed by the overload scenario: 500 kbit/s arbitration, 2 Mbit/s data phase.
+# One injection of 201 samples is 1 classic header + 14 FD frames of 64 bytes + classic trailer +
+# 16-byte SimTruth, and the estimator answers with three frames; with bit stuffing that is about
+# 6.4 ms of bus time, i.e. about 155 injections/s for the whole bus. Overload sends twice that.
+BUS_INJECTIONS_PER_S = 155.0
+
+SCENARIOS: dict[str, Scenario] = {
+    "nominal": Scenario("nominal", description="4 injectors at 25 Hz, 40 degC, matched plant"),
+    "temperature-ramp": Scenario("temperature-ramp", temperature_c=(20.0, 100.0), seconds=40.0,
+                                 description="20 -> 100 degC over the run (N_u 16.2 -> 21 N/V)"),
+    "wear": Scenario("wear", wear_um=1.0, seconds=40.0, description="L_h grows by 1 µm over the run"),
+    "mismatch": Scenario("mismatch", mismatch=True, window_s=150e-6,
+                         description="hysteresis plant (±2 V model error), 150 µs sent"),
+    "faults": Scenario("faults", faults=FaultRates(drop=0.01, duplicate=0.01, reorder=0.01, corrupt=0.01,
+                                                   stall_every_s=5.0, stall_s=0.2),
+                       description="1 % each of dropped, duplicated, reordered, corrupted frames; 0.2 s stall every 5 s"),
+    "multi-injector": Scenario("multi-injector", injectors=6, rate_hz=16.0,
+                               description="6 injectors at 16 Hz"),
+    "overload": Scenario("overload", injectors=4, rate_hz=2 * BUS_INJECTIONS_PER_S / 4, pool=64,
+                         description=f"2 x the bus budget ({2 * BUS_INJECTIONS_PER_S:.0f} injections/s)"),
+}
+
+
+def get(name: str, **overrides) -> Scenario:
+    """A scenario by name with optional field overrides (e.g. seconds)."""
+    if name not in SCENARIOS:
+        raise KeyError(f"unknown scenario {name!r}; one of {', '.join(SCENARIOS)}")
+    return replace(SCENARIOS[name], **{k: v for k, v in overrides.items() if v is not None})
