@@ -1,0 +1,100 @@
+"""Service parts: configuration, state persistence, sd_notify, bus spec checks."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import uuid
+
+import pytest
+
+from estimator.ident.tracker import TrackerState
+from estimator.service.bus import BusSetupError, BusSpec, check_socketcan
+from estimator.service.config import ConfigError, DaemonConfig
+from estimator.service.state_store import load_states, save_states
+
+from .conftest import REPO
+
+
+def test_config_file_and_overrides(tmp_path):
+    p = tmp_path / "e.toml"
+    p.write_text('[estimator]\nqueue_frames = 100\nwindow_us = 120.0\n')
+    cfg = DaemonConfig.load(p, bus="virtual:x")
+    assert cfg.queue_frames == 100 and cfg.window_us == 120.0 and cfg.bus == "virtual:x"
+    p.write_text('[estimator]\nqueue = 100\n')
+    with pytest.raises(ConfigError, match="unknown key"):
+        DaemonConfig.load(p)
+    with pytest.raises(ConfigError, match="max_injectors"):
+        DaemonConfig(max_injectors=9)
+    with pytest.raises(ConfigError, match="window_us"):
+        DaemonConfig(window_us=float("nan"))
+
+
+def test_bus_spec_and_fd_mtu_check(tmp_path):
+    assert BusSpec.parse("socketcan:vcan0") == BusSpec("socketcan", "vcan0")
+    with pytest.raises(BusSetupError, match="use socketcan"):
+        BusSpec.parse("vcan0")
+    (tmp_path / "vcan9").mkdir()
+    (tmp_path / "vcan9" / "mtu").write_text("16\n")
+    with pytest.raises(BusSetupError, match="ip link set vcan9 mtu 72"):
+        check_socketcan("vcan9", tmp_path)
+    (tmp_path / "vcan9" / "mtu").write_text("72\n")
+    check_socketcan("vcan9", tmp_path)
+    with pytest.raises(BusSetupError, match="ip link add dev vcan8 type vcan"):
+        check_socketcan("vcan8", tmp_path)
+
+
+def test_state_store_atomic_and_defensive(tmp_path):
+    path = tmp_path / "s.json"
+    st = TrackerState().with_prior(17.0, 3.0)
+    save_states(path, {3: st})
+    loaded, problem = load_states(path)
+    assert problem is None and loaded[3].x == [17.0, 3.0]
+    assert list(tmp_path.iterdir()) == [path]             # no temporary file left behind
+    path.write_text(path.read_text()[:40])                 # truncated
+    loaded, problem = load_states(path)
+    assert loaded == {} and "unreadable" in problem
+    path.write_text(json.dumps({"format": "something-else", "version": 1}))
+    loaded, problem = load_states(path)
+    assert loaded == {} and "not a piezo-injector-estimator-state" in problem
+    doc = {"format": "piezo-injector-estimator-state", "version": 1,
+           "injectors": {"1": st.to_dict(), "2": {"version": 1, "x": "bad"}, "12": st.to_dict()}}
+    path.write_text(json.dumps(doc))
+    loaded, problem = load_states(path)
+    assert list(loaded) == [1] and "injector 2" in problem and "injector 12" in problem
+
+
+def test_daemon_sd_notify_and_sigterm(tmp_path):
+    addr = str(tmp_path / "notify.sock")
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(addr)
+    sock.settimeout(30)
+    env = dict(os.environ, NOTIFY_SOCKET=addr, WATCHDOG_USEC="400000")
+    p = subprocess.Popen([sys.executable, "-m", "estimator", "run", "--bus", f"virtual:sd{uuid.uuid4().hex[:6]}"],
+                         cwd=REPO, env=env, stderr=subprocess.PIPE, text=True)
+    got = []
+    try:
+        while "WATCHDOG=1" not in got:
+            got.append(sock.recv(256).decode())
+        assert got[0] == "READY=1"
+        p.send_signal(signal.SIGTERM)
+        t0 = time.monotonic()
+        p.wait(timeout=5)
+        assert time.monotonic() - t0 < 2.0 and p.returncode == 0
+        sock.settimeout(1)
+        rest = []
+        try:
+            while True:
+                rest.append(sock.recv(256).decode())
+        except socket.timeout:
+            pass
+        assert "STOPPING=1" in rest
+    finally:
+        if p.poll() is None:
+            p.kill()
+        sock.close()
