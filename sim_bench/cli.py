@@ -185,6 +185,17 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def cmd_daemon_bench(args: argparse.Namespace) -> int:
+    """Daemon benchmarks: ingest rate, latency at a rate, 2x overload."""
+    from sim_bench import daemon_bench
+
+    ing = daemon_bench.ingest_rate()
+    rep = daemon_bench.run_latency_and_overload(args.out, args.rate, args.seconds, 2.0, args.bus)
+    print(daemon_bench.format_report(ing, rep))
+    _write_json(args.json_out, {"benchmark": "daemon", "ingest": ing, **rep})
+    return 0
+
+
 def cmd_hub(args: argparse.Namespace) -> int:
     """Serve the loopback CAN hub until interrupted."""
     import time
@@ -250,6 +261,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--quiet", action="store_true", help="no live progress line")
     s.add_argument("--no-plots", action="store_true")
     s.set_defaults(func=cmd_bench)
+
+    s = sub.add_parser("daemon-bench", help="daemon: ingest rate, latency at 200 injections/s, 2x overload")
+    s.add_argument("--rate", type=float, default=200.0, help="injections per second (all injectors)")
+    s.add_argument("--seconds", type=float, default=10.0)
+    s.add_argument("--bus", default=None)
+    s.add_argument("--out", type=Path, default=DEFAULT_OUT / "daemon")
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "daemon-bench.json")
+    s.set_defaults(func=cmd_daemon_bench)
 
     s = sub.add_parser("hub", help="serve a loopback CAN hub (python-can-remote) on 127.0.0.1")
     s.add_argument("--port", type=int, default=None)
