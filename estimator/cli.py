@@ -7,8 +7,8 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import Callable
 
+from estimator.cli_support import run_cli
 from estimator.errors import EstimatorError
 
 log = logging.getLogger("estimator")
@@ -257,14 +257,4 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.debug else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    func: Callable[[argparse.Namespace], int] = args.func
-    try:
-        return func(args)
-    except (EstimatorError, OSError) as exc:
-        if args.debug:
-            raise
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    return run_cli(build_parser(), argv)

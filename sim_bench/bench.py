@@ -45,6 +45,7 @@ class Capture:
     trailer_t: dict = field(default_factory=dict)      # (inj, counter) -> monotonic time of the trailer
     rows: list = field(default_factory=list)           # joined estimate rows
     pending: dict = field(default_factory=dict)        # (inj, counter) -> partial row
+    awaiting: dict = field(default_factory=dict)       # (inj, counter) -> complete row waiting for its SimTruth
     status: EstimatorStatus | None = None
     frames: int = 0
     seen_per_injector: dict = field(default_factory=lambda: defaultdict(int))
@@ -57,6 +58,17 @@ def default_bus() -> tuple[str, bool]:
         return "socketcan:vcan0", False
     except BusSetupError:
         return "", True
+
+
+def resolve_bus(bus: str | None, out_dir: Path) -> tuple[str, Hub | None]:
+    """The bus to use: as given, else vcan0, else a loopback hub started here (returned for stopping)."""
+    if bus is not None:
+        return bus, None
+    spec, need_hub = default_bus()
+    if not need_hub:
+        return spec, None
+    hub = Hub(log_path=out_dir / "hub.log").start()
+    return hub.spec, hub
 
 
 class Listener(threading.Thread):
@@ -92,9 +104,15 @@ class Listener(threading.Thread):
         c = self.cap
         c.frames += 1
         if isinstance(rec, InjectionTrailer):
-            c.trailer_t[(rec.injector_id, rec.counter)] = now
+            key = (rec.injector_id, rec.counter)
+            c.trailer_t[key] = now
+            c.truth.pop(key, None)        # counters wrap: never join with the truth of 256 injections ago
         elif isinstance(rec, SimTruth):
-            c.truth[(rec.injector_id, rec.counter)] = rec
+            key = (rec.injector_id, rec.counter)
+            c.truth[key] = rec
+            row = c.awaiting.pop(key, None)
+            if row is not None:           # the estimate was faster than the node's SimTruth
+                self._join(row, rec)
         elif isinstance(rec, EstimatorStatus):
             c.status = rec
         elif isinstance(rec, (EstimateState, EstimateQuality, ValvePrediction)):
@@ -113,11 +131,16 @@ class Listener(threading.Thread):
                 del c.pending[key]
                 tr = c.truth.get(key)
                 if tr is not None:
-                    c.seen_per_injector[rec.injector_id] += 1
-                    row.update(k=c.seen_per_injector[rec.injector_id], nu_true=tr.nu_n_per_v, lh_true_um=tr.lh_um,
-                               t_open_true_us=tr.opening_us, stroke_true_um=tr.stroke_um,
-                               temperature_c=tr.temperature_c)
-                    c.rows.append(row)
+                    self._join(row, tr)
+                else:
+                    c.awaiting[key] = row
+
+    def _join(self, row: dict, tr: SimTruth) -> None:
+        c = self.cap
+        c.seen_per_injector[tr.injector_id] += 1
+        row.update(k=c.seen_per_injector[tr.injector_id], nu_true=tr.nu_n_per_v, lh_true_um=tr.lh_um,
+                   t_open_true_us=tr.opening_us, stroke_true_um=tr.stroke_um, temperature_c=tr.temperature_c)
+        c.rows.append(row)
 
     def close(self) -> None:
         self.stop_event.set()
@@ -213,12 +236,7 @@ def run_bench(scenario_name: str, bus: str | None, seconds: float | None, out_di
     """Run one scenario end to end; returns the score dict (also written to out_dir)."""
     sc = scenarios.get(scenario_name, seconds=seconds)
     out_dir.mkdir(parents=True, exist_ok=True)
-    hub = None
-    if bus is None:
-        bus, need_hub = default_bus()
-        if need_hub:
-            hub = Hub(log_path=out_dir / "hub.log").start()
-            bus = hub.spec
+    bus, hub = resolve_bus(bus, out_dir)
     codec = Codec()
     state_dir = out_dir / "state"
     if state_dir.exists():

@@ -23,8 +23,7 @@ from estimator.codec.ingest import Ingest
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateState, EstimatorStatus
 from estimator.service.bus import open_bus, to_frame, to_message
-from sim_bench.bench import _rss_mb, default_bus
-from sim_bench.hub import Hub
+from sim_bench.bench import _rss_mb, resolve_bus
 from sim_bench.plant import Plant, PlantConfig
 
 
@@ -119,12 +118,7 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
     out_dir.mkdir(parents=True, exist_ok=True)
     codec = Codec()
     pool = injection_pool(codec)
-    hub = None
-    if bus is None:
-        bus, need = default_bus()
-        if need:
-            hub = Hub(log_path=out_dir / "hub.log").start()
-            bus = hub.spec
+    bus, hub = resolve_bus(bus, out_dir)
     report: dict = {"bus": bus, "rate_per_s": rate, "seconds": seconds}
     d = subprocess.Popen([sys.executable, "-m", "estimator", "run", "--bus", bus], stdout=subprocess.DEVNULL,
                          stderr=open(out_dir / "daemon-bench.log", "w"))

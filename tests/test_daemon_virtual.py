@@ -7,7 +7,6 @@ import time
 import uuid
 
 import can
-import numpy as np
 import pytest
 
 from estimator.codec.injection_frames import injection_frames

@@ -6,7 +6,6 @@ from __future__ import annotations
 import random
 from collections import Counter
 
-import numpy as np
 import pytest
 
 from estimator.codec.frame import Frame
@@ -55,7 +54,6 @@ def test_fuzz_100k_frames():
     processor = Processor(codec, Tracker(), ingest.counters)
     injectors = {i: (16.0 + 0.5 * i, 1.0 + 2.0 * i) for i in range(4)}
     streams: dict[int, list[tuple[str, list[Frame]]]] = {i: [] for i in injectors}
-    expected = Counter()
     valid = 0
     counter = {i: 0 for i in injectors}
     for k in range(360):

@@ -47,32 +47,29 @@ def wait_ready(bus, codec, timeout=60):
     raise AssertionError("daemon never sent a heartbeat")
 
 
+def _pump(bus, codec, out, timeout, done, capture=None):
+    """Receive until ``done(out)`` or timeout, collecting EstimateState/Quality by (injector, counter)."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end and not done(out):
+        m = bus.recv(0.1)
+        if m is None:
+            continue
+        if capture is not None:
+            capture.on_message_received(m)
+        rec = codec.decode(to_frame(m))
+        if isinstance(rec, (EstimateState, EstimateQuality)):
+            out.setdefault((rec.injector_id, rec.counter), {})[type(rec).__name__] = rec
+
+
 def feed_and_collect(bus, codec, injections, injector=0, first_counter=0, capture=None):
     out = {}
     for k, inj in enumerate(injections):
+        key = (injector, first_counter + k)
         for fr in injection_frames(codec, injector, first_counter + k, inj.dt_s, inj.current_a, inj.voltage_v):
             bus.send(to_message(fr))
-        t_end = time.monotonic() + 30
-        while time.monotonic() < t_end and (injector, first_counter + k) not in out:
-            m = bus.recv(0.1)
-            if m is None:
-                continue
-            if capture is not None:
-                capture.on_message_received(m)
-            rec = codec.decode(to_frame(m))
-            if isinstance(rec, (EstimateState, EstimateQuality)):
-                out.setdefault((rec.injector_id, rec.counter), {})[type(rec).__name__] = rec
-        # the quality frame follows the state frame
-        t_end = time.monotonic() + 5
-        while time.monotonic() < t_end and len(out.get((injector, first_counter + k), {})) < 2:
-            m = bus.recv(0.1)
-            if m is None:
-                continue
-            if capture is not None:
-                capture.on_message_received(m)
-            rec = codec.decode(to_frame(m))
-            if isinstance(rec, (EstimateState, EstimateQuality)):
-                out.setdefault((rec.injector_id, rec.counter), {})[type(rec).__name__] = rec
+        # the state frame, then the quality frame that follows it
+        _pump(bus, codec, out, 30, lambda o: key in o, capture)
+        _pump(bus, codec, out, 5, lambda o: len(o.get(key, {})) >= 2, capture)
     return out
 
 
