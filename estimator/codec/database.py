@@ -10,8 +10,7 @@ from cantools.database.can import Database, Message
 
 from estimator.errors import EstimatorError
 
-DBC_PATH = Path(__file__).resolve().parents[2] / "dbc" / "injector.dbc"
-INSTALLED_DBC = Path(__file__).resolve().parent / "injector.dbc"
+DBC_PATH = Path(__file__).resolve().parents[2] / "dbc" / "injector.dbc"   # the checkout's (editable install)
 SAMPLES_PER_BLOCK_MIN = 14
 MAX_CURRENT_STEP_A = 0.001
 MAX_VOLTAGE_STEP_V = 0.01
@@ -39,8 +38,8 @@ class ContractError(EstimatorError):
 
 
 def default_dbc_path() -> Path:
-    """The repository's dbc/injector.dbc, or the copy installed with the package."""
-    return DBC_PATH if DBC_PATH.exists() else INSTALLED_DBC
+    """The repository's dbc/injector.dbc (the project is installed editable; elsewhere pass --dbc)."""
+    return DBC_PATH
 
 
 def check_contract(db: Database) -> list[str]:

@@ -27,8 +27,8 @@ import numpy as np
 from estimator.errors import EstimatorError
 from estimator.ident.cost import CostModel, model_error_statistic
 from estimator.ident.idle_stroke import (STATUS_AT_BOUND, STATUS_NOT_CONVERGED, STATUS_OK, STATUS_REJECTED,
-                                         Estimate, IdentConfig, effective_window_s, finish, identify, refine,
-                                         rejected, search_box)
+                                         Estimate, IdentConfig, effective_window_s, finish, identify,
+                                         predict_valve, refine, rejected, search_box)
 from estimator.ident.measurement import Injection
 from estimator.model.fast_sim import FastSimulator
 
@@ -244,7 +244,6 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator, config: Trac
 
 def _result(st: TrackerState, raw: Estimate, status: str, reason: str, sim: FastSimulator, inj: Injection,
             predict: bool) -> TrackResult:
-    from estimator.ident.idle_stroke import predict_valve
     nu, lh = st.x
     p = np.array(st.p)
     tc = to = stroke = float("nan")

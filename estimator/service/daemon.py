@@ -14,7 +14,6 @@ import signal
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import can
 import numpy as np
@@ -255,8 +254,3 @@ def run_daemon(cfg: DaemonConfig) -> int:
     d = Daemon(cfg)
     d.install_signal_handlers()
     return d.run()
-
-
-def state_file(state_dir: Path) -> Path:
-    """Where the daemon keeps its state in ``state_dir``."""
-    return state_dir / STATE_FILE
