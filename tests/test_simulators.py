@@ -135,3 +135,20 @@ def test_higher_preload_delays_opening(sim):
     res = sim.simulate(standard_drive(t), 16.39, 2.5e-6, f_open_n=[28.0, 150.0])
     assert res.t_contact_s[0] == pytest.approx(res.t_contact_s[1])
     assert res.t_open_s[1] > res.t_open_s[0] + 1e-6
+
+
+@pytest.mark.parametrize("nu,lh_um,phase", [(20.969906, 9.2585, 0.3), (19.734610, 9.929008, 0.1)])
+def test_valve_hovering_at_its_threshold_does_not_chatter(sim, nu, lh_um, phase):
+    """Charge held while the valve is at its opening threshold and the piston rings: the reset
+    v4 := v3 would send the plunger into its seat (Zeno); the model lifts it from rest instead and,
+    after a re-seat, asks for a positive net lift-off force. Both simulators agree."""
+    from sim_bench.plant import PlantConfig, true_current
+
+    t = sample_times(300e-6)
+    cur = np.where(t <= 100e-6 + 1e-12, true_current(t, PlantConfig(), phase), 0.0)
+    fast = sim.simulate(cur, nu, lh_um * 1e-6)
+    ref = simulate_reference(cur, nu, lh_um * 1e-6)
+    assert fast.success[0] and ref.success[0]
+    assert np.max(np.abs(fast.voltage_v - ref.voltage_v)) <= 0.05
+    assert np.max(np.abs(fast.s4_m - ref.s4_m)) <= 0.02e-6
+    assert np.isfinite(fast.t_open_s[0]) and fast.t_open_s[0] > 100e-6     # opened after the current stopped

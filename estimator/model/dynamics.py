@@ -30,10 +30,18 @@ Guards (a transition fires when the guard value crosses from <= 0 to > 0):
   geometric, as in the paper's spring-damper contact (section 5.2): the damper makes the force
   jump at contact, and a momentarily pulling damper force is accepted while s > 0.
 * s crosses s_p: switch between the k_v1 and k_v2 pieces (same mode, no reset).
-* Σ2 -> Σ3: F_c crosses F_open upwards; reset ``v4 := v3`` (paper, section 5.2).
+* Σ2 -> Σ3: F_c crosses F_open upwards; reset ``v4 := v3`` (paper, section 5.2), but not below 0:
+  when the valve reaches its threshold while the piston already retracts (the charge held, the
+  stack ringing), the plunger lifts from rest instead of being launched into its seat.
 * Σ3 -> Σ2 (valve closes while in contact) and flight -> Σ1 (valve closes without contact):
   s4 crosses 0 downwards; the plunger seats inelastically: reset ``s4 := 0, v4 := 0``.
 * Σ3 -> flight: s crosses 0 downwards while the valve is open; flight -> Σ3: s crosses 0 upwards.
+* Re-seated plunger: after a close, Σ2 -> Σ3 needs the net force on a plunger that lifts with the
+  piston to be positive, F_v + b_v min(v3, 0) >= F_open, i.e. the ordinary guard *and* the spring
+  force alone (until the full force falls below F_open, which re-arms the ordinary guard). Without
+  this the reset v4 := v3 removes the damper share of the force that triggered the opening, the
+  plunger drops back onto the seat, and the guard is true again at once: an endless (Zeno) sequence
+  of events when the valve hovers at its opening threshold.
 
 Negative L_h (pre-compressed piston) starts in Σ2 from the static equilibrium with U = 0,
 see :func:`initial_state`; a start in Σ3 is infeasible.
@@ -80,6 +88,8 @@ class HybridStructure:
     guards: np.ndarray       # (6, 3, 14) guard rows, value = guards[r, j] @ z
     guard_target: np.ndarray  # (6, 3) region after the transition, -1 where no guard
     guard_reset: np.ndarray  # (6, 3) RESET_* code
+    open_index: np.ndarray   # (6,) index of the Σ2 -> Σ3 guard in the region's list, -1 if none
+    open_seated: np.ndarray  # (6, 14) that guard without the damper term (used after a re-seat)
 
 
 def _contact_force_row(p: InjectorParameters, stiff: bool) -> np.ndarray:
@@ -161,7 +171,13 @@ def build_structure(p: InjectorParameters) -> HybridStructure:
     for r, rows in table.items():
         for j, (g, t, rs) in enumerate(rows):
             guards[r, j], target[r, j], reset[r, j] = g, t, rs
-    return HybridStructure(a_const, coup, damp, guards, target, reset)
+    open_index = np.array([-1, 2, 1, -1, -1, -1], dtype=np.int64)
+    open_seated = np.zeros((N_REGIONS, NZ))
+    for r, f in ((1, f_soft), (2, f_stiff)):
+        g = f - f_open
+        g[V3] = g[V4] = 0.0          # spring force only
+        open_seated[r] = g
+    return HybridStructure(a_const, coup, damp, guards, target, reset, open_index, open_seated)
 
 
 def region_matrices(structure: HybridStructure, p: InjectorParameters, nu: np.ndarray) -> np.ndarray:

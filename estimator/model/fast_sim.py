@@ -97,6 +97,10 @@ class FastSimulator:
         g = self.structure.guards / self._d  # rows act on scaled z
         norm = np.max(np.abs(g), axis=-1, keepdims=True)
         self._guards = np.ascontiguousarray(g / np.where(norm > 0, norm, 1.0))
+        seated = self.structure.open_seated / self._d
+        snorm = np.max(np.abs(seated), axis=-1, keepdims=True)
+        self._open_seated = np.ascontiguousarray(seated / np.where(snorm > 0, snorm, 1.0))
+        self._open_index = np.ascontiguousarray(self.structure.open_index)
         self._target = np.ascontiguousarray(self.structure.guard_target)
         self._reset = np.ascontiguousarray(self.structure.guard_reset)
         self._mode = dyn.REGION_MODE.astype(np.int8)
@@ -215,7 +219,8 @@ class FastSimulator:
         h_us = self.dt_s * dyn.TIME_SCALE
         kernel.simulate_kernel(src, idx, w, self._a_const, self._a_coup, self._a_damp,
                                psa.ks_n_per_m / nu, psa.rb_v2s_per_mn * nu ** 2,
-                               self._guards, self._target, self._reset, self._mode,
+                               self._guards, self._target, self._reset, self._open_index, self._open_seated,
+                               self._mode,
                                z0s, region0, cur, h_us, couts, u, s3, s4, mode, tc, to, status)
         if not feasible.all():
             status[~feasible] = STATUS_INFEASIBLE

@@ -119,7 +119,7 @@ def _locate(a, g, z, zn, rem, g0, g1, out):
 @njit(cache=True)
 def _apply_reset(z, code):
     if code == RESET_OPEN:
-        z[V4] = z[V3]
+        z[V4] = max(z[V3], 0.0)   # the plunger lifts with the piston, never into its seat
     elif code == RESET_CLOSE:
         z[S4] = 0.0
         z[V4] = 0.0
@@ -148,7 +148,7 @@ def _region_a(a_const, a_coup, a_damp, cpl, dmp, r, out):
 
 @njit(cache=True)
 def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, target, reset,
-                    region_mode, z0, region0, cur, h, cout,
+                    open_index, open_seated, region_mode, z0, region0, cur, h, cout,
                     out_u, out_s3, out_s4, out_mode, t_contact, t_open, status):
     """Advance B candidates over the samples of ``cur`` (all arrays in scaled units, time in µs).
 
@@ -174,6 +174,7 @@ def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, 
     for b in range(nb):
         have[:] = False
         have_a[:] = False
+        seated = False
         for i in range(NZ):
             z[i] = z0[b, i]
         r = region0[b]
@@ -222,6 +223,13 @@ def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, 
                     g = guards[r, j]
                     g0 = _dot(g, z)
                     g1 = _dot(g, zn)
+                    if seated and j == open_index[r]:
+                        # lift-off from the seat needs both forces: min(ordinary, spring-only) > 0
+                        gs = open_seated[r]
+                        gs0, gs1 = _dot(gs, z), _dot(gs, zn)
+                        g0 = min(g0, gs0)
+                        if gs1 < g1:
+                            g, g1 = gs, gs1
                     if g0 <= 0.0 and g1 > 0.0:
                         if not have_a[r]:
                             _region_a(a_const, a_coup, a_damp, cpl[b], dmp[b], r, amat[r])
@@ -248,6 +256,10 @@ def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, 
                 j = best
                 while j >= 0 and nev < MAX_EVENTS_PER_SAMPLE:
                     _apply_reset(z, reset[r, j])
+                    if reset[r, j] == RESET_CLOSE:
+                        seated = True
+                    elif reset[r, j] == RESET_OPEN:
+                        seated = False
                     r = target[r, j]
                     nev += 1
                     md = region_mode[r]
@@ -257,13 +269,20 @@ def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, 
                         t_open[b] = t_ev
                     j = -1
                     for jj in range(3):
-                        if target[r, jj] >= 0 and _dot(guards[r, jj], z) > 0.0:
+                        if target[r, jj] < 0:
+                            continue
+                        gv = _dot(guards[r, jj], z)
+                        if seated and jj == open_index[r]:
+                            gv = min(gv, _dot(open_seated[r], z))
+                        if gv > 0.0:
                             j = jj
                             break
                 rem = rem - best_s
                 if rem <= 1e-12 * h:
                     break
             z[ZI] = cur[k + 1]
+            if seated and open_index[r] >= 0 and _dot(guards[r, open_index[r]], z) <= 0.0:
+                seated = False   # the full opening force fell below F_open: the ordinary guard re-arms
             out_u[b, k + 1] = _dot(cout[b], z)
             out_s3[b, k + 1] = z[S3]
             out_s4[b, k + 1] = z[S4]

@@ -51,6 +51,16 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
     a_all = dyn.region_matrices(st, p, np.array([nu_n_per_v]))[0] * (d[:, None] / d[None, :]) / dyn.TIME_SCALE
     guards = st.guards / d
     guards /= np.maximum(np.max(np.abs(guards), axis=-1, keepdims=True), 1e-300)
+    seated_rows = st.open_seated / d
+    seated_rows /= np.maximum(np.max(np.abs(seated_rows), axis=-1, keepdims=True), 1e-300)
+    seated = False   # after a close, reopening needs the spring force alone (see dynamics)
+
+    def guard_value(r: int, j: int, z: np.ndarray, seated_now: bool) -> float:
+        """Guard j of region r; after a re-seat the opening needs min(ordinary, spring-only) > 0."""
+        v = float(guards[r, j] @ z)
+        if seated_now and j == st.open_index[r]:
+            v = min(v, float(seated_rows[r] @ z))
+        return v
     cout = dyn.output_row(p, nu_n_per_v) / d
 
     out = {k: np.full(n, np.nan) for k in ("u", "s3", "s4")}
@@ -105,8 +115,8 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
 
             events = []
             for j in active:
-                def ev(tt: float, xv: np.ndarray, g=guards[region, j]) -> float:
-                    return float(g @ augmented(tt, xv))
+                def ev(tt: float, xv: np.ndarray, r=region, j=j, sn=seated) -> float:
+                    return guard_value(r, j, augmented(tt, xv), sn)
                 ev.terminal, ev.direction = True, 1.0
                 events.append(ev)
             t_eval = t_us[(t_us > t + 1e-12) & (t_us <= t_us[k1] + 1e-12)]
@@ -116,6 +126,9 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
                             max_step=h / 4, events=events, t_eval=t_eval)
             for tk, xk in zip(sol.t, np.asarray(sol.y).reshape(dyn.NX, -1).T):
                 record(int(round(tk / h)), xk, region)
+                oi = st.open_index[region]
+                if seated and oi >= 0 and guards[region, oi] @ augmented(tk, xk) <= 0.0:
+                    seated = False   # re-armed; takes effect when the integration restarts
             if sol.status != 1:  # reached the knot
                 if sol.t.size:
                     x = sol.y[:, -1]
@@ -130,9 +143,11 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
                 z = augmented(t, x)
                 code = st.guard_reset[region, j]
                 if code == dyn.RESET_OPEN:
-                    z[dyn.V4] = z[dyn.V3]
+                    z[dyn.V4] = max(z[dyn.V3], 0.0)
+                    seated = False
                 elif code == dyn.RESET_CLOSE:
                     z[dyn.S4] = z[dyn.V4] = 0.0
+                    seated = True
                 x = z[: dyn.NX]
                 region = int(st.guard_target[region, j])
                 n_events += 1
@@ -142,7 +157,7 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
                     t_open = t
                 z = augmented(t, x)
                 j = next((jj for jj in range(dyn.MAX_GUARDS) if st.guard_target[region, jj] >= 0
-                          and guards[region, jj] @ z > _INSTANT_TOL), None)
+                          and guard_value(region, jj, z, seated) > _INSTANT_TOL), None)
             if n_events > _MAX_EVENTS:
                 return result(STATUS_EVENT_CAP)
             if t >= t_us[k1] - 1e-12:
