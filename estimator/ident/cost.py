@@ -39,16 +39,21 @@ def charge_c(current_a: np.ndarray, dt_s: float) -> np.ndarray:
     return q
 
 
-def nuisance_basis(current_a: np.ndarray, dt_s: float) -> np.ndarray:
-    """Orthonormal basis (N, 6) of span{I, Q, max(Q - r_i, 0)} (columns normalised before QR)."""
+def nuisance_columns(current_a: np.ndarray, dt_s: float) -> np.ndarray:
+    """The nuisance span's columns I, Q, max(Q - r_i, 0), each normalised to max 1, shape (N, 6)."""
     q = charge_c(current_a, dt_s)
     q_end = max(float(q[-1]), 1e-12)
     b = np.empty((q.size, 2 + len(NUISANCE_THRESHOLDS)))
     b[:, 0] = current_a / max(float(np.abs(current_a).max()), 1e-300)
     b[:, 1] = q / q_end
     for k, r in enumerate(NUISANCE_THRESHOLDS):
-        np.maximum(q / q_end - r, 0.0, out=b[:, 2 + k])
-    qb, _ = np.linalg.qr(b)
+        np.maximum(b[:, 1] - r, 0.0, out=b[:, 2 + k])
+    return b
+
+
+def nuisance_basis(current_a: np.ndarray, dt_s: float) -> np.ndarray:
+    """Orthonormal basis (N, 6) of the nuisance span (QR of :func:`nuisance_columns`)."""
+    qb, _ = np.linalg.qr(nuisance_columns(current_a, dt_s))
     return qb
 
 
@@ -67,11 +72,17 @@ def noise_sigma_v(residual_v: np.ndarray) -> float:
 def model_error_statistic(residual_v: np.ndarray, basis: np.ndarray, sigma_v: float | None = None) -> float:
     """Residual energy in the nuisance span, in units of the noise variance.
 
+    ``basis`` is orthonormal (:func:`nuisance_basis`) or the raw columns (:func:`nuisance_columns`).
+
     Under a correct model with white noise it is chi-square distributed with ``basis.shape[1]``
     degrees of freedom (mean 6); a model error of the I/Q form makes it large.
     """
-    proj = basis.T @ residual_v
     sigma = noise_sigma_v(residual_v) if sigma_v is None else sigma_v
+    if basis.shape[1] and abs(float(basis[:, 0] @ basis[:, 0]) - 1.0) > 1e-9:
+        # raw columns (nuisance_columns): the projection through the normal equations
+        br = basis.T @ residual_v
+        return float(br @ np.linalg.solve(basis.T @ basis, br)) / sigma ** 2
+    proj = basis.T @ residual_v
     return float(proj @ proj) / sigma ** 2
 
 

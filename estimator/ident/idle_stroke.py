@@ -16,12 +16,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 
 from estimator.ident.cost import CostModel, noise_sigma_v
 from estimator.ident.measurement import Injection
-from estimator.ident.search import Box, conjugate_directions, conjugate_step, grid_search, line_search
+from estimator.ident.search import (Box, conjugate_directions, conjugate_stencil, conjugate_vertex, grid_search,
+                                   line_search)
 from estimator.model import dynamics as dyn
 from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
 
@@ -161,24 +163,40 @@ class LocalFit:
     t_open_s: float
     success: bool
 
+    @cached_property
+    def directions(self) -> tuple[np.ndarray, np.ndarray]:
+        """Conjugate directions (columns) and eigenvalues of ``jtj``, weakest first (computed once)."""
+        return conjugate_directions(self.jtj)
+
 
 def local_fit(model: CostModel, x: np.ndarray, box: Box) -> LocalFit:
     """Simulate x and two forward-difference neighbours in one batch (steps toward the box inside)."""
     steps = np.where(x + FD_STEP <= box.hi, FD_STEP, -FD_STEP)
     pts = np.array([x, x + [steps[0], 0.0], x + [0.0, steps[1]]])
     res = model.simulate(pts[:, 0], pts[:, 1] * 1e-6)
-    crit = model.from_result(res)
     r = model.residuals(res)
-    raw = model.measured - res.voltage_v[0]
     jac = -(r[1:] - r[0]) / steps[:, None]            # dU_sim/dx, (2, N)
+    return _fit_from(model, x, res, r[0], jac, bool(res.success.all()))
+
+
+def fit_with_jacobian(model: CostModel, x: np.ndarray, jac: np.ndarray) -> LocalFit:
+    """Local fit at x with a Jacobian known from elsewhere (the conjugate stencil): one simulation."""
+    res = model.simulate(np.array([x[0]]), np.array([x[1] * 1e-6]))
+    return _fit_from(model, x, res, model.residuals(res)[0], jac, bool(res.success[0]))
+
+
+def _fit_from(model: CostModel, x: np.ndarray, res, r0: np.ndarray, jac: np.ndarray, ok: bool) -> LocalFit:
+    """Gauss–Newton model from the residual r0 at x (candidate 0 of ``res``) and dU/dx ``jac`` (2, N)."""
+    crit = model.from_result(res)
+    raw = model.measured - res.voltage_v[0]
     jtj = jac @ jac.T
-    ok = bool(res.success.all()) and bool(np.isfinite(jtj).all())
-    sigma = noise_sigma_v(r[0]) if ok else float("nan")
+    ok = ok and bool(np.isfinite(jtj).all())
+    sigma = noise_sigma_v(r0) if ok else float("nan")
     det = float(jtj[0, 0] * jtj[1, 1] - jtj[0, 1] * jtj[1, 0]) if ok else 0.0
     if ok and det > 1e-14 * float(jtj[0, 0] * jtj[1, 1]):
         inv = np.array([[jtj[1, 1], -jtj[0, 1]], [-jtj[1, 0], jtj[0, 0]]]) / det
         cov = sigma ** 2 * inv
-        step = inv @ (jac @ r[0])
+        step = inv @ (jac @ r0)
     else:
         cov, step = np.full((2, 2), np.inf), np.zeros(2)
     return LocalFit(x.copy(), float(crit[0]), float(model.paper_cost_vs(res)[0]), jtj, step, sigma, cov,
@@ -203,20 +221,29 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
     for cycles in range(1, (max_cycles or config.max_cycles) + 1):
         start = x.copy()
         todo = [0, 1]
+        jac = None
         if batched:
-            x, ok, _ = conjugate_step(f, x, d, st, box)
+            pts, inside = conjugate_stencil(x, d, st, box)
+            res = model.simulate(pts[:, 0], pts[:, 1] * 1e-6)
+            x, ok = conjugate_vertex(pts, model.from_result(res), start, d, st, box)
             todo = [i for i in range(2) if not ok[i]]
             j = None
+            if inside and not todo and res.success.all():
+                # the stencil's central differences along d1, d2 are the Gauss–Newton Jacobian:
+                # dU/dx = D (dU/dalpha), with alpha the coordinates along the directions
+                r = model.residuals(res)
+                jac_a = np.stack([-(r[2] - r[1]) / (2 * st[0]), -(r[4] - r[3]) / (2 * st[1])])
+                jac = d @ jac_a
         for i in todo:
             # the vertex of the first search is the centre of the second, and the vertex of the
             # second is the centre of the local fit: both are evaluated there, not twice
             lr = line_search(f, x, d[:, i], float(st[i]), box, j0=j if i == 0 else None, evaluate_vertex=False)
             x, j = lr.x, None
-        fit = local_fit(model, x, box)
+        fit = fit_with_jacobian(model, x, jac) if jac is not None else local_fit(model, x, box)
         if not fit.success:
             return fit, False, cycles
         move = np.abs(x - start)
-        d, w = conjugate_directions(fit.jtj)
+        d, w = fit.directions
         # next steps: two standard deviations along each direction, at least the tolerance
         sd = np.sqrt(np.maximum(fit.sigma_v ** 2 / np.maximum(w, 1e-300), 0.0))
         st = np.clip(2.0 * sd, 4 * np.min(tol), 2.0)
@@ -332,7 +359,7 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
     tc, to, stroke = fit.t_contact_s, fit.t_open_s, float("nan")
     if predict:
         tc, to, stroke = predict_valve(sim, injection, x[0], x[1] * 1e-6)
-    d, _ = conjugate_directions(fit.jtj)
+    d, _ = fit.directions
     return Estimate(float(x[0]), float(x[1] * 1e-6), cov, fit.paper_cost_vs, fit.criterion, evaluations + 1,
                     status, msg, robust, stat, fit.sigma_v, tc, to, stroke, fit.jtj, d)
 

@@ -62,15 +62,18 @@ class Injection:
             return "current and voltage differ in length"
         if not (np.isfinite(self.dt_s) and self.dt_s > 0):
             return "invalid sample period"
-        if not (np.all(np.isfinite(i)) and np.all(np.isfinite(u))):
+        if i.size == 0:
+            return "too short (no samples)"
+        i_max, i_min, u_max, u_min = float(i.max()), float(i.min()), float(u.max()), float(u.min())
+        if not all(map(np.isfinite, (i_max, i_min, u_max, u_min))):   # NaN propagates into max/min
             return "NaN or infinite samples"
         if not np.isfinite(self.f_open_n) or not (0.0 <= self.f_open_n <= 5000.0):
             return "preload force out of range"
         if self.duration_s < MIN_WINDOW_S - 1e-12:
             return f"too short ({self.duration_s * 1e6:.1f} µs < {MIN_WINDOW_S * 1e6:.0f} µs)"
-        if np.max(np.abs(i)) > MAX_ABS_CURRENT_A or np.max(np.abs(u)) > MAX_ABS_VOLTAGE_V:
+        if max(i_max, -i_min) > MAX_ABS_CURRENT_A or max(u_max, -u_min) > MAX_ABS_VOLTAGE_V:
             return "sample values out of range"
-        if np.max(i) < MIN_PEAK_CURRENT_A or np.ptp(i) < MIN_PEAK_CURRENT_A:
+        if i_max < MIN_PEAK_CURRENT_A or i_max - i_min < MIN_PEAK_CURRENT_A:
             return "flat current (no charging pulse)"
         return None
 

@@ -23,7 +23,7 @@ class Box:
 
     def clip(self, x: np.ndarray) -> np.ndarray:
         """Points moved into the box."""
-        return np.clip(x, self.lo, self.hi)
+        return np.minimum(np.maximum(x, self.lo), self.hi)
 
     def alpha_range(self, x: np.ndarray, d: np.ndarray) -> tuple[float, float]:
         """The range of alpha for which x + alpha d stays inside the box."""
@@ -147,20 +147,23 @@ def conjugate_directions(jtj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return v, np.maximum(w, 0.0)
 
 
-def conjugate_step(f: CostFn, x0: np.ndarray, d: np.ndarray, steps: np.ndarray, box: Box,
-                   trust: float = 2.5) -> tuple[np.ndarray, np.ndarray, int]:
-    """Both line searches along conjugate directions in one batch of five points.
+def conjugate_stencil(x0: np.ndarray, d: np.ndarray, steps: np.ndarray, box: Box) -> tuple[np.ndarray, bool]:
+    """The five points {x0, x0 -/+ s1 d1, x0 -/+ s2 d2}, moved into the box; and whether none had to move."""
+    cand = np.array([x0, x0 - steps[0] * d[:, 0], x0 + steps[0] * d[:, 0],
+                     x0 - steps[1] * d[:, 1], x0 + steps[1] * d[:, 1]])
+    pts = box.clip(cand)
+    return pts, bool(np.all(pts == cand))
+
+
+def conjugate_vertex(pts: np.ndarray, j: np.ndarray, x0: np.ndarray, d: np.ndarray, steps: np.ndarray, box: Box,
+                     trust: float = 2.5) -> tuple[np.ndarray, np.ndarray]:
+    """Both line searches along conjugate directions from one batch of five points.
 
     For a quadratic cost, minimising along d1 does not change the minimiser along d2 when the
-    two are conjugate, so the points {x0, x0 ± s1 d1, x0 ± s2 d2} give both parabolas at once.
-    Returns the combined vertex, a flag per direction (True = vertex found within ``trust`` steps)
-    and the number of evaluations. A direction without a convex, bracketed parabola keeps alpha 0.
+    two are conjugate, so the stencil of :func:`conjugate_stencil` with its costs ``j`` gives both
+    parabolas at once. Returns the combined vertex and a flag per direction (True = vertex found
+    within ``trust`` steps); a direction without a convex, bracketed parabola keeps alpha 0.
     """
-    cand = [x0]
-    for i in range(2):
-        cand += [x0 - steps[i] * d[:, i], x0 + steps[i] * d[:, i]]
-    pts = box.clip(np.array(cand))
-    j = f(pts)
     x = x0.copy()
     ok = np.zeros(2, dtype=bool)
     for i in range(2):
@@ -169,4 +172,4 @@ def conjugate_step(f: CostFn, x0: np.ndarray, d: np.ndarray, steps: np.ndarray, 
         if pv is not None and abs(pv[0]) <= trust * steps[i] and a[0] < a[1] < a[2]:
             x = x + pv[0] * d[:, i]
             ok[i] = True
-    return box.clip(x), ok, len(cand)
+    return box.clip(x), ok

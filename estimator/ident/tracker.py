@@ -25,7 +25,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from estimator.errors import EstimatorError
-from estimator.ident.cost import CostModel, model_error_statistic
+from estimator.ident.cost import CostModel, model_error_statistic, nuisance_columns
 from estimator.ident.idle_stroke import (STATUS_AT_BOUND, STATUS_NOT_CONVERGED, STATUS_OK, STATUS_REJECTED,
                                          Estimate, IdentConfig, effective_window_s, finish, identify,
                                          predict_valve, refine, rejected, search_box)
@@ -133,14 +133,17 @@ def _raw_cov_x(est: Estimate, robust: bool, config: TrackerConfig) -> np.ndarray
     return cov
 
 
-def _warm_estimate(state: TrackerState, inj: Injection, sim: FastSimulator, config: TrackerConfig) -> Estimate:
+def _warm_estimate(state: TrackerState, inj: Injection, sim: FastSimulator, config: TrackerConfig,
+                   box) -> Estimate:
     ic = config.ident
-    box = search_box(ic, sim, inj.f_open_n)
     model = CostModel(sim, inj, effective_window_s(ic, inj, state.robust), ic.norm, state.robust)
     x0 = box.clip(np.array(state.x, dtype=float))
     fit, converged, _ = refine(model, x0, np.array(state.directions), np.array(state.steps), box, ic,
                                max_cycles=config.warm_cycles, batched=True)
-    stat = model_error_statistic(fit.residual, model.basis) if fit.success else float("nan")
+    stat = float("nan")
+    if fit.success:   # the plain model's residual against the nuisance span (normal equations: no QR)
+        stat = model_error_statistic(fit.residual[: model.n], nuisance_columns(model.current, model.dt),
+                                     fit.sigma_v)
     # the published prediction is made once, with the filtered estimate (``_result``)
     return finish(sim, inj, fit, converged, model.evaluations, box, state.robust, stat, ic, predict=False)
 
@@ -165,7 +168,8 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator, config: Trac
 
     cold = not st.initialized or not np.all(np.isfinite(st.x))   # a prior counts as initialized
     restart = cold   # restart the filter from this raw estimate (first injection, mode switch)
-    raw = _cold_estimate(st, inj, sim, config) if cold else _warm_estimate(st, inj, sim, config)
+    box = search_box(config.ident, sim, inj.f_open_n)
+    raw = _cold_estimate(st, inj, sim, config) if cold else _warm_estimate(st, inj, sim, config, box)
     if raw.status == STATUS_REJECTED:
         st.rejected += 1
         return st, _result(st, raw, STATUS_REJECTED, raw.message, sim, inj, predict=False)
@@ -224,7 +228,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator, config: Trac
             p = (np.eye(2) - k) @ p
             p = 0.5 * (p + p.T)
     # the filtered estimate stays inside the search box (projection of the constrained filter)
-    x = search_box(config.ident, sim, inj.f_open_n).clip(x)
+    x = box.clip(x)
     st.initialized = True
     st.x, st.p = x.tolist(), p.tolist()
     st.accepted += 1
@@ -232,7 +236,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator, config: Trac
         # directions: conjugate for the cost (eigenvectors of the Gauss–Newton matrix); steps: two
         # standard deviations of where the next injection's optimum is expected along each, i.e. of
         # the predicted covariance (filter + random walk) plus the raw estimate's own scatter
-        _, v = np.linalg.eigh(raw.jtj)
+        v = raw.directions   # eigenvectors of raw.jtj, from finish()
         expected = p + np.diag([config.q_nu_n_per_v ** 2, config.q_lh_um ** 2]) + r_cov
         sd = np.sqrt(np.einsum("ji,jk,ki->i", v, expected, v))
         st.directions = v.tolist()

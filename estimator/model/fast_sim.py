@@ -110,6 +110,11 @@ class FastSimulator:
         self._dnu = nu_step
         self._ngrid = int(np.ceil((psa.nu_max_n_per_v - psa.nu_min_n_per_v + 2 * margin) / nu_step)) + 1
         self._phi_table: np.ndarray | None = None
+        self._no_idx = np.zeros((1, 4), dtype=np.int64)
+        self._no_w = np.zeros((1, 4))
+        self._no_z0 = np.full((1, dyn.NZ), np.nan)
+        self._no_z0.setflags(write=False)
+        self._t_cache: dict[int, np.ndarray] = {}
         self._a_const = np.ascontiguousarray(self._scaled(self.structure.a_const))
         per_region = (dyn.N_REGIONS, dyn.NZ, dyn.NZ)
         self._a_coup = np.ascontiguousarray(np.broadcast_to(self._scaled(self.structure.a_coupling), per_region))
@@ -152,6 +157,15 @@ class FastSimulator:
         idx, w = kernel.lagrange_stencil(nu, self._nu0, self._dnu)
         return self._table(), idx, w
 
+    def _times(self, n: int) -> np.ndarray:
+        """Sample times 0, dt, ... (s), cached per length (read-only)."""
+        t = self._t_cache.get(n)
+        if t is None:
+            t = np.arange(n) * self.dt_s
+            t.setflags(write=False)
+            self._t_cache[n] = t
+        return t
+
     def check_nu(self, nu: np.ndarray | float) -> np.ndarray:
         """Validate N_u values (N/V) against the parameter range; returns a 1-D float array."""
         nu = np.atleast_1d(np.asarray(nu, dtype=float))
@@ -173,61 +187,56 @@ class FastSimulator:
         Candidates whose initial state is infeasible get ``success=False`` and NaN outputs.
         """
         cur = np.ascontiguousarray(current_a, dtype=float)
-        if cur.ndim != 1 or cur.size < 2 or not np.isfinite(cur.sum()):
+        if cur.ndim != 1 or cur.size < 2:
             raise ParameterError("current must be a 1-D array of at least 2 finite samples (A)")
         if f_open_n is None:
             f_open_n = self.params.valve.f_open_n
-        nu = np.asarray(nu_n_per_v, dtype=float).ravel()
-        lh = np.asarray(lh_m, dtype=float).ravel()
-        fo = np.asarray(f_open_n, dtype=float).ravel()
+        nu = np.ascontiguousarray(nu_n_per_v, dtype=float).ravel()
+        lh = np.ascontiguousarray(lh_m, dtype=float).ravel()
+        fo = np.ascontiguousarray(f_open_n, dtype=float).ravel()
         nb = max(nu.size, lh.size, fo.size)
         if nu.size != nb or lh.size != nb or fo.size != nb:
             try:
                 nu, lh, fo = (a if a.size == nb else np.full(nb, a[0]) if a.size == 1 else
-                              np.broadcast_to(a, (nb,)) for a in (nu, lh, fo))
+                              np.ascontiguousarray(np.broadcast_to(a, (nb,))) for a in (nu, lh, fo))
             except ValueError:
                 raise ParameterError(f"candidate arrays of sizes {nu.size}, {lh.size}, {fo.size} "
                                      "do not broadcast") from None
-        if not (np.isfinite(lh.sum()) and np.isfinite(fo.sum())) or fo.min() < 0:
+        psa = self.params.psa
+        code, n_neg = kernel.check_inputs(cur, nu, lh, fo, psa.nu_min_n_per_v, psa.nu_max_n_per_v)
+        if code == 1:
+            raise ParameterError("current must be a 1-D array of at least 2 finite samples (A)")
+        if code == 2:
+            self.check_nu(nu)   # raises with the offending value
+        if code == 3:
             raise ParameterError("L_h (m) and F_open (N >= 0) must be finite")
         n = cur.size
-        src, idx, w = self._phi_source(self.check_nu(nu), exact)
-
         d = self._d
-        z0s = np.empty((nb, dyn.NZ))
-        couts = np.empty((nb, dyn.NZ))
-        psa = self.params.psa
-        kernel.setup_candidates(nu, lh * d[dyn.ZL], fo, dyn.ZL, psa.ks_n_per_m, psa.r0a_ohm, psa.r0b_v_per_n,
-                                d[dyn.S2], d[dyn.S3], d[dyn.Q], z0s, couts)
+        z0_given = self._no_z0 if nb == 1 else np.full((nb, dyn.NZ), np.nan)
         region0 = np.zeros(nb, dtype=np.int64)
-        feasible = np.ones(nb, dtype=bool)
-        if lh.min() <= 0.0:
+        feasible = None
+        if n_neg:   # pre-compressed starts: the static equilibrium (rare, in Python)
+            z0_given = np.full((nb, dyn.NZ), np.nan)
+            feasible = np.ones(nb, dtype=bool)
             for b in np.flatnonzero(lh <= 0.0):
                 try:
                     z0, region0[b] = dyn.initial_state(self.params, nu[b], lh[b], fo[b])
-                    z0s[b] = z0 * d
+                    z0_given[b] = z0 * d
                 except InfeasibleError:
                     feasible[b] = False
-
-        u = np.empty((nb, n))
-        s3 = np.empty((nb, n))
-        s4 = np.empty((nb, n))
-        mode = np.empty((nb, n), dtype=np.int8)
-        tc = np.empty(nb)
-        to = np.empty(nb)
-        status = np.empty(nb, dtype=np.int64)
-        h_us = self.dt_s * dyn.TIME_SCALE
-        kernel.simulate_kernel(src, idx, w, self._a_const, self._a_coup, self._a_damp,
-                               psa.ks_n_per_m / nu, psa.rb_v2s_per_mn * nu ** 2,
-                               self._guards, self._target, self._reset, self._open_index, self._open_seated,
-                               self._mode,
-                               z0s, region0, cur, h_us, couts, u, s3, s4, mode, tc, to, status)
-        if not feasible.all():
+        if exact:
+            src, idx, w = self._phi_source(nu, True)
+        else:
+            src, idx, w = self._table(), self._no_idx, self._no_w
+        u, s3, s4, mode, tc, to, status, success = kernel.run_batch(
+            src, not exact, idx, w, self._nu0, self._dnu, self._a_const, self._a_coup, self._a_damp,
+            self._guards, self._target, self._reset, self._open_index, self._open_seated, self._mode,
+            nu, lh, fo, z0_given, region0, cur, self.dt_s * dyn.TIME_SCALE, psa.ks_n_per_m, psa.rb_v2s_per_mn,
+            psa.r0a_ohm, psa.r0b_v_per_n, d)
+        if feasible is not None and not feasible.all():
             status[~feasible] = STATUS_INFEASIBLE
+            success[~feasible] = False
             for arr in (u, s3, s4, tc, to):
                 arr[~feasible] = np.nan
-        return BatchResult(
-            t_s=np.arange(n) * self.dt_s, current_a=cur, nu_n_per_v=nu, lh_m=lh, f_open_n=fo,
-            voltage_v=u, s3_m=s3 / 1e6, s4_m=s4 / 1e6, mode=mode,
-            t_contact_s=tc / dyn.TIME_SCALE, t_open_s=to / dyn.TIME_SCALE,
-            success=status == STATUS_OK, status=status)
+        return BatchResult(t_s=self._times(n), current_a=cur, nu_n_per_v=nu, lh_m=lh, f_open_n=fo, voltage_v=u,
+                           s3_m=s3, s4_m=s4, mode=mode, t_contact_s=tc, t_open_s=to, success=success, status=status)
