@@ -20,7 +20,7 @@ MAX_EVENTS_PER_SAMPLE = 12
 STATUS_OK, STATUS_EVENT_CAP = 0, 2
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _flow(a, z, sigma, out):
     """out = exp(a * sigma) @ z by Taylor series (a: (NZ, NZ) per time unit, |a| sigma < 1).
 
@@ -60,7 +60,7 @@ def _flow(a, z, sigma, out):
         k += 1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _dot(g, z):
     s = 0.0
     for i in range(NZ):
@@ -68,7 +68,7 @@ def _dot(g, z):
     return s
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _rate(g, a, z):
     """d/dt (g @ z) = g @ a @ z."""
     s = 0.0
@@ -80,7 +80,7 @@ def _rate(g, a, z):
     return s
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _locate(a, g, z, zn, rem, g0, g1, out, smooth):
     """Crossing time of g @ exp(a s) z in (0, rem] where g0 <= 0 < g1 (zn = state at rem).
 
@@ -135,7 +135,7 @@ def _locate(a, g, z, zn, rem, g0, g1, out, smooth):
     return hi
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _apply_reset(z, code):
     if code == RESET_OPEN:
         z[V4] = max(z[V3], 0.0)   # the plunger lifts with the piston, never into its seat
@@ -144,7 +144,7 @@ def _apply_reset(z, code):
         z[V4] = 0.0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _region_phi(phi_src, idx, w, b, r, z, out, const):
     """Rows 0..NX-1 of the transition matrix of region r for candidate b (weighted table rows),
     and ``const[r]``: the contribution of the constant inputs L_h, F_open, 1 (columns 11..13)."""
@@ -158,14 +158,14 @@ def _region_phi(phi_src, idx, w, b, r, z, out, const):
         const[r, i] = c
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _region_a(a_const, a_coup, a_damp, cpl, dmp, r, out):
     for i in range(NZ):
         for j in range(NZ):
             out[i, j] = a_const[r, i, j] + cpl * a_coup[r, i, j] + dmp * a_damp[r, i, j]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, target, reset,
                     open_index, open_seated, region_mode, z0, region0, cur, h, cout,
                     out_u, out_s3, out_s4, out_mode, t_contact, t_open, status):
@@ -309,7 +309,7 @@ def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, 
             out_mode[b, k + 1] = region_mode[r]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def lagrange_stencil(nu, nu0, dnu):
     """Indices (B, 4) and weights (B, 4) of 4-point Lagrange interpolation on the grid nu0 + i*dnu."""
     nb = nu.shape[0]
@@ -328,7 +328,7 @@ def lagrange_stencil(nu, nu0, dnu):
     return idx, w
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def setup_candidates(nu, lh_scaled, fo, zl, ks, r0a, r0b, d_s2, d_s3, d_q, z0, cout):
     """Initial states at rest (valid for L_h > 0) and output rows, scaled units, for B candidates."""
     for b in range(nu.shape[0]):
@@ -345,7 +345,7 @@ def setup_candidates(nu, lh_scaled, fo, zl, ks, r0a, r0b, d_s2, d_s3, d_q, z0, c
         cout[b, ZI] = r0a * np.exp(-r0b * nu[b])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def lti_foh_kernel(phi, g0, g1, c, d, cur, h, out_y, out_x):
     """x_{k+1} = phi x_k + g0 I_k + g1 (I_{k+1} - I_k)/h from x_0 = 0; y_k = c x_k + d I_k; out_x = x."""
     n = cur.shape[0]
@@ -370,7 +370,7 @@ def lti_foh_kernel(phi, g0, g1, c, d, cur, h, out_y, out_x):
             x[i] = xn[i]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def run_batch(src, stencil, idx_in, w_in, nu0, dnu, a_const, a_coup, a_damp, guards, target, reset, open_index,
               open_seated, region_mode, nu, lh, fo, z0_given, region0, cur, h, ks, rb, r0a, r0b, d):
     """One call for a whole batch: set up each candidate, interpolate its matrices, simulate.
@@ -425,7 +425,7 @@ def run_batch(src, stencil, idx_in, w_in, nu0, dnu, a_const, a_coup, a_damp, gua
     return u, s3, s4, mode, tc, to, status, success
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def check_inputs(cur, nu, lh, fo, nu_min, nu_max):
     """0 if all inputs are usable, else 1 (current), 2 (N_u), 3 (L_h or F_open); and the number of
     candidates with L_h <= 0 (which need their pre-compressed initial state)."""

@@ -50,6 +50,17 @@ def _check_fields(obj: Any) -> None:
             raise ParameterError(f"{f.name} = {value!r} {unit}: must be > 0")
 
 
+def _from_mapping(cls, values: Mapping[str, Any], label: str):
+    """A parameter dataclass from {field: SI value}; unknown or missing fields raise ParameterError."""
+    unknown = set(values) - {f.name for f in fields(cls)}
+    if unknown:
+        raise ParameterError(f"unknown {label} parameter(s): {', '.join(sorted(unknown))}")
+    try:
+        return cls(**{k: float(v) for k, v in values.items()})
+    except TypeError as exc:
+        raise ParameterError(f"{label} parameters incomplete: {exc}") from None
+
+
 @dataclass(frozen=True)
 class PsaParameters:
     """Piezo stack actuator with mounting, Table 1 (SI units).
@@ -83,13 +94,7 @@ class PsaParameters:
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> "PsaParameters":
         """Build from a mapping of field name to SI value (e.g. the TOML table ``[psa]``)."""
-        unknown = set(values) - {f.name for f in fields(cls)}
-        if unknown:
-            raise ParameterError(f"unknown PSA parameter(s): {', '.join(sorted(unknown))}")
-        try:
-            return cls(**{k: float(v) for k, v in values.items()})
-        except TypeError as exc:
-            raise ParameterError(f"PSA parameters incomplete: {exc}") from None
+        return _from_mapping(cls, values, "PSA")
 
     def check_nu(self, nu_n_per_v: float) -> float:
         """Return ``nu_n_per_v`` if it is finite and inside the configured range, else raise."""
@@ -140,13 +145,7 @@ class ValveParameters:
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> "ValveParameters":
         """Build from a mapping of field name to SI value (e.g. the TOML table ``[valve]``)."""
-        unknown = set(values) - {f.name for f in fields(cls)}
-        if unknown:
-            raise ParameterError(f"unknown valve parameter(s): {', '.join(sorted(unknown))}")
-        try:
-            return cls(**{k: float(v) for k, v in values.items()})
-        except TypeError as exc:
-            raise ParameterError(f"valve parameters incomplete: {exc}") from None
+        return _from_mapping(cls, values, "valve")
 
     def contact_force_n(self, compression_m: float) -> float:
         """Piecewise linear contact spring F_v(s) of Fig. 11 (0 for s <= 0), in N."""
