@@ -15,7 +15,7 @@ the residual's differences), the model is wrong in a smooth way and the robust e
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
@@ -209,7 +209,7 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
     """Cycles of line searches along conjugate directions; returns (fit, converged, cycles).
 
     ``batched``: the directions are already conjugate (warm start), so both line searches of a
-    cycle are evaluated in one batch (:func:`conjugate_step`); a direction whose parabola is not
+    cycle are evaluated in one batch (:func:`conjugate_stencil`, :func:`conjugate_vertex`); a direction whose parabola is not
     convex or leaves the trust region falls back to the bracketing line search.
     """
     x, j = box.clip(x0.astype(float)), j0
@@ -362,8 +362,3 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
     d, _ = fit.directions
     return Estimate(float(x[0]), float(x[1] * 1e-6), cov, fit.paper_cost_vs, fit.criterion, evaluations + 1,
                     status, msg, robust, stat, fit.sigma_v, tc, to, stroke, fit.jtj, d)
-
-
-def with_window(config: IdentConfig, window_us: float | None) -> IdentConfig:
-    """The config with another cost window (µs), if given."""
-    return config if window_us is None else replace(config, window_s=window_us * 1e-6)

@@ -329,23 +329,6 @@ def lagrange_stencil(nu, nu0, dnu):
 
 
 @njit(cache=True, nogil=True)
-def setup_candidates(nu, lh_scaled, fo, zl, ks, r0a, r0b, d_s2, d_s3, d_q, z0, cout):
-    """Initial states at rest (valid for L_h > 0) and output rows, scaled units, for B candidates."""
-    for b in range(nu.shape[0]):
-        for i in range(NZ):
-            z0[b, i] = 0.0
-            cout[b, i] = 0.0
-        z0[b, zl] = lh_scaled[b]
-        z0[b, zl + 1] = fo[b]
-        z0[b, zl + 2] = 1.0
-        ks_nu = ks / nu[b]
-        cout[b, S3] = -ks_nu / d_s3
-        cout[b, S3 - 2] = ks_nu / d_s2
-        cout[b, Q] = ks_nu / nu[b] / d_q
-        cout[b, ZI] = r0a * np.exp(-r0b * nu[b])
-
-
-@njit(cache=True, nogil=True)
 def lti_foh_kernel(phi, g0, g1, c, d, cur, h, out_y, out_x):
     """x_{k+1} = phi x_k + g0 I_k + g1 (I_{k+1} - I_k)/h from x_0 = 0; y_k = c x_k + d I_k; out_x = x."""
     n = cur.shape[0]

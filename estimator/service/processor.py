@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 from estimator.codec.assembler import Completed, Rejected
 from estimator.codec.ingest import Counters, Event, Malformed
@@ -19,6 +19,8 @@ from estimator.ident.tracker import Tracker, TrackResult
 from estimator.service.ratelimit import RateLimitedLog
 
 log = logging.getLogger(__name__)
+# the heartbeat's counters are the Counters fields of the same name
+_STATUS_COUNTERS = tuple(f.name for f in fields(EstimatorStatus) if f.name in {g.name for g in fields(Counters)})
 
 
 @dataclass(frozen=True)
@@ -107,9 +109,6 @@ class Processor:
 
     def status_frame(self, queue_depth: int, latency_p99_ms: float, uptime_s: float):
         """The EstimatorStatus heartbeat frame."""
-        c = self.counters
-        m = 0xFFFFFFFF
-        return self.codec.encode(EstimatorStatus(
-            c.accepted & m, c.rejected_crc & m, c.rejected_missing & m, c.rejected_timeout & m,
-            c.rejected_invalid & m, c.rejected_outlier & m, c.frames_dropped & m, c.frames_malformed & m,
-            queue_depth, latency_p99_ms, int(uptime_s), c.bus_errors & m))
+        counts = {name: getattr(self.counters, name) & 0xFFFFFFFF for name in _STATUS_COUNTERS}  # 32-bit rolling
+        return self.codec.encode(EstimatorStatus(**counts, queue_depth=queue_depth, latency_p99_ms=latency_p99_ms,
+                                                 uptime_s=int(uptime_s)))
