@@ -15,7 +15,7 @@ log = logging.getLogger("estimator")
 
 
 def _config(args: argparse.Namespace):
-    from estimator.ident.idle_stroke import IdentConfig
+    from estimator.ident.config import IdentConfig
 
     kw = {}
     if getattr(args, "window_us", None) is not None:
@@ -54,7 +54,8 @@ def cmd_params(args: argparse.Namespace) -> int:
 def cmd_identify(args: argparse.Namespace) -> int:
     """Identify N_u and L_h of one trace (eq. 28)."""
     from estimator.errors import TraceError
-    from estimator.ident.idle_stroke import identify, rejected
+    from estimator.ident.estimate import rejected
+    from estimator.ident.idle_stroke import identify
 
     config = _config(args)
     try:
@@ -82,8 +83,10 @@ def cmd_identify(args: argparse.Namespace) -> int:
 def cmd_track(args: argparse.Namespace) -> int:
     """Run the recursive estimator over trace files in order; one JSON line per injection."""
     from estimator.errors import TraceError
-    from estimator.ident.idle_stroke import rejected
-    from estimator.ident.tracker import Tracker, TrackerConfig, TrackResult
+    from estimator.ident.config import TrackerConfig
+    from estimator.ident.estimate import rejected
+    from estimator.ident.status import Status
+    from estimator.ident.tracker import Tracker, TrackResult
 
     tracker = Tracker(TrackerConfig(ident=_config(args)))
     nan = float("nan")
@@ -91,11 +94,12 @@ def cmd_track(args: argparse.Namespace) -> int:
         try:
             res = tracker.update(_load(path))
         except TraceError as exc:
-            res = TrackResult(rejected(str(exc)), nan, nan, nan, nan, "rejected", str(exc), 0)
+            res = TrackResult(rejected(str(exc)), nan, nan, nan, nan, Status.REJECTED, str(exc), 0)
         filt = res.filtered_dict()
         out = {"file": str(path), "raw": res.raw.to_dict(),
-               "filtered": {k: filt[k] for k in ("nu_n_per_v", "lh_um", "sigma_nu_n_per_v", "sigma_lh_um")},
-               "status": res.status, "reason": res.reason,
+               "filtered": {k: filt[k] for k in ("nu_n_per_v", "lh_um", "sigma_nu_n_per_v", "sigma_lh_um",
+                                                 "rate_n_per_v_per_s", "slope_n_per_v_per_degc")},
+               "status": res.status.value, "reason": res.reason, "outliers": res.outliers,
                "prediction": {k: filt[k] for k in ("t_contact_us", "t_open_us", "stroke_um")}}
         print(json.dumps(out), flush=True)
     return 0

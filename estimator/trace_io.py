@@ -46,9 +46,11 @@ def read_trace(path: str | Path) -> Trace:
     """Read a trace CSV. Raises :class:`TraceError` with one readable line on any problem."""
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise TraceError(f"cannot read trace {path}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise TraceError(f"trace {path} is not UTF-8 text (byte {exc.start}): not a trace CSV") from None
     meta: dict[str, str] = {}
     body: list[str] = []
     for line in text.splitlines():
@@ -87,11 +89,15 @@ def write_trace(path: str | Path, columns: dict[str, np.ndarray], meta: dict[str
 
 def injection_from_trace(trace: Trace, default_preload_n: float = 28.0):
     """The :class:`~estimator.ident.measurement.Injection` of a trace (columns t_s, current_A, voltage_V;
-    metadata preload_force_n, temperature_c, injector_id). Raises TraceError for unusable files."""
+    metadata preload_force_n, temperature_c, injector_id, time_s). Raises TraceError for unusable files."""
     from estimator.ident.measurement import Injection
 
     preload = trace.meta_float("preload_force_n", default_preload_n)
     temp = trace.meta_float("temperature_c", float("nan"))
-    inj_id = int(trace.meta_float("injector_id", 0.0) or 0)
+    inj_id = trace.meta_float("injector_id", 0.0) or 0.0
+    if inj_id != int(inj_id) or not 0 <= inj_id <= 255:
+        raise TraceError(f"trace metadata injector_id={trace.meta['injector_id']!r} is not an id 0..255")
+    time_s = trace.meta_float("time_s", float("nan"))
     return Injection.from_samples(trace.column("t_s"), trace.column("current_A"), trace.column("voltage_V"),
-                                  float(preload), injector_id=inj_id, temperature_c=float(temp))
+                                  float(preload), injector_id=int(inj_id), temperature_c=float(temp),
+                                  time_s=float(time_s))

@@ -12,6 +12,7 @@ import numpy as np
 from estimator.cli_support import run_cli
 from estimator.errors import EstimatorError
 from estimator.trace_io import read_trace, write_trace
+from sim_bench import tracking_bench
 
 log = logging.getLogger("sim_bench")
 DEFAULT_OUT = Path("bench-results")
@@ -98,15 +99,21 @@ def cmd_accuracy(args: argparse.Namespace) -> int:
 
 
 def cmd_tracking(args: argparse.Namespace) -> int:
-    """The recursive estimator on steady, temperature-ramp and wear sequences."""
-    from sim_bench import ident_bench
+    """The recursive estimator on drift, steps, glitches and warm-ups; exit 1 if a target is missed."""
+    from sim_bench import tracking_bench
 
-    names = list(ident_bench.TRACKING) if args.scenario == "all" else [args.scenario]
-    plants = {"matched": [False], "mismatch": [True], "both": [False, True]}[args.plant]
-    reports = [ident_bench.tracking(n, args.seed, m, args.injections) for m in plants for n in names]
-    print(ident_bench.format_tracking(reports))
+    names = list(tracking_bench.TRACKING) if args.scenario == "all" else [args.scenario]
+    runs = []
+    if args.plant in ("matched", "both", "default"):
+        runs += [(n, False) for n in names]
+    if args.plant in ("mismatch", "both"):
+        runs += [(n, True) for n in names]
+    elif args.plant == "default":
+        runs += [(n, True) for n in names if n in tracking_bench.DEFAULT_MISMATCH]
+    reports = [tracking_bench.tracking(n, args.seed, m, args.injections) for n, m in runs]
+    print(tracking_bench.format_tracking(reports))
     _write_json(args.json_out, {"benchmark": "tracking", "reports": reports})
-    return 0
+    return 0 if all(r["summary"]["passed"] for r in reports) else 1
 
 
 def cmd_speed(args: argparse.Namespace) -> int:
@@ -282,8 +289,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_accuracy)
 
     s = sub.add_parser("tracking", help="recursive estimator on injection sequences")
-    s.add_argument("--scenario", choices=("all", "steady", "temperature-ramp", "wear"), default="all")
-    s.add_argument("--plant", choices=("matched", "mismatch", "both"), default="both")
+    s.add_argument("--scenario", choices=("all", *tracking_bench.TRACKING), default="all")
+    s.add_argument("--plant", choices=("default", "matched", "mismatch", "both"), default="default",
+                   help="default: every scenario matched, and " + ", ".join(tracking_bench.DEFAULT_MISMATCH)
+                        + " on the hysteresis plant too")
     s.add_argument("--injections", type=int, default=None, help="override the scenario's length")
     s.add_argument("--seed", type=int, default=2)
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "tracking.json")

@@ -11,9 +11,11 @@ import time
 import numpy as np
 
 from estimator.ident.crb import crb, crb_opening_time
-from estimator.ident.idle_stroke import IdentConfig, identify
+from estimator.ident.config import IdentConfig
+from estimator.ident.idle_stroke import identify
 from estimator.ident.measurement import Injection
-from estimator.ident.tracker import Tracker, TrackerConfig
+from estimator.ident.config import TrackerConfig
+from estimator.ident.tracker import Tracker
 from estimator.model.fast_sim import FastSimulator
 from sim_bench.plant import Measurement, Plant, PlantConfig
 
@@ -102,69 +104,6 @@ def format_accuracy(reports: list[dict]) -> str:
             f"{s['crb_nu_pct']:>7.3f} {s['rmse_lh_um']:>9.3f} {s['crb_lh_um']:>7.3f} {s['lh_rmse_over_crb']:>6.2f} "
             f"{s['max_abs_lh_um']:>9.3f} {s['rmse_t_open_us']:>7.2f} {s['crb_t_open_us']:>7.2f} {s['rmse_stroke_um']:>7.3f} "
             f"{100 * s['robust_fraction']:>7.0f} {s['median_cold_ms']:>7.1f}")
-    return "\n".join(lines)
-
-
-TRACKING = {
-    # name: (injections, N_u(k) in N/V, L_h(k) in µm)
-    "steady": (200, lambda k, n: 17.2, lambda k, n: 4.0),
-    "temperature-ramp": (1000, lambda k, n: 15.0 + 6.0 * k / (n - 1), lambda k, n: 4.0),
-    "wear": (1000, lambda k, n: 17.2, lambda k, n: 3.0 + 1.0 * k / (n - 1)),
-}
-
-
-def tracking(scenario: str, seed: int = 2, mismatch: bool = False, injections: int | None = None) -> dict:
-    """Feed a sequence of injections of one injector to the recursive estimator and score it."""
-    n0, nu_fn, lh_fn = TRACKING[scenario]
-    n = injections or n0
-    plant = Plant(PlantConfig(mismatch=mismatch))
-    tracker = Tracker(TrackerConfig(), FastSimulator())
-    rng = np.random.default_rng(seed)
-    rows = []
-    for k in range(n):
-        nu, lh = nu_fn(k, n), lh_fn(k, n)
-        m = plant.measure(nu, lh * 1e-6, F_OPEN_N, rng)
-        t0 = time.perf_counter()
-        r = tracker.update(_injection(m, counter=k % 256))
-        dt = time.perf_counter() - t0
-        rows.append({"k": k, "nu_true": nu, "lh_true_um": lh, "nu": r.nu_n_per_v, "lh_um": r.lh_m * 1e6,
-                     "raw_nu": r.raw.nu_n_per_v, "raw_lh_um": r.raw.lh_m * 1e6, "sigma_lh_um": r.sigma_lh_m * 1e6,
-                     "status": r.status, "seconds": dt, "t_open_true_us": m.t_open_s * 1e6,
-                     "t_open_us": r.t_open_s * 1e6, "stroke_true_um": m.stroke_m * 1e6, "stroke_um": r.stroke_m * 1e6})
-    e_lh = np.array([r["lh_um"] - r["lh_true_um"] for r in rows])
-    e_nu = np.array([100 * (r["nu"] / r["nu_true"] - 1) for r in rows])
-    after = slice(50, None)
-    settle = slice(10, None)
-    t = np.array([r["seconds"] for r in rows[1:]]) * 1e3
-    summary = {
-        "scenario": scenario, "mismatch": mismatch, "injections": n,
-        "max_abs_lh_after50_um": float(np.nanmax(np.abs(e_lh[after]))),
-        "rms_lh_after50_um": _rms(e_lh[after]),
-        "max_abs_lh_after10_um": float(np.nanmax(np.abs(e_lh[settle]))),
-        "max_abs_nu_after10_pct": float(np.nanmax(np.abs(e_nu[settle]))),
-        "rms_raw_lh_um": _rms([r["raw_lh_um"] - r["lh_true_um"] for r in rows]),
-        "rmse_t_open_us": _rms([r["t_open_us"] - r["t_open_true_us"] for r in rows[10:]]),
-        "rmse_stroke_um": _rms([r["stroke_um"] - r["stroke_true_um"] for r in rows[10:]]),
-        "rejected": int(sum(r["status"] == "rejected" for r in rows)),
-        "median_update_ms": float(np.median(t)), "p99_update_ms": float(np.percentile(t, 99)),
-    }
-    return {"benchmark": "tracking", "seed": seed, "summary": summary, "rows": rows}
-
-
-def format_tracking(reports: list[dict]) -> str:
-    """One line per tracking report."""
-    head = (f"{'scenario':<18} {'plant':<9} {'inj':>5} {'max|dLh|>50':>11} {'rms dLh>50':>10} {'max|dLh|>10':>11} "
-            f"{'max|dNu|>10':>11} {'raw dLh':>8} {'t_open':>7} {'stroke':>7} {'rej':>4} {'median':>7} {'p99':>6}")
-    units = (f"{'':<18} {'':<9} {'':>5} {'[µm]':>11} {'[µm]':>10} {'[µm]':>11} {'[%]':>11} {'[µm]':>8} {'[µs]':>7} "
-             f"{'[µm]':>7} {'':>4} {'[ms]':>7} {'[ms]':>6}")
-    lines = [head, units]
-    for rep in reports:
-        s = rep["summary"]
-        lines.append(
-            f"{s['scenario']:<18} {'mismatch' if s['mismatch'] else 'matched':<9} {s['injections']:>5} "
-            f"{s['max_abs_lh_after50_um']:>11.3f} {s['rms_lh_after50_um']:>10.3f} {s['max_abs_lh_after10_um']:>11.3f} "
-            f"{s['max_abs_nu_after10_pct']:>11.3f} {s['rms_raw_lh_um']:>8.3f} {s['rmse_t_open_us']:>7.2f} "
-            f"{s['rmse_stroke_um']:>7.3f} {s['rejected']:>4} {s['median_update_ms']:>7.2f} {s['p99_update_ms']:>6.2f}")
     return "\n".join(lines)
 
 

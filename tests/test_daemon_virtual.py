@@ -61,12 +61,13 @@ def test_injections_in_estimates_out_match_the_core(running):
         inj, _ = measured(17.4, 3.6, 2000 + k, window_s=100e-6)
         for fr in injection_frames(codec, 1, k, inj.dt_s, inj.current_a, inj.voltage_v, 28.0, 40.0):
             bus.send(to_message(fr))
+        t_trailer = time.time()   # the virtual bus stamps the trailer at send: the daemon's time of this injection
         # the core on the same (quantised) samples
         q = codec.layout
         c_raw, v_raw = q.to_raw(inj.current_a, inj.voltage_v)
         from estimator.ident.measurement import Injection
         expected.append(reference.update(Injection(c_raw * q.current_scale, v_raw * q.voltage_scale, inj.dt_s,
-                                                   28.0, 1, k)))
+                                                   28.0, 1, k, 40.0, t_trailer)))
     got = collect(bus, codec, lambda g: sum(isinstance(r, ValvePrediction) for r in g) >= 6)
     states = [r for r in got if isinstance(r, EstimateState)]
     quality = [r for r in got if isinstance(r, EstimateQuality)]

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimator.ident.idle_stroke import IdentConfig, identify
+from estimator.ident.config import IdentConfig
+from estimator.ident.idle_stroke import identify
 from estimator.ident.measurement import Injection
 
 from .helpers import measured

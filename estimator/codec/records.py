@@ -20,8 +20,6 @@ from estimator.codec.frame import Frame
 from estimator.codec.samples import SampleLayout
 from estimator.errors import EstimatorError
 
-STATUS_CODES = {"ok": 0, "at_bound": 1, "not_converged": 2, "rejected": 3, "no_estimate": 4}
-STATUS_NAMES = {v: k for k, v in STATUS_CODES.items()}
 COMMAND_NONE, COMMAND_RESET, COMMAND_SET_PRIOR = 0, 1, 2
 
 

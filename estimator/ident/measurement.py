@@ -29,7 +29,10 @@ class Injection:
     dt_s : sample period in s.
     f_open_n : valve preload for this injection in N (spring + rail pressure).
     injector_id, counter : identification on the bus (informative).
-    temperature_c : fuel temperature in degC if known (informative, NaN otherwise).
+    temperature_c : fuel temperature in degC if known (NaN otherwise); the recursive estimator uses
+        its changes to predict N_u (eq. 25).
+    time_s : time of the injection in s on any monotonic clock (bus timestamp, trace metadata), NaN if
+        unknown; the recursive estimator scales its process noise by the time between injections.
     """
 
     current_a: np.ndarray
@@ -39,6 +42,7 @@ class Injection:
     injector_id: int = 0
     counter: int = 0
     temperature_c: float = float("nan")
+    time_s: float = float("nan")
 
     @property
     def n(self) -> int:
@@ -81,7 +85,7 @@ class Injection:
         """The samples with t <= t_end_s (a view-sized copy)."""
         k = min(self.n, int(round(t_end_s / self.dt_s)) + 1)
         return Injection(self.current_a[:k], self.voltage_v[:k], self.dt_s, self.f_open_n,
-                         self.injector_id, self.counter, self.temperature_c)
+                         self.injector_id, self.counter, self.temperature_c, self.time_s)
 
     @classmethod
     def from_samples(cls, t_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray,

@@ -1,150 +1,253 @@
-"""The recursive per-injection estimator: warm-started line searches + a random-walk Kalman filter.
+"""The recursive per-injection estimator: warm-started line searches + a drift-aware Kalman filter.
 
 Per injection (:func:`update`, pure: state in, state out):
 
-1. Validity: a bad trace is rejected with its reason; the state is unchanged.
-2. Raw estimate: from the filtered estimate of the previous injection, line searches along the two
-   conjugate directions kept from the previous injection (the cost valley and across it), with
-   step sizes of two standard deviations, then a Gauss–Newton check; one more cycle only if that
-   check says the minimum is further away. Cold start (first injection, or re-acquisition): the
-   coarse grid of :func:`estimator.ident.idle_stroke.identify`.
-3. Filter: N_u may move with temperature between injections, L_h slowly with wear: a random walk
-   with per-injection standard deviations ``q_nu``, ``q_lh_um``. The raw estimate's covariance is
-   the Gauss–Newton one. An innovation beyond the chi-square gate is rejected as an outlier and does
-   not move the estimate; after ``max_consecutive_outliers`` in a row the injector has really
-   changed (e.g. refitted) and the estimator re-acquires from a cold start.
+1. Validity: a bad trace is rejected with its reason; the filter is unchanged.
+2. Raw estimate: from the filter's prediction for this injection (drift rate and temperature slope
+   included), line searches along the two conjugate directions kept from the previous injection,
+   then a Gauss–Newton check. Cold start (first injection, or re-acquisition): the profile search
+   of :mod:`estimator.ident.cold_start`.
+3. Filter (:mod:`estimator.ident.kalman`): time-aware process noise (per injection and per second
+   since the injector's last accepted injection), a learned drift rate and temperature slope. An
+   innovation inside the chi-square gate updates the filter. One outside it is *in doubt*:
+
+   - a fit the plain model cannot explain (model-error statistic far above its threshold) is a
+     glitch: rejected, counted, the published estimate is the filter's;
+   - otherwise the injection is kept pending and published with status ``unconfirmed``: with its
+     own raw estimate if the innovation is beyond anything noise does (``raw_publish_chi2``), else
+     with the filter updated by it (published, not committed). If the next injection agrees with the filter, the pending one was an outlier
+     (counted). If it disagrees too, and a jump of N_u, of L_h or of both at the pending injection
+     (generalised likelihood ratio) followed by the filter's drift explains both, the jump is
+     taken: the filter forgets the jumped components and processes both injections. A ramp or a
+     step is thus followed from the second injection on, and nothing stale is published as ``ok``.
+   - ``max_consecutive_outliers`` doubts in a row that agree with nothing: re-acquire (restart the
+     filter at the latest raw estimate).
 4. Model-error mode: the residual's energy in the nuisance span (see :mod:`estimator.ident.cost`)
    decides per injector, with hysteresis, whether to use the robust (projected) cost.
+5. Status: ``ok`` only for a converged estimate whose sigma(L_h) is within ``sigma_limit_lh_um``;
+   ``uncertain`` above it.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
 from estimator.errors import EstimatorError
+from estimator.ident import kalman
+from estimator.ident.config import IdentConfig, TrackerConfig
+from estimator.ident.coords import UM_PER_M
 from estimator.ident.cost import CostModel, model_error_statistic, nuisance_columns
-from estimator.ident.idle_stroke import (STATUS_AT_BOUND, STATUS_NOT_CONVERGED, STATUS_OK, STATUS_REJECTED,
-                                         Estimate, IdentConfig, effective_window_s, finish, identify,
-                                         predict_valve, refine, rejected, search_box)
+from estimator.ident.estimate import Estimate, rejected
+from estimator.ident.idle_stroke import (check_injection, effective_window_s, finish, identify, predict_valve,
+                                         search_box)
+from estimator.ident.local_fit import refine
 from estimator.ident.measurement import Injection
+from estimator.ident.model_selection import likelihood_ratio
+from estimator.ident.search import Box
+from estimator.ident.status import Status
 from estimator.model.fast_sim import FastSimulator
 
-STATE_VERSION = 1
+__all__ = ["IdentConfig", "TrackerConfig", "TrackerState", "TrackResult", "Tracker", "update"]
+
+STATE_VERSION = 2
+ROBUST_CHECK_EVERY = 4         # in robust mode, every 4th injection also fits the plain model (model-error test)
+UNKNOWN_TEMPERATURE_C = -49.5   # FuelTemperature's wire minimum (-50 degC) means "not measured"
 
 
-@dataclass(frozen=True)
-class TrackerConfig:
-    """Settings of the recursive estimator (units in the names)."""
+def process_noise(config: TrackerConfig, box: Box) -> kalman.ProcessNoise:
+    """The filter's process noise and variance caps for this configuration and search box."""
+    span = box.hi - box.lo
+    return kalman.ProcessNoise(
+        config.q_nu_n_per_v, config.q_lh_um, config.q_nu_per_sqrt_s, config.q_nu_per_sqrt_s_known_t,
+        config.q_lh_per_sqrt_s,
+        config.q_rate_per_sqrt_s, config.q_rate_per_sqrt_s_known_t, config.slope_sigma / math.sqrt(3600.0), config.rate_tau_s,
+        (float(span[0] / 2) ** 2, float(span[1] / 2) ** 2, config.max_rate_n_per_v_s ** 2, config.slope_sigma ** 2))
 
-    ident: IdentConfig = field(default_factory=IdentConfig)
-    q_nu_n_per_v: float = 0.01          # random walk of N_u per injection (temperature)
-    q_lh_um: float = 0.003              # random walk of L_h per injection (wear)
-    gate_chi2: float = 18.4             # 2 dof, P(false rejection) = 1e-4
-    max_consecutive_outliers: int = 5
-    warm_cycles: int = 3
-    robust_on_after: int = 3            # consecutive injections with model error to switch robust on
-    robust_off_after: int = 50          # consecutive clean injections to switch it off again
-    robust_floor: tuple[float, float] = (0.02, 0.1)  # added raw sigma (N/V, µm) in robust mode: bias
 
-    def __post_init__(self) -> None:
-        for name in ("q_nu_n_per_v", "q_lh_um", "gate_chi2"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} = {v!r} must be a positive number")
+@dataclass
+class Pending:
+    """A raw estimate in doubt (N/V, µm) with its covariance, time (s) and temperature (degC)."""
+
+    z: list[float]
+    r: list[list[float]]
+    time_s: float | None
+    temperature_c: float | None
+    counter: int
 
 
 @dataclass
 class TrackerState:
     """Everything the estimator knows about one injector; JSON-serialisable via ``to_dict``.
 
-    ``x`` = filtered [N_u N/V, L_h µm], ``p`` its covariance; ``directions`` (columns) and ``steps``
-    the line-search state carried to the next injection.
+    ``x`` = filtered [N_u N/V, L_h µm, drift rate N/V/s, temperature slope N/V/degC] at the time and
+    temperature of the last accepted injection, ``p`` its covariance; ``directions`` (columns) and
+    ``steps`` the line-search state carried to the next injection; ``pending`` an injection in doubt.
     """
 
     initialized: bool = False
-    x: list[float] = field(default_factory=lambda: [float("nan"), float("nan")])
-    p: list[list[float]] = field(default_factory=lambda: [[1.0, 0.0], [0.0, 1.0]])
+    x: list[float] = field(default_factory=lambda: [math.nan] * kalman.N_STATE)
+    p: list[list[float]] = field(default_factory=lambda: np.eye(kalman.N_STATE).tolist())
+    time_s: float | None = None
+    temperature_c: float | None = None
     directions: list[list[float]] = field(default_factory=lambda: [[1.0, 0.0], [0.0, 1.0]])
     steps: list[float] = field(default_factory=lambda: [0.05, 0.2])
     robust: bool = False
     model_error_run: int = 0
     clean_run: int = 0
-    consecutive_outliers: int = 0
+    doubts: int = 0
+    pending: Pending | None = None
     accepted: int = 0
     rejected: int = 0
     updates: int = 0
     version: int = STATE_VERSION
 
     def to_dict(self) -> dict:
-        """Plain dict for JSON."""
+        """Plain dict for JSON (no NaN: unknown values are None)."""
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "TrackerState":
-        """Inverse of :meth:`to_dict`; raises ValueError for a foreign or corrupt dict."""
+    def from_dict(cls, d: Any) -> "TrackerState":
+        """Inverse of :meth:`to_dict`, validating every field; ValueError names the first bad one."""
         if not isinstance(d, dict) or d.get("version") != STATE_VERSION:
-            raise ValueError("not a tracker state of this version")
-        known = {f for f in cls.__dataclass_fields__}
-        st = cls(**{k: v for k, v in d.items() if k in known})
-        arr = np.array(st.x + sum(st.p, []) + sum(st.directions, []) + st.steps, dtype=float)
-        if arr.shape != (12,) or (st.initialized and not np.all(np.isfinite(arr))):
-            raise ValueError("tracker state has wrong shapes or non-finite values")
+            raise ValueError(f"not a tracker state of version {STATE_VERSION}")
+        st = cls()
+        for name in ("initialized", "robust"):
+            setattr(st, name, _check_bool(d, name, getattr(st, name)))
+        for name in ("model_error_run", "clean_run", "doubts", "accepted", "rejected", "updates"):
+            setattr(st, name, _check_count(d, name))
+        st.x = _check_array(d, "x", (kalman.N_STATE,), st.initialized).tolist()
+        p = _check_array(d, "p", (kalman.N_STATE, kalman.N_STATE), True)
+        if st.initialized and (not np.allclose(p, p.T, rtol=1e-9, atol=1e-15) or np.any(np.linalg.eigvalsh(p) < 0)):
+            raise ValueError("p is not a symmetric positive semi-definite covariance")
+        st.p = p.tolist()
+        st.directions = _check_array(d, "directions", (2, 2), True).tolist()
+        steps = _check_array(d, "steps", (2,), True)
+        if np.any(steps <= 0):
+            raise ValueError("steps must be positive")
+        st.steps = steps.tolist()
+        st.time_s = _check_optional_float(d, "time_s")
+        st.temperature_c = _check_optional_float(d, "temperature_c")
+        if st.initialized:
+            nu, lh = st.x[0], st.x[1]
+            if not (5.0 <= nu <= 40.0 and -20.0 <= lh <= 50.0):
+                raise ValueError(f"x = N_u {nu} N/V, L_h {lh} µm is far outside any physical range")
+        pend = d.get("pending")
+        if pend is not None:
+            if not isinstance(pend, dict):
+                raise ValueError("pending must be an object or null")
+            st.pending = Pending(_check_array(pend, "z", (2,), True).tolist(),
+                                 _check_array(pend, "r", (2, 2), True).tolist(),
+                                 _check_optional_float(pend, "time_s"), _check_optional_float(pend, "temperature_c"),
+                                 _check_count(pend, "counter"))
         return st
 
-    def with_prior(self, nu_n_per_v: float, lh_um: float, sigma: tuple[float, float] = (0.3, 1.0)) -> "TrackerState":
+    def with_prior(self, nu_n_per_v: float, lh_um: float, sigma: tuple[float, float] = (0.3, 1.0),
+                   slope: float = 0.06, slope_sigma: float = 0.03) -> "TrackerState":
         """A state that starts from a given prior (used by EstimatorCommand 'set prior')."""
-        return replace(TrackerState(), initialized=True, x=[float(nu_n_per_v), float(lh_um)],
-                       p=[[sigma[0] ** 2, 0.0], [0.0, sigma[1] ** 2]])
+        x, p = kalman.initial(np.array([nu_n_per_v, lh_um], dtype=float), np.diag(np.square(sigma)), 0.01 ** 2,
+                              slope, slope_sigma ** 2)
+        return replace(TrackerState(), initialized=True, x=x.tolist(), p=p.tolist())
+
+
+def _check_bool(d: dict, name: str, default: bool) -> bool:
+    v = d.get(name, default)
+    if not isinstance(v, bool):
+        raise ValueError(f"{name} = {v!r} must be true or false")
+    return v
+
+
+def _check_count(d: dict, name: str) -> int:
+    v = d.get(name, 0)
+    if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+        raise ValueError(f"{name} = {v!r} must be a non-negative whole number")
+    return v
+
+
+def _check_optional_float(d: dict, name: str) -> float | None:
+    v = d.get(name)
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ValueError(f"{name} = {v!r} must be a finite number or null")
+    return float(v)
+
+
+def _check_array(d: dict, name: str, shape: tuple[int, ...], finite: bool) -> np.ndarray:
+    v = d.get(name)
+    try:
+        a = np.array(v, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be numbers of shape {shape}") from None
+    if a.shape != shape:
+        raise ValueError(f"{name} has shape {a.shape}, expected {shape}")
+    if finite and not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} has non-finite values")
+    return a
 
 
 @dataclass
 class TrackResult:
-    """Output of one update: the raw estimate, the filtered one, and what happened."""
+    """Output of one update: the raw estimate, the published one, and what happened.
+
+    ``outliers`` counts injections judged outliers by this update: the current one (status
+    ``rejected``) or an earlier ``unconfirmed`` one that the current injection did not confirm.
+    """
 
     raw: Estimate
     nu_n_per_v: float
     lh_m: float
     sigma_nu: float
     sigma_lh_m: float
-    status: str
+    status: Status
     reason: str
     evaluations: int
     t_contact_s: float = float("nan")
     t_open_s: float = float("nan")
     stroke_m: float = float("nan")
+    outliers: int = 0
+    rate_n_per_v_s: float = float("nan")
+    slope_n_per_v_degc: float = float("nan")
 
     def filtered_dict(self) -> dict:
-        """The filtered estimate with units in the keys."""
+        """The published estimate with units in the keys."""
         f = lambda v, s=1.0: None if not math.isfinite(v) else round(v * s, 6)  # noqa: E731
         return {"nu_n_per_v": f(self.nu_n_per_v), "lh_um": f(self.lh_m, 1e6),
                 "sigma_nu_n_per_v": f(self.sigma_nu), "sigma_lh_um": f(self.sigma_lh_m, 1e6),
-                "status": self.status, "reason": self.reason, "t_contact_us": f(self.t_contact_s, 1e6),
-                "t_open_us": f(self.t_open_s, 1e6), "stroke_um": f(self.stroke_m, 1e6)}
+                "status": self.status.value, "reason": self.reason, "t_contact_us": f(self.t_contact_s, 1e6),
+                "t_open_us": f(self.t_open_s, 1e6), "stroke_um": f(self.stroke_m, 1e6),
+                "rate_n_per_v_per_s": f(self.rate_n_per_v_s), "slope_n_per_v_per_degc": f(self.slope_n_per_v_degc)}
 
 
-def _raw_cov_x(est: Estimate, robust: bool, config: TrackerConfig) -> np.ndarray:
-    scale = np.array([1.0, 1e6])
-    cov = est.cov * np.outer(scale, scale)
-    if robust:
+def _robust_cov(est: Estimate, config: TrackerConfig) -> np.ndarray:
+    """The raw estimate's covariance in (N/V, µm), with the bias floor of robust mode."""
+    cov = est.cov_um
+    if est.robust:
         cov = cov + np.diag(np.square(config.robust_floor))
     return cov
 
 
-def _warm_estimate(state: TrackerState, inj: Injection, sim: FastSimulator, config: TrackerConfig,
-                   box) -> Estimate:
+def _warm_estimate(state: TrackerState, x0: np.ndarray, inj: Injection, sim: FastSimulator, config: TrackerConfig,
+                   box: Box) -> Estimate:
     ic = config.ident
     model = CostModel(sim, inj, effective_window_s(ic, inj, state.robust), ic.norm, state.robust)
-    x0 = box.clip(np.array(state.x, dtype=float))
-    fit, converged, _ = refine(model, x0, np.array(state.directions), np.array(state.steps), box, ic,
+    fit, converged, _ = refine(model, box.clip(x0), np.array(state.directions), np.array(state.steps), box, ic,
                                max_cycles=config.warm_cycles, batched=True)
     stat = float("nan")
-    if fit.success:   # the plain model's residual against the nuisance span (normal equations: no QR)
+    if fit.success and not state.robust:   # the plain residual against the nuisance span (normal equations)
         stat = model_error_statistic(fit.residual[: model.n], nuisance_columns(model.current, model.dt),
                                      fit.sigma_v)
-    # the published prediction is made once, with the filtered estimate (``_result``)
+    elif fit.success and state.updates % ROBUST_CHECK_EVERY == 0:
+        # is the model error still there? the likelihood ratio of a plain fit against the robust one,
+        # as at a cold start (the plain residual at the robust estimate would overstate it)
+        plain = CostModel(sim, inj, effective_window_s(ic, inj, False), ic.norm, False)
+        fit_p, _, _ = refine(plain, box.clip(x0), np.array(state.directions), np.array(state.steps), box, ic,
+                             max_cycles=config.warm_cycles, batched=True)
+        stat = likelihood_ratio(plain, fit_p, model, fit)
+    # the published prediction is made once, for the published estimate (``_publish``)
     return finish(sim, inj, fit, converged, model.evaluations, box, state.robust, stat, ic, predict=False)
 
 
@@ -153,112 +256,243 @@ def _cold_estimate(state: TrackerState, inj: Injection, sim: FastSimulator, conf
     return identify(inj, sim, replace(config.ident, robust=mode))
 
 
-def update(state: TrackerState, inj: Injection, sim: FastSimulator, config: TrackerConfig) -> tuple[TrackerState, TrackResult]:
+def _known(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+def _temperature(inj: Injection) -> float | None:
+    t = inj.temperature_c
+    return float(t) if math.isfinite(t) and t > UNKNOWN_TEMPERATURE_C else None
+
+
+def _interval(config: TrackerConfig, t_from: float | None, t_to: float | None) -> float:
+    """Seconds between two injections: measured when both times are known, else the default."""
+    if t_from is None or t_to is None:
+        return config.default_interval_s
+    return min(max(t_to - t_from, 0.0), config.max_interval_s)
+
+
+def _delta_temperature(t_from: float | None, t_to: float | None) -> float | None:
+    """The temperature change in degC, None unless both ends were measured."""
+    return None if t_from is None or t_to is None else t_to - t_from
+
+
+def update(state: TrackerState, inj: Injection, sim: FastSimulator,
+           config: TrackerConfig) -> tuple[TrackerState, TrackResult]:
     """One injection through the recursive estimator (pure: ``state`` is not modified)."""
     st = replace(state, x=list(state.x), p=[list(r) for r in state.p])
     st.updates += 1
-    problem = inj.problem()
-    if problem is None and abs(sim.dt_s - inj.dt_s) > 1e-6 * inj.dt_s:
-        problem = "sample period does not match the simulator"
-    if problem is None and inj.duration_s < config.ident.window_s - 1e-12:
-        problem = f"too short ({inj.duration_s * 1e6:.1f} µs < window {config.ident.window_s * 1e6:.0f} µs)"
+    box = search_box(config.ident, sim, inj.f_open_n)
+    noise = process_noise(config, box)
+    now, temp = _known(inj.time_s), _temperature(inj)
+    held = _held(st, now, temp, config, noise)
+    problem = check_injection(inj, sim, config.ident)
     if problem:
         st.rejected += 1
-        return st, _result(st, rejected(problem), STATUS_REJECTED, problem, sim, inj, predict=False)
+        return st, _publish(held, rejected(problem), Status.REJECTED, problem, sim, inj, predict=False)
 
-    cold = not st.initialized or not np.all(np.isfinite(st.x))   # a prior counts as initialized
-    restart = cold   # restart the filter from this raw estimate (first injection, mode switch)
-    box = search_box(config.ident, sim, inj.f_open_n)
-    raw = _cold_estimate(st, inj, sim, config) if cold else _warm_estimate(st, inj, sim, config, box)
-    if raw.status == STATUS_REJECTED:
+    cold = not st.initialized or not np.all(np.isfinite(st.x[:2]))   # a prior counts as initialized
+    x0 = held[0][:2] if held is not None else None
+    raw = _cold_estimate(st, inj, sim, config) if cold else _warm_estimate(st, x0, inj, sim, config, box)
+    if raw.status == Status.REJECTED:
         st.rejected += 1
-        return st, _result(st, raw, STATUS_REJECTED, raw.message, sim, inj, predict=False)
-    if not cold and (raw.status == STATUS_NOT_CONVERGED or (raw.status == STATUS_AT_BOUND and not st.robust)):
+        return st, _publish(held, raw, Status.REJECTED, raw.message, sim, inj, predict=False)
+    if not cold and (raw.status == Status.NOT_CONVERGED or (raw.status == Status.AT_BOUND and not st.robust)):
         # the warm searches ran out of cycles (the injector moved more than expected), or the plain
         # model ran into a bound, which is how it absorbs a model error: decide afresh
         raw = _cold_estimate(st, inj, sim, config)
 
-    # model-error mode with hysteresis
-    if not st.robust:
-        if math.isfinite(raw.model_error_stat) and raw.model_error_stat > config.ident.model_error_threshold:
-            st.model_error_run += 1
-        else:
-            st.model_error_run = 0
-        if raw.robust or st.model_error_run >= config.robust_on_after:
-            st.robust, st.model_error_run, st.clean_run = True, 0, 0
-            if not raw.robust:
-                raw = _cold_estimate(st, inj, sim, config)
-            restart = True   # estimates of the other cost are biased differently: restart the filter
-    else:
-        clean = math.isfinite(raw.model_error_stat) and raw.model_error_stat <= config.ident.model_error_threshold
-        st.clean_run = st.clean_run + 1 if clean else 0
-        if st.clean_run >= config.robust_off_after:
-            st.robust, st.clean_run = False, 0
-
-    z = np.array([raw.nu_n_per_v, raw.lh_m * 1e6])
-    r_cov = _raw_cov_x(raw, raw.robust, config)
-    if not np.all(np.isfinite(r_cov)):
+    restart = cold or _robust_hysteresis(st, raw, config, cold)
+    if restart and raw.robust != st.robust:
+        raw = _cold_estimate(st, inj, sim, config)
+    z = np.array([raw.nu_n_per_v, raw.lh_m * UM_PER_M])
+    r = _robust_cov(raw, config)
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(z))):
         st.rejected += 1
-        return st, _result(st, raw, STATUS_REJECTED, "no curvature at the optimum", sim, inj, predict=False)
-    status, reason = STATUS_OK, ""
-    if restart or not st.initialized:
-        x, p = z, r_cov
-        st.consecutive_outliers = 0
+        return st, _publish(held, raw, Status.REJECTED, "no curvature at the optimum", sim, inj, predict=False)
+
+    if restart:
+        _restart(st, z, r, now, temp, config)
+        reason = "" if cold else "restarted (model-error mode changed)"
+        return _accepted(st, raw, r, sim, inj, config, reason)
+
+    x_pred, p_pred = held
+    inn = kalman.innovation(x_pred, p_pred, z, r)
+    if inn.d2 <= config.gate_chi2:
+        outliers = 0
+        if st.pending is not None:     # the injection in doubt was not confirmed: an outlier
+            outliers, st.pending = 1, None
+            st.rejected += 1
+        st.doubts = 0
+        x, p = kalman.update(x_pred, p_pred, z, r)
+        _store(st, x, p, now, temp)
+        return _accepted(st, raw, r, sim, inj, config, "", outliers)
+
+    if not st.robust and (raw.robust or (math.isfinite(raw.model_error_stat) and
+                                         raw.model_error_stat > config.ident.model_error_threshold)):
+        # the plain model cannot explain this injection and it disagrees with the filter: a glitch
+        st.rejected += 1
+        reason = (f"outlier (innovation chi2 {inn.d2:.1f} > {config.gate_chi2:.1f}, model error "
+                  f"{raw.model_error_stat:.0f})")
+        return st, _publish(held, raw, Status.REJECTED, reason, sim, inj, predict=True, outliers=1)
+
+    if st.pending is not None:
+        taken = _confirm_jump(st, z, r, now, temp, config, noise)
+        if taken is not None:
+            comps = " and ".join({kalman.NU: "N_u", kalman.LH: "L_h"}[c] for c in taken)
+            return _accepted(st, raw, r, sim, inj, config, f"change of {comps} confirmed by two injections")
+        st.rejected += 1          # the earlier doubt agrees with nothing: an outlier
+        outliers = 1
     else:
-        x = np.array(st.x)
-        p = np.array(st.p) + np.diag([config.q_nu_n_per_v ** 2, config.q_lh_um ** 2])
-        s = p + r_cov
-        innov = z - x
-        d2 = float(innov @ np.linalg.solve(s, innov))
-        if d2 > config.gate_chi2:
-            st.consecutive_outliers += 1
-            if st.consecutive_outliers < config.max_consecutive_outliers:
-                st.rejected += 1
-                st.p = p.tolist()
-                reason = f"outlier (innovation chi2 {d2:.1f} > {config.gate_chi2:.1f})"
-                return st, _result(st, raw, STATUS_REJECTED, reason, sim, inj, predict=True)
-            # persistent disagreement: the injector changed; accept the new level
-            x, p = z, r_cov
-            reason = "re-acquired after consecutive outliers"
-            st.consecutive_outliers = 0
-        else:
-            st.consecutive_outliers = 0
-            k = p @ np.linalg.inv(s)
-            x = x + k @ innov
-            p = (np.eye(2) - k) @ p
-            p = 0.5 * (p + p.T)
-    # the filtered estimate stays inside the search box (projection of the constrained filter)
-    x = box.clip(x)
-    st.initialized = True
+        outliers = 0
+    st.doubts += 1
+    if st.doubts >= config.max_consecutive_outliers:
+        _restart(st, z, r, now, temp, config)
+        return _accepted(st, raw, r, sim, inj, config, f"re-acquired after {st.doubts} injections in doubt",
+                         outliers)
+    st.pending = Pending(z.tolist(), r.tolist(), now, temp, inj.counter)
+    if inn.d2 > config.raw_publish_chi2:
+        # beyond anything noise does: a change (or a glitch the model fits); its own estimate is the best guess
+        best, whose = (np.concatenate([z, x_pred[2:]]), _embed(r, p_pred)), "this injection's own estimate"
+    else:   # marginal: as likely a noise tail as a small change: the filter updated with it (not committed)
+        best, whose = kalman.update(x_pred, p_pred, z, r), "the filter's estimate with it"
+    reason = f"in doubt (innovation chi2 {inn.d2:.1f} > {config.gate_chi2:.1f}): {whose}"
+    return st, _publish(best, raw, Status.UNCONFIRMED, reason, sim, inj, predict=True, outliers=outliers)
+
+
+def _robust_hysteresis(st: TrackerState, raw: Estimate, config: TrackerConfig, cold: bool) -> bool:
+    """Update the model-error mode; True if it switched (the filter must restart).
+
+    Only the very first estimate switches at once (nothing to compare it with); later, a single
+    injection with model error (a glitch, or a cold re-estimate that chose the robust cost) counts
+    toward ``robust_on_after`` like any other. In robust mode every ``ROBUST_CHECK_EVERY``-th
+    injection is tested; a clean test counts for that many injections toward ``robust_off_after``.
+    """
+    stat = raw.model_error_stat
+    if not st.robust:
+        st.model_error_run = st.model_error_run + 1 if (raw.robust or (math.isfinite(stat) and
+                                                        stat > config.ident.model_error_threshold)) else 0
+        if (cold and raw.robust) or st.model_error_run >= config.robust_on_after:
+            st.robust, st.model_error_run, st.clean_run = True, 0, 0
+            return True   # estimates of the other cost are biased differently: restart the filter
+        return False
+    if not math.isfinite(stat):
+        return False                    # not tested on this injection
+    clean = stat <= config.ident.model_error_threshold
+    st.clean_run = st.clean_run + ROBUST_CHECK_EVERY if clean else 0
+    if st.clean_run >= config.robust_off_after:
+        st.robust, st.clean_run = False, 0
+        return True
+    return False
+
+
+def _held(st: TrackerState, now: float | None, temp: float | None, config: TrackerConfig,
+          noise: kalman.ProcessNoise) -> tuple[np.ndarray, np.ndarray] | None:
+    """The filter predicted to this injection (None before the first estimate)."""
+    if not st.initialized or not np.all(np.isfinite(st.x)):
+        return None
+    return kalman.predict(np.array(st.x), np.array(st.p), _interval(config, st.time_s, now),
+                          _delta_temperature(st.temperature_c, temp), noise)
+
+
+def _store(st: TrackerState, x: np.ndarray, p: np.ndarray, now: float | None, temp: float | None) -> None:
     st.x, st.p = x.tolist(), p.tolist()
+    if now is not None:
+        st.time_s = now
+    if temp is not None:
+        st.temperature_c = temp
+    st.initialized = True
+
+
+def _restart(st: TrackerState, z: np.ndarray, r: np.ndarray, now: float | None, temp: float | None,
+             config: TrackerConfig) -> None:
+    x, p = kalman.initial(z, r, (config.max_rate_n_per_v_s / 3.0) ** 2, config.slope_n_per_v_degc,
+                          config.slope_sigma ** 2)
+    if st.initialized and np.all(np.isfinite(st.x)):   # keep what was learned of the temperature slope
+        x[kalman.SLOPE], p[kalman.SLOPE, kalman.SLOPE] = st.x[kalman.SLOPE], st.p[kalman.SLOPE][kalman.SLOPE]
+    st.pending, st.doubts = None, 0
+    st.time_s = st.temperature_c = None
+    _store(st, x, p, now, temp)
+
+
+def _confirm_jump(st: TrackerState, z: np.ndarray, r: np.ndarray, now: float | None, temp: float | None,
+                  config: TrackerConfig, noise: kalman.ProcessNoise) -> tuple[int, ...] | None:
+    """Take a jump at the pending injection if it and this one agree on it; the components, or None."""
+    pend = st.pending
+    assert pend is not None
+    x, p = kalman.predict(np.array(st.x), np.array(st.p), _interval(config, st.time_s, pend.time_s),
+                          _delta_temperature(st.temperature_c, pend.temperature_c), noise)
+    zp, rp = np.array(pend.z), np.array(pend.r)
+    comps = kalman.jump_components(kalman.innovation(x, p, zp, rp))
+    for candidate in dict.fromkeys([comps, (kalman.NU, kalman.LH)]):
+        xj, pj = kalman.update(x, kalman.release(p, candidate, noise.max_var), zp, rp)
+        xc, pc = kalman.predict(xj, pj, _interval(config, pend.time_s, now),
+                                _delta_temperature(pend.temperature_c, temp), noise)
+        xc, pc, _, ok = kalman.gated_update(xc, pc, z, r, config.gate_chi2)
+        if ok:
+            st.pending, st.doubts = None, 0
+            _store(st, xc, pc, now if now is not None else pend.time_s, temp)
+            return candidate
+    return None
+
+
+def _embed(r: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """A full-state covariance with ``r`` for (N_u, L_h) and ``p``'s drift and slope blocks."""
+    q = np.array(p, copy=True)
+    q[:2, :] = 0.0
+    q[:, :2] = 0.0
+    q[:2, :2] = r
+    return q
+
+
+def _accepted(st: TrackerState, raw: Estimate, r: np.ndarray, sim: FastSimulator, inj: Injection,
+              config: TrackerConfig, reason: str, outliers: int = 0) -> tuple[TrackerState, TrackResult]:
     st.accepted += 1
-    if np.all(np.isfinite(raw.jtj)) and np.linalg.det(raw.jtj) > 1e-14 * raw.jtj[0, 0] * raw.jtj[1, 1]:
-        # directions: conjugate for the cost (eigenvectors of the Gauss–Newton matrix); steps: two
-        # standard deviations of where the next injection's optimum is expected along each, i.e. of
-        # the predicted covariance (filter + random walk) plus the raw estimate's own scatter
-        v = raw.directions   # eigenvectors of raw.jtj, from finish()
-        expected = p + np.diag([config.q_nu_n_per_v ** 2, config.q_lh_um ** 2]) + r_cov
-        sd = np.sqrt(np.einsum("ji,jk,ki->i", v, expected, v))
-        st.directions = v.tolist()
-        st.steps = np.clip(2.0 * sd, 1e-3, 2.0).tolist()
-    if raw.status == STATUS_AT_BOUND:
-        status, reason = STATUS_AT_BOUND, raw.message
-    return st, _result(st, raw, status, reason, sim, inj, predict=True)
+    _carry_search(st, raw, r, config)
+    x, p = np.array(st.x), np.array(st.p)
+    if raw.status in (Status.AT_BOUND, Status.NOT_CONVERGED):
+        status, reason = raw.status, reason or raw.message
+    elif math.sqrt(max(p[1, 1], 0.0)) > config.sigma_limit_lh_um:
+        status = Status.UNCERTAIN
+        reason = reason or f"sigma(L_h) {math.sqrt(p[1, 1]):.2f} µm above the limit {config.sigma_limit_lh_um:.2f} µm"
+    else:
+        status = Status.OK
+    return st, _publish((x, p), raw, status, reason, sim, inj, predict=True, outliers=outliers)
 
 
-def _result(st: TrackerState, raw: Estimate, status: str, reason: str, sim: FastSimulator, inj: Injection,
-            predict: bool) -> TrackResult:
-    nu, lh = st.x
-    p = np.array(st.p)
-    tc = to = stroke = float("nan")
-    if predict and st.initialized and math.isfinite(nu) and math.isfinite(lh):
+def _carry_search(st: TrackerState, raw: Estimate, r: np.ndarray, config: TrackerConfig) -> None:
+    """Directions and step sizes for the next injection's warm line searches.
+
+    Directions: conjugate for the cost (eigenvectors of the Gauss–Newton matrix). Steps: two
+    standard deviations of where the next optimum is expected along each: the filter's covariance,
+    one injection's process noise and the raw estimate's own scatter.
+    """
+    if not (np.all(np.isfinite(raw.jtj)) and np.linalg.det(raw.jtj) > 1e-14 * raw.jtj[0, 0] * raw.jtj[1, 1]):
+        return
+    v = raw.directions
+    expected = np.array(st.p)[:2, :2] + np.diag([config.q_nu_n_per_v ** 2, config.q_lh_um ** 2]) + r
+    sd = np.sqrt(np.einsum("ji,jk,ki->i", v, expected, v))
+    st.directions = v.tolist()
+    st.steps = np.clip(2.0 * sd, 1e-3, 2.0).tolist()
+
+
+def _publish(filt: tuple[np.ndarray, np.ndarray] | None, raw: Estimate, status: Status, reason: str,
+             sim: FastSimulator, inj: Injection, predict: bool, outliers: int = 0) -> TrackResult:
+    """The published result: ``filt`` = (state, covariance) to publish, None if nothing is known."""
+    nan = float("nan")
+    if filt is None:
+        return TrackResult(raw, nan, nan, nan, nan, status, reason, raw.evaluations, outliers=outliers)
+    x, p = filt
+    nu, lh = float(x[0]), float(x[1])
+    tc = to = stroke = nan
+    if predict and math.isfinite(nu) and math.isfinite(lh):
         try:
-            tc, to, stroke = predict_valve(sim, inj, nu, lh * 1e-6)
+            tc, to, stroke = predict_valve(sim, inj, nu, lh / UM_PER_M)
         except EstimatorError:   # e.g. a prior outside the simulator's N_u range: no prediction
             pass
-    sig = np.sqrt(np.abs(np.diag(p))) if st.initialized else np.array([np.nan, np.nan])
-    return TrackResult(raw, float(nu), float(lh) * 1e-6, float(sig[0]), float(sig[1]) * 1e-6, status, reason,
-                       raw.evaluations, tc, to, stroke)
+    sig = np.sqrt(np.abs(np.diag(p)))
+    return TrackResult(raw, nu, lh / UM_PER_M, float(sig[0]), float(sig[1]) / UM_PER_M, status, reason,
+                       raw.evaluations, tc, to, stroke, outliers, float(x[kalman.RATE]), float(x[kalman.SLOPE]))
 
 
 class Tracker:
@@ -292,4 +526,6 @@ class Tracker:
 
     def set_prior(self, injector_id: int, nu_n_per_v: float, lh_um: float) -> None:
         """Start one injector from a prior (N/V, µm)."""
-        self.states[injector_id] = TrackerState().with_prior(nu_n_per_v, lh_um)
+        c = self.config
+        self.states[injector_id] = TrackerState().with_prior(nu_n_per_v, lh_um, slope=c.slope_n_per_v_degc,
+                                                             slope_sigma=c.slope_sigma)

@@ -35,8 +35,9 @@ class DaemonConfig:
     max_injectors: int = 8
     window_us: float = 100.0            # identification window
     robust: str = "auto"
-    q_nu_n_per_v: float = 0.01
-    q_lh_um: float = 0.003
+    q_nu_n_per_v: float = 0.003         # N_u random walk per injection (floor; per-second terms on top)
+    q_lh_um: float = 0.003              # L_h random walk per injection (floor)
+    sigma_limit_lh_um: float = 0.25     # sigma(L_h) above this: status "uncertain", not "ok"
     log_level: str = "INFO"
 
     def __post_init__(self) -> None:
@@ -46,7 +47,7 @@ class DaemonConfig:
         if not 1 <= self.max_injectors <= 8:
             raise ConfigError(f"max_injectors = {self.max_injectors} must be within 1..8 (InjectorId has 3 bits)")
         for name in ("assembly_timeout_ms", "status_period_s", "persist_period_s", "window_us", "q_nu_n_per_v",
-                     "q_lh_um"):
+                     "q_lh_um", "sigma_limit_lh_um"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"{name} = {v!r} must be a positive number")

@@ -23,8 +23,8 @@ from estimator.codec.database import load_database
 from estimator.codec.frame import Frame
 from estimator.codec.ingest import Ingest
 from estimator.codec.records import Codec
-from estimator.ident.idle_stroke import IdentConfig
-from estimator.ident.tracker import Tracker, TrackerConfig
+from estimator.ident.config import IdentConfig, TrackerConfig
+from estimator.ident.tracker import Tracker
 from estimator.service.bus import open_bus, to_frame, to_message
 from estimator.service.config import DaemonConfig
 from estimator.service.processor import Processor
@@ -103,7 +103,8 @@ class Stats:
 def build_tracker(cfg: DaemonConfig) -> Tracker:
     """The recursive estimator as configured."""
     ident = IdentConfig(window_s=cfg.window_us * 1e-6, robust=cfg.robust)
-    return Tracker(TrackerConfig(ident=ident, q_nu_n_per_v=cfg.q_nu_n_per_v, q_lh_um=cfg.q_lh_um))
+    return Tracker(TrackerConfig(ident=ident, q_nu_n_per_v=cfg.q_nu_n_per_v, q_lh_um=cfg.q_lh_um,
+                                 sigma_limit_lh_um=cfg.sigma_limit_lh_um))
 
 
 class Daemon:

@@ -12,9 +12,10 @@ from dataclasses import dataclass, fields
 
 from estimator.codec.assembler import Completed, Rejected
 from estimator.codec.ingest import Counters, Event, Malformed
-from estimator.codec.records import (COMMAND_RESET, COMMAND_SET_PRIOR, STATUS_CODES, Codec, EstimateQuality,
+from estimator.codec.records import (COMMAND_RESET, COMMAND_SET_PRIOR, Codec, EstimateQuality,
                                      EstimateState, EstimatorCommand, EstimatorStatus, ValvePrediction)
 from estimator.ident.measurement import Injection
+from estimator.ident.status import Status
 from estimator.ident.tracker import Tracker, TrackResult
 from estimator.service.ratelimit import RateLimitedLog
 
@@ -81,13 +82,13 @@ class Processor:
 
     def _estimate(self, e: Completed) -> Published:
         h = e.header
+        # time of the injection: the bus timestamp of its last frame (the same live and in replay)
         inj = Injection(e.current_a, e.voltage_v, h.sample_period_ns * 1e-9, h.preload_force_n, h.injector_id,
-                        h.counter, h.fuel_temperature_c)
+                        h.counter, h.fuel_temperature_c, e.t_last)
         res = self.tracker.update(inj)
-        if res.status == "rejected":
-            if res.reason.startswith("outlier"):
-                self.counters.rejected_outlier += 1
-            else:
+        self.counters.rejected_outlier += res.outliers
+        if res.status == Status.REJECTED:
+            if not res.outliers:
                 self.counters.reject("invalid")
                 self.rlog.log(logging.WARNING, "reject-estimator", "injector %d counter %d rejected: %s",
                               h.injector_id, h.counter, res.reason)
@@ -98,7 +99,7 @@ class Processor:
     def frames_for(self, injector_id: int, counter: int, res: TrackResult) -> list:
         """EstimateState, EstimateQuality and ValvePrediction of one result."""
         have = math.isfinite(res.nu_n_per_v) and math.isfinite(res.lh_m)
-        status = STATUS_CODES.get(res.status, STATUS_CODES["rejected"]) if have else STATUS_CODES["no_estimate"]
+        status = res.status.code if have else Status.NO_ESTIMATE.code
         enc = self.codec.encode
         return [
             enc(EstimateState(injector_id, counter, res.nu_n_per_v, res.lh_m * 1e6, status)),

@@ -1,0 +1,62 @@
+"""Cold start of eq. 28: find the cost valley without a previous estimate, then refine.
+
+The valley is long and narrow: at N_u near 15 N/V a change of 0.05 N/V moves the best L_h by about
+1 µm, and the cost 0.05 N/V off the valley is fifteen times its minimum. A coarse grid (0.5 N/V
+columns) can therefore miss it, and a descent from the grid's best point ends in a box corner. The
+structure helps: for each N_u the best L_h is a 1-D problem, and the *profile* ``min_L J(N_u, L)``
+is a smooth, unimodal function of N_u. So the search is
+
+1. the coarse grid (columns of N_u, rows of L_h), each column's minimum refined by a parabola;
+2. ``zooms`` times: ``zoom_points`` columns between the neighbours of the best column (the span
+   shrinks by ``(zoom_points - 1) / 2`` per zoom);
+3. conjugate-direction refinement (:func:`estimator.ident.local_fit.refine`) from the best point.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from estimator.ident.config import IdentConfig
+from estimator.ident.cost import CostModel
+from estimator.ident.local_fit import LocalFit, cost_fn, refine
+from estimator.ident.search import Box, CostFn
+
+
+def _column_minima(j: np.ndarray, lh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per column (axis 0 = N_u) the parabola-refined minimum of J over the L_h rows and its L_h."""
+    k = np.clip(np.argmin(j, axis=1), 1, lh.size - 2)
+    cols = np.arange(j.shape[0])
+    j0, j1, j2 = j[cols, k - 1], j[cols, k], j[cols, k + 1]
+    h = lh[1] - lh[0]
+    c2 = j0 - 2 * j1 + j2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        shift = np.where(c2 > 0, 0.5 * (j0 - j2) / c2, 0.0)
+    shift = np.clip(shift, -1.0, 1.0)
+    jmin = np.where(c2 > 0, j1 - 0.25 * (j0 - j2) * shift, j1)
+    best = np.minimum(jmin, j.min(axis=1))
+    return best, lh[k] + shift * h
+
+
+def profile_start(f: CostFn, box: Box, config: IdentConfig) -> tuple[np.ndarray, np.ndarray]:
+    """A start point in the valley and the step sizes to refine from, both in (N/V, µm)."""
+    n_nu, n_lh = config.grid
+    nu = np.linspace(box.lo[0], box.hi[0], n_nu)
+    lh = np.linspace(box.lo[1], box.hi[1], n_lh)
+    for zoom in range(config.zooms + 1):
+        pts = np.stack(np.meshgrid(nu, lh, indexing="ij"), axis=-1).reshape(-1, 2)
+        j = f(pts).reshape(nu.size, lh.size)
+        prof, lh_best = _column_minima(j, lh)
+        i = int(np.argmin(prof))
+        if zoom < config.zooms:
+            lo, hi = nu[max(i - 1, 0)], nu[min(i + 1, nu.size - 1)]
+            nu = np.linspace(lo, hi, config.zoom_points)
+    x = box.clip(np.array([nu[i], lh_best[i]]))
+    steps = np.array([max(nu[1] - nu[0], config.tol[0]), lh[1] - lh[0]])
+    return x, steps
+
+
+def cold_fit(model: CostModel, box: Box, config: IdentConfig) -> tuple[LocalFit, bool]:
+    """The optimiser behind a cold start: profile search then refinement; (fit, converged)."""
+    x, steps = profile_start(cost_fn(model), box, config)
+    fit, converged, _ = refine(model, x, np.eye(2), steps, box, config)
+    return fit, converged

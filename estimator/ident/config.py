@@ -1,0 +1,100 @@
+"""Settings of the identification and of the recursive estimator (frozen, validated, units in the names).
+
+The configuration tree is ``daemon <- tracker <- identification``: :class:`TrackerConfig` holds an
+:class:`IdentConfig`; the service layer builds both from its TOML file.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+
+def _positive(obj: object, *names: str, allow_zero: bool = False) -> None:
+    for name in names:
+        v = getattr(obj, name)
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and (
+            v >= 0 if allow_zero else v > 0)
+        if not ok:
+            raise ValueError(f"{name} = {v!r} must be a {'non-negative' if allow_zero else 'positive'} number")
+
+
+@dataclass(frozen=True)
+class IdentConfig:
+    """Settings of the single-injection identification (eq. 28)."""
+
+    window_s: float = 100e-6
+    robust_window_s: float = 150e-6        # window in robust mode, if the trace is that long
+    norm: str = "l2"
+    robust: str = "auto"                   # "auto", "on" or "off"
+    model_error_threshold: float = 40.0    # chi-square(6) statistic; P(>40 | correct model) < 1e-6
+    nu_bounds_n_per_v: tuple[float, float] = (15.0, 21.0)
+    lh_bounds_um: tuple[float, float] = (-2.0, 10.0)
+    grid: tuple[int, int] = (13, 25)       # N_u x L_h points of the cold-start grid
+    zoom_points: int = 9                   # N_u columns per zoom of the cold start's profile search
+    zooms: int = 2                         # zooms of the profile search (each 1/4 of the previous span)
+    tol: tuple[float, float] = (2e-4, 2e-3)  # convergence: N/V, µm
+    max_cycles: int = 10
+
+    def __post_init__(self) -> None:
+        if self.robust not in ("auto", "on", "off"):
+            raise ValueError(f"robust must be auto, on or off, not {self.robust!r}")
+        if self.norm not in ("l1", "l2"):
+            raise ValueError(f"norm must be l1 or l2, not {self.norm!r}")
+        _positive(self, "window_s", "robust_window_s", "model_error_threshold")
+        if not (20e-6 <= self.window_s <= 2e-3):
+            raise ValueError(f"window {self.window_s * 1e6:.1f} µs must be within 20..2000 µs")
+        lo, hi = self.nu_bounds_n_per_v
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):
+            raise ValueError(f"N_u bounds {self.nu_bounds_n_per_v} N/V are not an interval")
+        lo, hi = self.lh_bounds_um
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise ValueError(f"L_h bounds {self.lh_bounds_um} µm are not an interval")
+        if min(self.grid) < 3 or self.zoom_points < 3 or self.zooms < 0 or self.max_cycles < 1:
+            raise ValueError("grid needs >= 3 points per axis, zoom_points >= 3, zooms >= 0, max_cycles >= 1")
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Settings of the recursive estimator.
+
+    Process noise is time-aware: per injection a floor (model jitter), plus per second of time since
+    that injector's last accepted injection a random walk of N_u (temperature) and L_h (wear) and a
+    white acceleration of the N_u drift rate. Times come from the bus (or a trace's ``time_s``); where
+    unknown, ``default_interval_s`` is assumed.
+    """
+
+    ident: IdentConfig = field(default_factory=IdentConfig)
+    q_nu_n_per_v: float = 0.003             # N_u random walk per injection, N/V (floor)
+    q_lh_um: float = 0.003                  # L_h random walk per injection, µm (floor)
+    q_nu_per_sqrt_s: float = 0.01           # N_u random walk, N/V per sqrt(s), temperature not measured
+    q_nu_per_sqrt_s_known_t: float = 0.002  # the same where the temperature change is measured (eq. 25 explains the rest)
+    q_lh_per_sqrt_s: float = 0.002          # L_h random walk (wear), µm per sqrt(s)
+    q_rate_per_sqrt_s: float = 0.01         # N_u drift-rate random walk, N/V/s per sqrt(s)
+    q_rate_per_sqrt_s_known_t: float = 0.001  # the same where the temperature change is measured
+    max_rate_n_per_v_s: float = 0.3         # physical bound of |dN_u/dt| (5 degC/s at 0.06 N/V/degC)
+    rate_tau_s: float = 120.0               # a drift rate decays with this time constant (warm-ups end)
+    slope_n_per_v_degc: float = 0.06        # prior of dN_u/dT (eq. 25; Table 1: 15..21 N/V over 0..100 degC)
+    slope_sigma: float = 0.03               # its prior standard deviation, N/V/degC
+    default_interval_s: float = 0.1         # assumed time between injections when the time is unknown
+    max_interval_s: float = 3600.0          # longer gaps count as this long (covariance caps apply anyway)
+    gate_chi2: float = 18.4                 # 2 dof, P(false rejection) = 1e-4
+    raw_publish_chi2: float = 40.0          # a doubt beyond this (P = 2e-9 for noise) publishes its own estimate
+    max_consecutive_outliers: int = 5       # doubts in a row that do not agree with each other: re-acquire
+    warm_cycles: int = 3
+    sigma_limit_lh_um: float = 0.25         # above this sigma(L_h) the status is "uncertain", not "ok"
+    robust_on_after: int = 3                # consecutive injections with model error to switch robust on
+    robust_off_after: int = 20              # consecutive clean injections to switch it off again
+    robust_floor: tuple[float, float] = (0.02, 0.1)  # added raw sigma (N/V, µm) in robust mode: bias
+
+    def __post_init__(self) -> None:
+        _positive(self, "q_nu_n_per_v", "q_lh_um", "gate_chi2", "raw_publish_chi2", "default_interval_s", "max_interval_s",
+                  "max_rate_n_per_v_s", "rate_tau_s", "slope_sigma", "sigma_limit_lh_um")
+        _positive(self, "q_nu_per_sqrt_s", "q_nu_per_sqrt_s_known_t", "q_lh_per_sqrt_s", "q_rate_per_sqrt_s",
+                  "q_rate_per_sqrt_s_known_t", allow_zero=True)
+        if not math.isfinite(self.slope_n_per_v_degc):
+            raise ValueError(f"slope_n_per_v_degc = {self.slope_n_per_v_degc!r} must be a number")
+        for name in ("max_consecutive_outliers", "warm_cycles", "robust_on_after", "robust_off_after"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
+                raise ValueError(f"{name} = {v!r} must be a whole number >= 1")

@@ -1,0 +1,156 @@
+"""The local Gauss–Newton model of the cost and the conjugate-direction refinement built on it.
+
+A :class:`LocalFit` is the residual, Jacobian, noise level and covariance at one point of the
+(N_u N/V, L_h µm) plane; :func:`refine` runs cycles of line searches along the conjugate
+directions of that model until the Gauss–Newton step is within a fraction of a standard deviation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from estimator.ident.config import IdentConfig
+from estimator.ident.coords import UM_PER_M
+from estimator.ident.cost import CostModel, noise_sigma_v
+from estimator.ident.search import Box, conjugate_directions, conjugate_stencil, conjugate_vertex, line_search
+
+FD_STEP = np.array([2e-3, 2e-3])   # finite-difference steps: N/V, µm
+
+
+def cost_fn(model: CostModel):
+    """The cost model as a function of (B, 2) points in (N/V, µm)."""
+    def f(x: np.ndarray) -> np.ndarray:
+        return model(x[:, 0], x[:, 1] / UM_PER_M)
+    return f
+
+
+def simulate_at(model: CostModel, pts: np.ndarray):
+    """The model's simulation of (B, 2) points in (N/V, µm)."""
+    return model.simulate(pts[:, 0], pts[:, 1] / UM_PER_M)
+
+
+@dataclass(frozen=True)
+class LocalFit:
+    """Gauss–Newton model of the cost at a point: residual, Jacobian, noise and covariance."""
+
+    x: np.ndarray
+    criterion: float
+    paper_cost_vs: float
+    jtj: np.ndarray            # (2, 2) in (N/V, µm), V^2 per unit^2 (sum over samples)
+    gn_step: np.ndarray        # Gauss–Newton step in (N/V, µm)
+    sigma_v: float
+    cov_x: np.ndarray          # covariance in (N/V, µm)
+    residual: np.ndarray       # unprojected residual at x (V)
+    t_contact_s: float
+    t_open_s: float
+    success: bool
+
+    @cached_property
+    def directions(self) -> tuple[np.ndarray, np.ndarray]:
+        """Conjugate directions (columns) and eigenvalues of ``jtj``, weakest first (computed once)."""
+        return conjugate_directions(self.jtj)
+
+
+def local_fit(model: CostModel, x: np.ndarray, box: Box) -> LocalFit:
+    """Simulate x and two forward-difference neighbours in one batch (steps toward the box inside)."""
+    steps = np.where(x + FD_STEP <= box.hi, FD_STEP, -FD_STEP)
+    pts = np.array([x, x + [steps[0], 0.0], x + [0.0, steps[1]]])
+    res = simulate_at(model, pts)
+    r = model.residuals(res)
+    jac = -(r[1:] - r[0]) / steps[:, None]            # dU_sim/dx, (2, N)
+    return _fit_from(model, x, res, r[0], jac, bool(res.success.all()))
+
+
+def fit_with_jacobian(model: CostModel, x: np.ndarray, jac: np.ndarray) -> LocalFit:
+    """Local fit at x with a Jacobian known from elsewhere (the conjugate stencil): one simulation."""
+    res = simulate_at(model, x[None, :])
+    return _fit_from(model, x, res, model.residuals(res)[0], jac, bool(res.success[0]))
+
+
+def _fit_from(model: CostModel, x: np.ndarray, res, r0: np.ndarray, jac: np.ndarray, ok: bool) -> LocalFit:
+    """Gauss–Newton model from the residual r0 at x (candidate 0 of ``res``) and dU/dx ``jac`` (2, N)."""
+    crit = model.from_result(res)
+    raw = model.measured - res.voltage_v[0]
+    jtj = jac @ jac.T
+    ok = ok and bool(np.isfinite(jtj).all())
+    sigma = noise_sigma_v(r0) if ok else float("nan")
+    det = float(jtj[0, 0] * jtj[1, 1] - jtj[0, 1] * jtj[1, 0]) if ok else 0.0
+    if ok and det > 1e-14 * float(jtj[0, 0] * jtj[1, 1]):
+        inv = np.array([[jtj[1, 1], -jtj[0, 1]], [-jtj[1, 0], jtj[0, 0]]]) / det
+        cov = sigma ** 2 * inv
+        step = inv @ (jac @ r0)
+    else:
+        cov, step = np.full((2, 2), np.inf), np.zeros(2)
+    return LocalFit(x.copy(), float(crit[0]), float(model.paper_cost_vs(res)[0]), jtj, step, sigma, cov,
+                    raw, float(res.t_contact_s[0]), float(res.t_open_s[0]), ok)
+
+
+def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.ndarray, box: Box,
+           config: IdentConfig, max_cycles: int | None = None, j0: float | None = None,
+           batched: bool = False) -> tuple[LocalFit, bool, int]:
+    """Cycles of line searches along conjugate directions; returns (fit, converged, cycles).
+
+    ``batched``: the directions are already conjugate (warm start), so both line searches of a
+    cycle are evaluated in one batch (:func:`conjugate_stencil`, :func:`conjugate_vertex`); a direction whose parabola is not
+    convex or leaves the trust region falls back to the bracketing line search.
+    """
+    x, j = box.clip(x0.astype(float)), j0
+    d, st = directions, steps
+    tol = np.array(config.tol)
+    converged = False
+    cycles = 0
+    f = cost_fn(model)
+    for cycles in range(1, (max_cycles or config.max_cycles) + 1):
+        start = x.copy()
+        todo = [0, 1]
+        jac = None
+        if batched:
+            pts, inside = conjugate_stencil(x, d, st, box)
+            res = simulate_at(model, pts)
+            x, ok = conjugate_vertex(pts, model.from_result(res), start, d, st, box)
+            todo = [i for i in range(2) if not ok[i]]
+            j = None
+            if inside and not todo and res.success.all():
+                # the stencil's central differences along d1, d2 are the Gauss–Newton Jacobian:
+                # dU/dx = D (dU/dalpha), with alpha the coordinates along the directions
+                r = model.residuals(res)
+                jac_a = np.stack([-(r[2] - r[1]) / (2 * st[0]), -(r[4] - r[3]) / (2 * st[1])])
+                jac = d @ jac_a
+        for i in todo:
+            # the vertex of the first search is the centre of the second, and the vertex of the
+            # second is the centre of the local fit: both are evaluated there, not twice
+            lr = line_search(f, x, d[:, i], float(st[i]), box, j0=j if i == 0 else None, evaluate_vertex=False)
+            x, j = lr.x, None
+        fit = fit_with_jacobian(model, x, jac) if jac is not None else local_fit(model, x, box)
+        if not fit.success:
+            return fit, False, cycles
+        move = np.abs(x - start)
+        d, w = fit.directions
+        # next steps: two standard deviations along each direction, at least the tolerance
+        sd = np.sqrt(np.maximum(fit.sigma_v ** 2 / np.maximum(w, 1e-300), 0.0))
+        st = np.clip(2.0 * sd, 4 * np.min(tol), 2.0)
+        j = fit.criterion
+        # converged when the last cycle hardly moved, or when the Gauss–Newton model puts the
+        # minimum within a quarter standard deviation (or the tolerance) of where we are
+        sigma_x = np.sqrt(np.abs(np.diag(fit.cov_x)))
+        close = np.maximum(tol, 0.25 * sigma_x)
+        if np.all(move <= tol) or np.all(np.abs(fit.gn_step) <= close):
+            converged = True
+            break
+        if batched and np.all(np.abs(fit.gn_step) <= 4.0 * np.maximum(sigma_x, tol)):
+            # near the minimum already: one Gauss–Newton step is cheaper than another cycle
+            x_gn = box.clip(x + fit.gn_step)
+            fit_gn = local_fit(model, x_gn, box)
+            if fit_gn.success and fit_gn.criterion <= fit.criterion:
+                fit, x = fit_gn, x_gn
+                sigma_x = np.sqrt(np.abs(np.diag(fit.cov_x)))
+                if np.all(np.abs(fit.gn_step) <= np.maximum(tol, 0.25 * sigma_x)):
+                    converged = True
+                    break
+            j = fit.criterion
+    return fit, converged, cycles
+
+

@@ -1,0 +1,45 @@
+"""The status of an estimate, from the identification kernel to the wire (one enum, one code table).
+
+The value is the word used in JSON, CLIs and logs; ``code`` is the DBC's ``EstimateState.Status``
+value (``VAL_ 512 Status`` in ``dbc/injector.dbc``, checked by a test).
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+
+
+class Status(str, Enum):
+    """Outcome of one injection. A ``str`` so that JSON and comparisons with words keep working."""
+
+    OK = "ok"                        # filtered estimate, converged, sigma within the configured limit
+    AT_BOUND = "at_bound"            # the estimate lies on a search bound (truth may be outside the range)
+    NOT_CONVERGED = "not_converged"  # the line searches ran out of cycles
+    REJECTED = "rejected"            # invalid trace or a rejected outlier: the published estimate is the old one
+    NO_ESTIMATE = "no_estimate"      # nothing known about this injector yet
+    UNCERTAIN = "uncertain"          # estimated, but sigma(L_h) above the configured limit
+    UNCONFIRMED = "unconfirmed"      # this injection disagrees with the filter: its own (raw) estimate, not yet
+                                     # confirmed by the next injection (a step, a fast drift, or a glitch)
+
+    @property
+    def code(self) -> int:
+        """The wire code of ``EstimateState.Status``."""
+        return _CODES[self]
+
+    @classmethod
+    def from_code(cls, code: int) -> "Status":
+        """The status of a wire code; ValueError for an unknown one."""
+        for s, c in _CODES.items():
+            if c == code:
+                return s
+        raise ValueError(f"unknown status code {code}")
+
+    def __str__(self) -> str:
+        return self.value
+
+
+_CODES = {Status.OK: 0, Status.AT_BOUND: 1, Status.NOT_CONVERGED: 2, Status.REJECTED: 3, Status.NO_ESTIMATE: 4,
+          Status.UNCERTAIN: 5, Status.UNCONFIRMED: 6}
+
+#: statuses whose published (N_u, L_h) is an estimate of this injection (not the previous one held)
+ESTIMATED = frozenset({Status.OK, Status.AT_BOUND, Status.NOT_CONVERGED, Status.UNCERTAIN, Status.UNCONFIRMED})
