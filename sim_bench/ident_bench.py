@@ -17,7 +17,7 @@ from estimator.ident.measurement import Injection
 from estimator.ident.config import TrackerConfig
 from estimator.ident.tracker import Tracker
 from estimator.model.fast_sim import FastSimulator
-from sim_bench.plant import Measurement, Plant, PlantConfig
+from sim_bench.plant import AdcConfig, Measurement, Plant, PlantConfig
 
 NU_RANGE = (15.0, 21.0)
 LH_RANGE_UM = (-1.0, 10.0)
@@ -42,21 +42,24 @@ def effective_noise_v(cfg: PlantConfig) -> float:
 
 
 def accuracy(n: int = 60, seed: int = 1, mismatch: bool = False, window_s: float = 100e-6,
-             trace_s: float = 150e-6) -> dict:
+             trace_s: float = 150e-6, sweep: str = "random", noise_v: float | None = None) -> dict:
     """Single-injection identification (cold start) of n random injectors against truth and the CRB.
 
     The plant sends ``trace_s`` of samples; the estimator's cost window is ``window_s`` (and up to
     its robust window when it detects model error). The CRB is for the ``window_s`` window.
     """
-    cfg = PlantConfig(mismatch=mismatch, window_s=max(window_s, trace_s))
+    adc = AdcConfig() if noise_v is None else AdcConfig(voltage_noise_v=noise_v)
+    cfg = PlantConfig(mismatch=mismatch, window_s=max(window_s, trace_s), adc=adc)
     plant = Plant(cfg)
     sim = FastSimulator()
     icfg = IdentConfig(window_s=window_s)
     rng = np.random.default_rng(seed)
     sigma = effective_noise_v(cfg)
     rows = []
-    for _ in range(n):
+    for i in range(n):
         nu = float(rng.uniform(*NU_RANGE))
+        if sweep == "near-edge":   # the issue's edges: 15.02..15.3 and 20.7..20.95 N/V
+            nu = float(rng.uniform(*(NEAR_EDGE_NU[i % 2])))
         lh = float(rng.uniform(*LH_RANGE_UM)) * 1e-6
         m = plant.measure(nu, lh, F_OPEN_N, rng)
         t0 = time.perf_counter()
@@ -73,10 +76,17 @@ def accuracy(n: int = 60, seed: int = 1, mismatch: bool = False, window_s: float
                      "evaluations": est.evaluations, "seconds": dt})
     e_nu = [100 * (r["nu"] / r["nu_true"] - 1) for r in rows]
     e_lh = [r["lh_um"] - r["lh_true_um"] for r in rows]
+    z = np.array(e_lh) / np.array([r["sigma_lh_um"] for r in rows])
+    ok = np.array([r["status"] == "ok" for r in rows])
+    sig = np.array([r["sigma_lh_um"] for r in rows])
+    abs_lh = np.abs(np.array(e_lh))
     e_to = [r["t_open_us"] - r["t_open_true_us"] for r in rows]
     e_st = [r["stroke_um"] - r["stroke_true_um"] for r in rows]
     summary = {
-        "n": n, "mismatch": mismatch, "window_us": window_s * 1e6, "noise_v": sigma,
+        "n": n, "mismatch": mismatch, "window_us": window_s * 1e6, "noise_v": sigma, "sweep": sweep,
+        "max_abs_nu_pct": float(np.nanmax(np.abs(e_nu))), "beyond_3_sigma": int(np.sum(np.abs(z) > 3)),
+        "beyond_0p3_where_sigma_le_0p1": int(np.sum((sig <= 0.1) & (abs_lh > 0.3))),
+        "ok_off_by_more_than_0p5": int(np.sum(ok & (abs_lh > 0.5))), "rms_error_over_sigma": _rms(z),
         "rmse_nu_pct": _rms(e_nu), "rmse_lh_um": _rms(e_lh), "max_abs_lh_um": float(np.nanmax(np.abs(e_lh))),
         "rmse_t_open_us": _rms(e_to), "rmse_stroke_um": _rms(e_st),
         "crb_nu_pct": _rms([100 * r["crb_nu"] / r["nu_true"] for r in rows]),
@@ -87,23 +97,55 @@ def accuracy(n: int = 60, seed: int = 1, mismatch: bool = False, window_s: float
         "median_cold_ms": 1e3 * float(np.median([r["seconds"] for r in rows])),
     }
     summary["lh_rmse_over_crb"] = summary["rmse_lh_um"] / summary["crb_lh_um"]
+    summary["failures"] = accuracy_failures(summary)
     return {"benchmark": "accuracy", "seed": seed, "summary": summary, "rows": rows}
 
 
+NEAR_EDGE_NU = ((15.02, 15.3), (20.7, 20.95))
+HIGH_NOISE_V = 0.3
+
+
+def accuracy_failures(s: dict) -> list[str]:
+    """The issue's targets for a sweep (matched plant): what is missed, as readable phrases."""
+    if s["mismatch"]:
+        return []
+    fails = []
+    if s["sweep"] in ("random", "near-edge"):
+        if s["ok_fraction"] < 1.0:
+            fails.append(f"status ok for only {100 * s['ok_fraction']:.0f} %")
+        if s["robust_fraction"] > 0:
+            fails.append(f"robust mode on the exact plant for {100 * s['robust_fraction']:.0f} %")
+        if s["max_abs_nu_pct"] > 0.3:
+            fails.append(f"max |dN_u| {s['max_abs_nu_pct']:.3f} % > 0.3 %")
+        if s["beyond_3_sigma"] or s["beyond_0p3_where_sigma_le_0p1"]:
+            fails.append(f"{s['beyond_3_sigma']} beyond 3 sigma, {s['beyond_0p3_where_sigma_le_0p1']} beyond "
+                         "0.3 µm with sigma <= 0.1 µm")
+    if s["sweep"] == "high-noise":
+        if s["ok_off_by_more_than_0p5"]:
+            fails.append(f"{s['ok_off_by_more_than_0p5']} estimates off by > 0.5 µm with status ok")
+        if not 0.8 <= s["rms_error_over_sigma"] <= 1.25:
+            fails.append(f"RMS(error/sigma) {s['rms_error_over_sigma']:.2f} outside 0.8..1.25")
+    return fails
+
+
 def format_accuracy(reports: list[dict]) -> str:
-    """One line per accuracy report."""
-    head = (f"{'scenario':<10} {'window':>6} {'n':>4} {'N_u rmse':>9} {'CRB':>7} {'L_h rmse':>9} {'CRB':>7} "
-            f"{'ratio':>6} {'max|dLh|':>9} {'t_open':>7} {'CRB':>7} {'stroke':>7} {'robust':>7} {'cold':>7}")
-    units = (f"{'':<10} {'[µs]':>6} {'':>4} {'[%]':>9} {'[%]':>7} {'[µm]':>9} {'[µm]':>7} {'':>6} {'[µm]':>9} "
-             f"{'[µs]':>7} {'[µs]':>7} {'[µm]':>7} {'[%]':>7} {'[ms]':>7}")
+    """One line per accuracy report, with the sweep's verdict."""
+    head = (f"{'sweep':<10} {'plant':<8} {'noise':>5} {'n':>4} {'N_u rmse':>8} {'CRB':>6} {'max':>6} {'L_h rmse':>8} "
+            f"{'CRB':>6} {'ratio':>5} {'max|dLh|':>8} {'err/σ':>5} {'>3σ':>4} {'ok':>4} {'t_open':>6} {'CRB':>5} "
+            f"{'robust':>6} {'cold':>5}  verdict")
+    units = (f"{'':<10} {'':<8} {'[V]':>5} {'':>4} {'[%]':>8} {'[%]':>6} {'[%]':>6} {'[µm]':>8} {'[µm]':>6} {'':>5} "
+             f"{'[µm]':>8} {'rms':>5} {'':>4} {'[%]':>4} {'[µs]':>6} {'[µs]':>5} {'[%]':>6} {'[ms]':>5}")
     lines = [head, units]
     for rep in reports:
         s = rep["summary"]
+        verdict = "" if s["mismatch"] else ("PASS" if not s["failures"] else "FAIL: " + "; ".join(s["failures"]))
         lines.append(
-            f"{'mismatch' if s['mismatch'] else 'matched':<10} {s['window_us']:>6.0f} {s['n']:>4} {s['rmse_nu_pct']:>9.3f} "
-            f"{s['crb_nu_pct']:>7.3f} {s['rmse_lh_um']:>9.3f} {s['crb_lh_um']:>7.3f} {s['lh_rmse_over_crb']:>6.2f} "
-            f"{s['max_abs_lh_um']:>9.3f} {s['rmse_t_open_us']:>7.2f} {s['crb_t_open_us']:>7.2f} {s['rmse_stroke_um']:>7.3f} "
-            f"{100 * s['robust_fraction']:>7.0f} {s['median_cold_ms']:>7.1f}")
+            f"{s['sweep']:<10} {'mismatch' if s['mismatch'] else 'matched':<8} {s['noise_v']:>5.2f} {s['n']:>4} "
+            f"{s['rmse_nu_pct']:>8.3f} {s['crb_nu_pct']:>6.3f} {s['max_abs_nu_pct']:>6.3f} {s['rmse_lh_um']:>8.3f} "
+            f"{s['crb_lh_um']:>6.3f} {s['lh_rmse_over_crb']:>5.2f} {s['max_abs_lh_um']:>8.3f} "
+            f"{s['rms_error_over_sigma']:>5.2f} {s['beyond_3_sigma']:>4} {100 * s['ok_fraction']:>4.0f} "
+            f"{s['rmse_t_open_us']:>6.2f} {s['crb_t_open_us']:>5.2f} {100 * s['robust_fraction']:>6.0f} "
+            f"{s['median_cold_ms']:>5.1f}  {verdict}")
     return "\n".join(lines)
 
 

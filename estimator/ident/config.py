@@ -28,20 +28,21 @@ class IdentConfig:
     norm: str = "l2"
     robust: str = "auto"                   # "auto", "on" or "off"
     model_error_threshold: float = 40.0    # chi-square(6) statistic; P(>40 | correct model) < 1e-6
-    nu_bounds_n_per_v: tuple[float, float] = (15.0, 21.0)
+    nu_bounds_n_per_v: tuple[float, float] = (14.9, 21.1)   # Table 1's 15..21 N/V and the simulator's margin
     lh_bounds_um: tuple[float, float] = (-2.0, 10.0)
     grid: tuple[int, int] = (13, 25)       # N_u x L_h points of the cold-start grid
     zoom_points: int = 9                   # N_u columns per zoom of the cold start's profile search
     zooms: int = 2                         # zooms of the profile search (each 1/4 of the previous span)
     tol: tuple[float, float] = (2e-4, 2e-3)  # convergence: N/V, µm
     max_cycles: int = 10
+    sigma_limit_lh_um: float = 0.25        # above this sigma(L_h) the status is "uncertain", not "ok"
 
     def __post_init__(self) -> None:
         if self.robust not in ("auto", "on", "off"):
             raise ValueError(f"robust must be auto, on or off, not {self.robust!r}")
         if self.norm not in ("l1", "l2"):
             raise ValueError(f"norm must be l1 or l2, not {self.norm!r}")
-        _positive(self, "window_s", "robust_window_s", "model_error_threshold")
+        _positive(self, "window_s", "robust_window_s", "model_error_threshold", "sigma_limit_lh_um")
         if not (20e-6 <= self.window_s <= 2e-3):
             raise ValueError(f"window {self.window_s * 1e6:.1f} µs must be within 20..2000 µs")
         lo, hi = self.nu_bounds_n_per_v
@@ -82,14 +83,13 @@ class TrackerConfig:
     raw_publish_chi2: float = 40.0          # a doubt beyond this (P = 2e-9 for noise) publishes its own estimate
     max_consecutive_outliers: int = 5       # doubts in a row that do not agree with each other: re-acquire
     warm_cycles: int = 3
-    sigma_limit_lh_um: float = 0.25         # above this sigma(L_h) the status is "uncertain", not "ok"
     robust_on_after: int = 3                # consecutive injections with model error to switch robust on
     robust_off_after: int = 20              # consecutive clean injections to switch it off again
     robust_floor: tuple[float, float] = (0.02, 0.1)  # added raw sigma (N/V, µm) in robust mode: bias
 
     def __post_init__(self) -> None:
         _positive(self, "q_nu_n_per_v", "q_lh_um", "gate_chi2", "raw_publish_chi2", "default_interval_s", "max_interval_s",
-                  "max_rate_n_per_v_s", "rate_tau_s", "slope_sigma", "sigma_limit_lh_um")
+                  "max_rate_n_per_v_s", "rate_tau_s", "slope_sigma")
         _positive(self, "q_nu_per_sqrt_s", "q_nu_per_sqrt_s_known_t", "q_lh_per_sqrt_s", "q_rate_per_sqrt_s",
                   "q_rate_per_sqrt_s_known_t", allow_zero=True)
         if not math.isfinite(self.slope_n_per_v_degc):

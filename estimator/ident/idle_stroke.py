@@ -32,11 +32,10 @@ from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
 
 
 def search_box(config: IdentConfig, sim: FastSimulator, f_open_n: float) -> Box:
-    """The search bounds in (N/V, µm): the configured bounds, the parameter range of N_u, and the
+    """The search bounds in (N/V, µm): the configured bounds, the simulator's N_u range, and the
     feasibility limit of L_h (no start in Σ3) with a small margin."""
-    psa = sim.params.psa
-    lo_nu = max(config.nu_bounds_n_per_v[0], psa.nu_min_n_per_v)
-    hi_nu = min(config.nu_bounds_n_per_v[1], psa.nu_max_n_per_v)
+    lo_nu = max(config.nu_bounds_n_per_v[0], sim.nu_range[0])
+    hi_nu = min(config.nu_bounds_n_per_v[1], sim.nu_range[1])
     lh_feasible = dyn.min_feasible_lh_m(sim.params, f_open_n) * UM_PER_M + 0.02
     lo_lh = max(config.lh_bounds_um[0], lh_feasible)
     return Box(np.array([lo_nu, lo_lh]), np.array([hi_nu, config.lh_bounds_um[1]]))
@@ -125,6 +124,9 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
         status, msg = Status.AT_BOUND, "estimate at a search bound"
     elif not converged:
         status, msg = Status.NOT_CONVERGED, "line searches did not converge"
+    elif fit.cov_x[1, 1] > config.sigma_limit_lh_um ** 2:
+        status, msg = Status.UNCERTAIN, (f"sigma(L_h) {np.sqrt(fit.cov_x[1, 1]):.2f} µm above the limit "
+                                         f"{config.sigma_limit_lh_um:.2f} µm")
     else:
         status, msg = Status.OK, ""
     tc, to, stroke = fit.t_contact_s, fit.t_open_s, float("nan")

@@ -452,9 +452,10 @@ def _accepted(st: TrackerState, raw: Estimate, r: np.ndarray, sim: FastSimulator
     x, p = np.array(st.x), np.array(st.p)
     if raw.status in (Status.AT_BOUND, Status.NOT_CONVERGED):
         status, reason = raw.status, reason or raw.message
-    elif math.sqrt(max(p[1, 1], 0.0)) > config.sigma_limit_lh_um:
-        status = Status.UNCERTAIN
-        reason = reason or f"sigma(L_h) {math.sqrt(p[1, 1]):.2f} µm above the limit {config.sigma_limit_lh_um:.2f} µm"
+    elif math.sqrt(max(p[1, 1], 0.0)) > config.ident.sigma_limit_lh_um:
+        status = Status.UNCERTAIN   # judged on the filtered sigma: averaging can make a noisy injector ok
+        reason = reason or (f"sigma(L_h) {math.sqrt(p[1, 1]):.2f} µm above the limit "
+                            f"{config.ident.sigma_limit_lh_um:.2f} µm")
     else:
         status = Status.OK
     return st, _publish((x, p), raw, status, reason, sim, inj, predict=True, outliers=outliers)

@@ -102,9 +102,8 @@ class Stats:
 
 def build_tracker(cfg: DaemonConfig) -> Tracker:
     """The recursive estimator as configured."""
-    ident = IdentConfig(window_s=cfg.window_us * 1e-6, robust=cfg.robust)
-    return Tracker(TrackerConfig(ident=ident, q_nu_n_per_v=cfg.q_nu_n_per_v, q_lh_um=cfg.q_lh_um,
-                                 sigma_limit_lh_um=cfg.sigma_limit_lh_um))
+    ident = IdentConfig(window_s=cfg.window_us * 1e-6, robust=cfg.robust, sigma_limit_lh_um=cfg.sigma_limit_lh_um)
+    return Tracker(TrackerConfig(ident=ident, q_nu_n_per_v=cfg.q_nu_n_per_v, q_lh_um=cfg.q_lh_um))
 
 
 class Daemon:
