@@ -84,6 +84,8 @@ SCENARIOS: dict[str, Scenario] = {
     "temperature-ramp": Scenario("temperature-ramp", temperature_c=(20.0, 100.0), seconds=40.0,
                                  description="20 -> 100 degC over the run (N_u 16.2 -> 21 N/V)"),
     "wear": Scenario("wear", wear_um=1.0, seconds=40.0, description="L_h grows by 1 µm over the run"),
+    "warm-up": Scenario("warm-up", temperature_c=(0.0, 100.0), seconds=60.0, rate_hz=5.0,
+                        description="cold engine to 100 degC in 60 s, FuelTemperature in the headers, 5 Hz"),
     "mismatch": Scenario("mismatch", mismatch=True, window_s=150e-6,
                          description="hysteresis plant (±2 V model error), 150 µs sent"),
     "faults": Scenario("faults", faults=FaultRates(drop=0.01, duplicate=0.01, reorder=0.01, corrupt=0.01,

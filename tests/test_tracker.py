@@ -55,6 +55,7 @@ def test_step_taken_at_the_second_injection_and_never_published_stale(sim):
     second = tr.update(at(measured(17.0, 4.0, 1401)[0], 0.84))
     assert second.status == Status.OK and "L_h confirmed" in second.reason
     assert abs(second.lh_m * 1e6 - 4.0) < 0.15 and second.outliers == 0
+    assert (first.accepted, second.accepted) == (0, 2)   # the doubt is counted once, when confirmed
     assert abs(second.nu_n_per_v - 17.0) < 0.01      # N_u kept what it knew
 
 
@@ -77,6 +78,7 @@ def test_unconfirmed_doubt_discarded_when_the_next_injection_agrees(sim):
     assert odd.status == Status.UNCONFIRMED and odd.outliers == 0
     back = tr.update(at(measured(17.0, 2.0, 1801)[0], 0.64))
     assert back.status == Status.OK and back.outliers == 1     # the doubt is counted as an outlier now
+    assert (odd.accepted, back.accepted) == (0, 1)
     assert abs(back.lh_m * 1e6 - 2.0) < 0.05                   # and never entered the filter
     assert tr.states[0].pending is None
 

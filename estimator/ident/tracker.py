@@ -194,7 +194,9 @@ class TrackResult:
     """Output of one update: the raw estimate, the published one, and what happened.
 
     ``outliers`` counts injections judged outliers by this update: the current one (status
-    ``rejected``) or an earlier ``unconfirmed`` one that the current injection did not confirm.
+    ``rejected``) or an earlier ``unconfirmed`` one that the current injection did not confirm;
+    ``accepted`` those it took into the filter: this one, and an earlier ``unconfirmed`` one it
+    confirmed. An ``unconfirmed`` injection is counted once, when the next one decides.
     """
 
     raw: Estimate
@@ -211,6 +213,7 @@ class TrackResult:
     outliers: int = 0
     rate_n_per_v_s: float = float("nan")
     slope_n_per_v_degc: float = float("nan")
+    accepted: int = 0
 
     def filtered_dict(self) -> dict:
         """The published estimate with units in the keys."""
@@ -340,7 +343,8 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
         taken = _confirm_jump(st, z, r, now, temp, config, noise)
         if taken is not None:
             comps = " and ".join({kalman.NU: "N_u", kalman.LH: "L_h"}[c] for c in taken)
-            return _accepted(st, raw, r, sim, inj, config, f"change of {comps} confirmed by two injections")
+            return _accepted(st, raw, r, sim, inj, config, f"change of {comps} confirmed by two injections",
+                             confirmed=1)
         st.rejected += 1          # the earlier doubt agrees with nothing: an outlier
         outliers = 1
     else:
@@ -446,8 +450,9 @@ def _embed(r: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 
 def _accepted(st: TrackerState, raw: Estimate, r: np.ndarray, sim: FastSimulator, inj: Injection,
-              config: TrackerConfig, reason: str, outliers: int = 0) -> tuple[TrackerState, TrackResult]:
-    st.accepted += 1
+              config: TrackerConfig, reason: str, outliers: int = 0,
+              confirmed: int = 0) -> tuple[TrackerState, TrackResult]:
+    st.accepted += 1 + confirmed
     _carry_search(st, raw, r, config)
     x, p = np.array(st.x), np.array(st.p)
     if raw.status in (Status.AT_BOUND, Status.NOT_CONVERGED):
@@ -458,7 +463,9 @@ def _accepted(st: TrackerState, raw: Estimate, r: np.ndarray, sim: FastSimulator
                             f"{config.ident.sigma_limit_lh_um:.2f} µm")
     else:
         status = Status.OK
-    return st, _publish((x, p), raw, status, reason, sim, inj, predict=True, outliers=outliers)
+    res = _publish((x, p), raw, status, reason, sim, inj, predict=True, outliers=outliers)
+    res.accepted = 1 + confirmed
+    return st, res
 
 
 def _carry_search(st: TrackerState, raw: Estimate, r: np.ndarray, config: TrackerConfig) -> None:

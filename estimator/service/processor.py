@@ -86,14 +86,13 @@ class Processor:
         inj = Injection(e.current_a, e.voltage_v, h.sample_period_ns * 1e-9, h.preload_force_n, h.injector_id,
                         h.counter, h.fuel_temperature_c, e.t_last)
         res = self.tracker.update(inj)
+        # an "unconfirmed" injection is counted when the next one decides (accepted or outlier)
         self.counters.rejected_outlier += res.outliers
-        if res.status == Status.REJECTED:
-            if not res.outliers:
-                self.counters.reject("invalid")
-                self.rlog.log(logging.WARNING, "reject-estimator", "injector %d counter %d rejected: %s",
-                              h.injector_id, h.counter, res.reason)
-        else:
-            self.counters.accepted += 1
+        self.counters.accepted += res.accepted
+        if res.status == Status.REJECTED and not res.outliers:
+            self.counters.reject("invalid")
+            self.rlog.log(logging.WARNING, "reject-estimator", "injector %d counter %d rejected: %s",
+                          h.injector_id, h.counter, res.reason)
         return Published(h.injector_id, h.counter, e.t_last, res, self.frames_for(h.injector_id, h.counter, res))
 
     def frames_for(self, injector_id: int, counter: int, res: TrackResult) -> list:
