@@ -67,6 +67,13 @@ def test_state_store_atomic_and_defensive(tmp_path):
     path.write_text(json.dumps(doc))
     loaded, problem = load_states(path)
     assert list(loaded) == [1] and "injector 2" in problem and "injector 12" in problem
+    path.write_text(json.dumps({"format": "piezo-injector-estimator-state", "version": 1, "injectors": [1, 2]}))
+    loaded, problem = load_states(path)
+    assert loaded == {} and "not an object" in problem
+    bad = {**st.to_dict(), "accepted": "many", "x": [100.0, 500.0, 0.0, 0.06]}   # type and range poison
+    path.write_text(json.dumps({"format": "piezo-injector-estimator-state", "version": 1, "injectors": {"1": bad}}))
+    loaded, problem = load_states(path)
+    assert loaded == {} and "injector 1" in problem
 
 
 def test_daemon_sd_notify_and_sigterm(tmp_path):

@@ -57,7 +57,10 @@ def load_states(path: Path) -> tuple[dict[int, TrackerState], str | None]:
         return {}, f"state file {path} is not a {FORMAT} v{VERSION} file; ignoring it"
     states: dict[int, TrackerState] = {}
     problems = []
-    for key, value in (doc.get("injectors") or {}).items():
+    entries = doc.get("injectors") or {}
+    if not isinstance(entries, dict):
+        return {}, f"state file {path}: 'injectors' is not an object; starting without it"
+    for key, value in entries.items():
         try:
             inj = int(key)
             if not 0 <= inj <= 7:
