@@ -29,7 +29,8 @@ def running(tmp_path):
     t = threading.Thread(target=d.run, daemon=True)
     t.start()
     bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
-    time.sleep(0.2)
+    ready = collect(bus, Codec(), lambda g: any(isinstance(r, EstimatorStatus) for r in g), timeout=60.0)
+    assert any(isinstance(r, EstimatorStatus) for r in ready), "daemon never sent a heartbeat"
     yield d, bus, tmp_path
     d.stop.set()
     t.join(timeout=3)
@@ -50,6 +51,16 @@ def collect(bus, codec, until, timeout=10.0):
         if until(got):
             break
     return got
+
+
+def wait_for(bus, cond, timeout=10.0) -> bool:
+    """Until ``cond()`` holds, checked on every frame the daemon sends (its heartbeat ticks at 10 Hz)."""
+    t_end = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > t_end:
+            return False
+        bus.recv(0.2)
+    return True
 
 
 def test_injections_in_estimates_out_match_the_core(running):
@@ -81,8 +92,9 @@ def test_injections_in_estimates_out_match_the_core(running):
     status = collect(bus, codec, lambda g: any(isinstance(r, EstimatorStatus) for r in g))
     st = [r for r in status if isinstance(r, EstimatorStatus)][-1]
     assert st.accepted == 6 and st.latency_p99_ms > 0
-    time.sleep(0.5)
-    saved, problem = load_states(state_dir / "estimator-state.json")
+    path = state_dir / "estimator-state.json"
+    assert wait_for(bus, lambda: 1 in load_states(path)[0] and load_states(path)[0][1].accepted == 6)
+    saved, problem = load_states(path)
     assert problem is None and saved[1].accepted == 6
 
 
@@ -97,7 +109,7 @@ def test_reset_command_and_bad_frames_do_not_stop_it(running):
     bus.send(to_message(codec.encode(EstimatorCommand(2, COMMAND_RESET))))
     bus.send(can.Message(arbitration_id=0x101, data=b"\x01\x02", is_fd=True, is_extended_id=False))  # malformed
     bus.send(can.Message(arbitration_id=0x555, data=b"\x00" * 8, is_extended_id=False))            # unknown
-    time.sleep(0.3)
+    assert wait_for(bus, lambda: d.ingest.counters.frames_malformed == 1 and 2 not in d.tracker.states)
     assert 2 not in d.tracker.states
     assert d.ingest.counters.frames_malformed == 1
     for fr in injection_frames(codec, 2, 1, inj.dt_s, inj.current_a, inj.voltage_v):
