@@ -18,21 +18,14 @@ class Status(str, Enum):
     REJECTED = "rejected"            # invalid trace or a rejected outlier: the published estimate is the old one
     NO_ESTIMATE = "no_estimate"      # nothing known about this injector yet
     UNCERTAIN = "uncertain"          # estimated, but sigma(L_h) above the configured limit
-    UNCONFIRMED = "unconfirmed"      # this injection disagrees with the filter: its own (raw) estimate, not yet
-                                     # confirmed by the next injection (a step, a fast drift, or a glitch)
+    UNCONFIRMED = "unconfirmed"      # this injection disagrees with the filter (a step, a fast drift, or a glitch):
+                                     # its own estimate (far off) or the filter updated by it (marginal), until
+                                     # the next injection confirms or discards it
 
     @property
     def code(self) -> int:
         """The wire code of ``EstimateState.Status``."""
         return _CODES[self]
-
-    @classmethod
-    def from_code(cls, code: int) -> "Status":
-        """The status of a wire code; ValueError for an unknown one."""
-        for s, c in _CODES.items():
-            if c == code:
-                return s
-        raise ValueError(f"unknown status code {code}")
 
     def __str__(self) -> str:
         return self.value

@@ -38,8 +38,8 @@ import numpy as np
 
 from estimator.errors import EstimatorError
 from estimator.ident import kalman
-from estimator.ident.config import IdentConfig, TrackerConfig
-from estimator.ident.coords import UM_PER_M
+from estimator.ident.config import TrackerConfig
+from estimator.ident.coords import NuLh
 from estimator.ident.cost import CostModel, model_error_statistic, nuisance_columns
 from estimator.ident.estimate import Estimate, rejected
 from estimator.ident.idle_stroke import (check_injection, effective_window_s, finish, identify, predict_valve,
@@ -50,8 +50,6 @@ from estimator.ident.model_selection import likelihood_ratio
 from estimator.ident.search import Box
 from estimator.ident.status import Status
 from estimator.model.fast_sim import FastSimulator
-
-__all__ = ["IdentConfig", "TrackerConfig", "TrackerState", "TrackResult", "Tracker", "update"]
 
 STATE_VERSION = 2
 ROBUST_CHECK_EVERY = 4         # in robust mode, every 4th injection also fits the plain model (model-error test)
@@ -308,7 +306,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
     restart = cold or _robust_hysteresis(st, raw, config, cold)
     if restart and raw.robust != st.robust:
         raw = _cold_estimate(st, inj, sim, config)
-    z = np.array([raw.nu_n_per_v, raw.lh_m * UM_PER_M])
+    z = raw.point.array()
     r = _robust_cov(raw, config)
     if not (np.all(np.isfinite(r)) and np.all(np.isfinite(z))):
         st.rejected += 1
@@ -491,15 +489,14 @@ def _publish(filt: tuple[np.ndarray, np.ndarray] | None, raw: Estimate, status: 
     if filt is None:
         return TrackResult(raw, nan, nan, nan, nan, status, reason, raw.evaluations, outliers=outliers)
     x, p = filt
-    nu, lh = float(x[0]), float(x[1])
+    pt, sig = NuLh.of(x), NuLh.of(np.sqrt(np.abs(np.diag(p))))
     tc = to = stroke = nan
-    if predict and math.isfinite(nu) and math.isfinite(lh):
+    if predict and math.isfinite(pt.nu_n_per_v) and math.isfinite(pt.lh_um):
         try:
-            tc, to, stroke = predict_valve(sim, inj, nu, lh / UM_PER_M)
+            tc, to, stroke = predict_valve(sim, inj, pt.nu_n_per_v, pt.lh_m)
         except EstimatorError:   # e.g. a prior outside the simulator's N_u range: no prediction
             pass
-    sig = np.sqrt(np.abs(np.diag(p)))
-    return TrackResult(raw, nu, lh / UM_PER_M, float(sig[0]), float(sig[1]) / UM_PER_M, status, reason,
+    return TrackResult(raw, pt.nu_n_per_v, pt.lh_m, sig.nu_n_per_v, sig.lh_m, status, reason,
                        raw.evaluations, tc, to, stroke, outliers, float(x[kalman.RATE]), float(x[kalman.SLOPE]))
 
 
