@@ -36,6 +36,20 @@ def _load(path: Path):
     return injection_from_trace(read_trace(path))
 
 
+def _params(args: argparse.Namespace):
+    """The model parameters: ``--params FILE`` (what ``calibrate --out`` writes) or Tables 1-2."""
+    from estimator.model.parameters import InjectorParameters, load_nominal
+
+    path = getattr(args, "params", None)
+    return InjectorParameters.from_toml(path) if path is not None else load_nominal()
+
+
+def _simulator(args: argparse.Namespace, dt_s: float):
+    from estimator.model.fast_sim import FastSimulator
+
+    return FastSimulator(_params(args), dt_s=dt_s)
+
+
 def cmd_params(args: argparse.Namespace) -> int:
     """Print the nominal parameters (Tables 1 and 2) and derived quantities."""
     from estimator.model.parameters import load_nominal
@@ -58,6 +72,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
     from estimator.ident.idle_stroke import identify
 
     config = _config(args)
+    params = _params(args)
     try:
         inj = _load(args.trace)
     except TraceError as exc:
@@ -65,7 +80,10 @@ def cmd_identify(args: argparse.Namespace) -> int:
             raise
         est = rejected(str(exc))
     else:
-        est = identify(inj, config=config)
+        from estimator.model.fast_sim import FastSimulator
+
+        sim = FastSimulator(params, dt_s=inj.dt_s) if inj.dt_s > 0 else None
+        est = identify(inj, sim, config=config)
     d = est.to_dict()
     if args.json:
         print(json.dumps(d))
@@ -88,12 +106,17 @@ def cmd_track(args: argparse.Namespace) -> int:
     from estimator.ident.status import Status
     from estimator.ident.tracker import Tracker, TrackResult
 
-    tracker = Tracker(TrackerConfig(ident=_config(args)))
+    from estimator.ident.simulators import SimulatorPool
+
+    tracker = Tracker(TrackerConfig(ident=_config(args)), pool=SimulatorPool(_params(args)))
     nan = float("nan")
+    bad = 0
     for path in args.traces:
         try:
             res = tracker.update(_load(path))
-        except TraceError as exc:
+        except TraceError as exc:   # unreadable or not a trace: reported in its line, the batch goes on
+            bad += 1
+            log.warning("%s", exc)
             res = TrackResult(rejected(str(exc)), nan, nan, nan, nan, Status.REJECTED, str(exc), 0)
         filt = res.filtered_dict()
         out = {"file": str(path), "raw": res.raw.to_dict(),
@@ -102,13 +125,14 @@ def cmd_track(args: argparse.Namespace) -> int:
                "status": res.status.value, "reason": res.reason, "outliers": res.outliers,
                "prediction": {k: filt[k] for k in ("t_contact_us", "t_open_us", "stroke_um")}}
         print(json.dumps(out), flush=True)
-    return 0
+    if bad:
+        print(f"error: {bad} of {len(args.traces)} file(s) could not be read (see their lines)", file=sys.stderr)
+    return 1 if bad else 0
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Calibrate k_p, k_s, R_b and the temperature laws from traces with s3 (eq. 25)."""
     from estimator.ident.calibration import CalibrationTrace, calibrate, report, to_toml
-    from estimator.model.parameters import load_nominal
     from estimator.trace_io import injection_from_trace, read_trace
 
     traces = []
@@ -119,10 +143,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             raise EstimatorError(f"{path}: calibration traces need '# temperature_c=...'")
         traces.append(CalibrationTrace(injection_from_trace(tr), tr.column("s3_m"), temp))
     try:
-        res = calibrate(traces, window_s=args.window_us * 1e-6, gamma_v_per_m=args.gamma)
+        res = calibrate(traces, _params(args), window_s=args.window_us * 1e-6, gamma_v_per_m=args.gamma)
     except ValueError as exc:
         raise EstimatorError(str(exc)) from None
-    toml = to_toml(res, load_nominal())
+    toml = to_toml(res, _params(args))
     if args.out:
         args.out.write_text(toml)
         print(f"wrote {args.out}")
@@ -137,7 +161,12 @@ def cmd_plot(args: argparse.Namespace) -> int:
     from estimator.plots import plot_identification
 
     config = _config(args)
-    paths = plot_identification(_load(args.trace), args.out, config, args.grid)
+    if not 3 <= args.grid <= 201:
+        raise EstimatorError(f"--grid {args.grid}: the contour needs 3..201 points per axis")
+    inj = _load(args.trace)
+    if inj.problem():
+        raise EstimatorError(f"{args.trace}: {inj.problem()}")
+    paths = plot_identification(inj, args.out, config, args.grid, _simulator(args, inj.dt_s))
     for p in paths:
         print(f"wrote {p}")
     return 0
@@ -148,8 +177,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     from estimator.service.config import DaemonConfig
     from estimator.service.daemon import run_daemon
 
-    cfg = DaemonConfig.load(args.config, bus=args.bus, state_dir=args.state_dir, dbc=args.dbc)
-    return run_daemon(cfg)
+    overrides = dict(bus=args.bus, state_dir=args.state_dir, dbc=args.dbc, params=args.params)
+    cfg = DaemonConfig.load(args.config, **overrides)
+    if not args.debug:
+        logging.getLogger().setLevel(cfg.log_level_number)
+    loader = (lambda: DaemonConfig.load(args.config, **overrides)) if args.config is not None else None
+    return run_daemon(cfg, loader)
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -157,7 +190,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from estimator.service.config import DaemonConfig
     from estimator.service.replay import replay
 
-    cfg = DaemonConfig.load(args.config, dbc=args.dbc)
+    cfg = DaemonConfig.load(args.config, dbc=args.dbc, params=args.params)
     if not args.capture.exists():
         raise EstimatorError(f"capture {args.capture} does not exist")
     out_json = open(args.json, "w") if args.json and str(args.json) != "-" else (sys.stdout if args.json else None)
@@ -172,6 +205,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
     print(f"replayed {res.frames_in} frames: {res.published} injections estimated; rejected crc {c.rejected_crc}, "
           f"missing {c.rejected_missing}, timeout {c.rejected_timeout}, invalid {c.rejected_invalid}, outlier "
           f"{c.rejected_outlier}; malformed frames {c.frames_malformed}", file=sys.stderr)
+    if res.bad_line_count:
+        for no, problem in res.bad_lines[:5]:
+            print(f"{args.capture}:{no}: skipped, not a frame ({problem})", file=sys.stderr)
+        print(f"error: {res.bad_line_count} line(s) of {args.capture} could not be read and were skipped "
+              f"(first at line {res.bad_lines[0][0]}); everything else was replayed", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -201,11 +240,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
     sub = p.add_subparsers(dest="command", required=True)
 
+    def params_opt(s: argparse.ArgumentParser) -> None:
+        s.add_argument("--params", type=Path, default=None,
+                       help="model parameter TOML (what 'calibrate --out' writes; default Tables 1-2)")
+
     def ident_opts(s: argparse.ArgumentParser) -> None:
         s.add_argument("--window-us", type=float, default=None, help="cost window 0..t1 in µs (default 100)")
         s.add_argument("--robust", choices=("auto", "on", "off"), default=None,
                        help="model-error handling (default auto: likelihood-ratio test)")
         s.add_argument("--norm", choices=("l2", "l1"), default=None, help="search criterion (default l2)")
+        params_opt(s)
 
     s = sub.add_parser("params", help="print the nominal model parameters")
     s.add_argument("--nu", type=float, default=16.39, help="N_u in N/V for the derived values")
@@ -227,6 +271,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--window-us", type=float, default=170.0, help="cost window in µs (default 170)")
     s.add_argument("--gamma", type=float, default=1e6, help="weight of the s3 error in V/m (default 1e6)")
     s.add_argument("--out", type=Path, help="write the TOML here (default: print it)")
+    s.add_argument("--params", type=Path, default=None, help="starting parameter TOML (default Tables 1-2)")
     s.set_defaults(func=cmd_calibrate)
 
     s = sub.add_parser("run", help="run the estimator daemon on a CAN bus")
@@ -236,6 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--state-dir", type=Path, default=None, help="where per-injector state persists "
                    "(default $STATE_DIRECTORY, else not persisted)")
     s.add_argument("--dbc", type=Path, default=None, help="CAN database (default dbc/injector.dbc)")
+    params_opt(s)
     s.set_defaults(func=cmd_run)
 
     s = sub.add_parser("replay", help="run a capture (any python-can log, candump -L too) through the pipeline")
@@ -244,6 +290,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", type=Path, help="write one JSON line per injection ('-' for stdout)")
     s.add_argument("--config", type=Path)
     s.add_argument("--dbc", type=Path, default=None)
+    params_opt(s)
     s.set_defaults(func=cmd_replay)
 
     s = sub.add_parser("check-dbc", help="validate the DBC against the contract")

@@ -18,6 +18,9 @@ def run_cli(parser: argparse.ArgumentParser, argv: list[str] | None) -> int:
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         return func(args)
+    except KeyboardInterrupt:   # Ctrl-C (and, in sim_bench, SIGTERM/SIGHUP): children were stopped on the way out
+        print("interrupted", file=sys.stderr)
+        return 130
     except (EstimatorError, OSError) as exc:
         if args.debug:
             raise

@@ -24,11 +24,17 @@ def _pyplot():
     return plt
 
 
-def plot_identification(inj: Injection, out_dir: Path, config: IdentConfig | None = None, grid: int = 41) -> list[Path]:
-    """Identify the injection and write ``voltage_fit.png`` and ``cost_contour.png`` into ``out_dir``."""
+def plot_identification(inj: Injection, out_dir: Path, config: IdentConfig | None = None, grid: int = 41,
+                        sim: FastSimulator | None = None) -> list[Path]:
+    """Identify the injection and write ``voltage_fit.png`` and ``cost_contour.png`` into ``out_dir``.
+
+    ``grid`` contour points per axis (3..201); ``sim`` the simulator (default: Tables 1-2 at the trace's period).
+    """
+    if not 3 <= grid <= 201:
+        raise EstimatorError(f"contour grid {grid} must have 3..201 points per axis")
     plt = _pyplot()
     config = config or IdentConfig()
-    sim = FastSimulator(dt_s=inj.dt_s)
+    sim = sim or FastSimulator(dt_s=inj.dt_s)
     est = identify(inj, sim, config)
     if est.status == "rejected":
         raise EstimatorError(f"trace rejected: {est.message}")

@@ -10,10 +10,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import signal
 import subprocess
-import sys
 import threading
 import time
 from collections import defaultdict
@@ -29,6 +26,7 @@ from estimator.codec.records import (Codec, EstimateQuality, EstimateState, Esti
 from estimator.service.bus import BusSetupError, check_socketcan, open_bus, to_frame
 from sim_bench import scenarios
 from sim_bench.hub import Hub
+from sim_bench.procs import DaemonProcess, rss_mb, spawn, stop_process
 
 # Targets per scenario: max |L_h error| (µm) after 30 injections of each injector, max |N_u error| (%).
 TARGETS = {
@@ -85,6 +83,8 @@ class Listener(threading.Thread):
         self.cap = Capture()
         self.stop_event = threading.Event()
         self.lock = threading.Lock()
+        self.heartbeat = threading.Condition(self.lock)   # notified on every EstimatorStatus
+        self.heartbeats = 0
 
     def run(self) -> None:
         while not self.stop_event.is_set():
@@ -118,6 +118,8 @@ class Listener(threading.Thread):
                 self._join(row, rec)
         elif isinstance(rec, EstimatorStatus):
             c.status = rec
+            self.heartbeats += 1
+            self.heartbeat.notify_all()
         elif isinstance(rec, (EstimateState, EstimateQuality, ValvePrediction)):
             key = (rec.injector_id, rec.counter)
             row = c.pending.setdefault(key, {"injector": rec.injector_id, "counter": rec.counter})
@@ -144,6 +146,26 @@ class Listener(threading.Thread):
         row.update(k=c.seen_per_injector[tr.injector_id], nu_true=tr.nu_n_per_v, lh_true_um=tr.lh_um,
                    t_open_true_us=tr.opening_us, stroke_true_um=tr.stroke_um, temperature_c=tr.temperature_c)
         c.rows.append(row)
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Until two heartbeats in a row show an empty queue and unchanged counters: the daemon has
+        published everything it received (True), or ``timeout`` s (False)."""
+        t_end = time.monotonic() + timeout
+        last = None
+        with self.lock:
+            seen = self.heartbeats
+            while time.monotonic() < t_end:
+                self.heartbeat.wait(min(0.5, max(t_end - time.monotonic(), 0.0)))
+                if self.heartbeats == seen or self.cap.status is None:
+                    continue
+                seen = self.heartbeats
+                st = self.cap.status
+                now = (st.accepted, st.rejected_crc, st.rejected_missing, st.rejected_timeout, st.rejected_invalid,
+                       st.rejected_outlier, st.queue_depth)
+                if st.queue_depth == 0 and now == last:
+                    return True
+                last = now
+        return False
 
     def close(self) -> None:
         self.stop_event.set()
@@ -224,16 +246,6 @@ def format_score(s: dict) -> str:
     return "\n".join(lines)
 
 
-def _rss_mb(pid: int) -> float:
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    return float("nan")
-
-
 def run_bench(scenario_name: str, bus: str | None, seconds: float | None, out_dir: Path, seed: int = 0,
               progress: bool = True, plots: bool = True) -> dict:
     """Run one scenario end to end; returns the score dict (also written to out_dir)."""
@@ -245,28 +257,29 @@ def run_bench(scenario_name: str, bus: str | None, seconds: float | None, out_di
     if state_dir.exists():
         for f in state_dir.iterdir():
             f.unlink()
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    daemon = node = None
+    daemon: DaemonProcess | None = None
+    node = None
     listener = None
     try:
         listener = Listener(bus, out_dir / "capture.log", codec)
         listener.start()
-        daemon = subprocess.Popen([sys.executable, "-m", "estimator", "run", "--bus", bus, "--state-dir",
-                                   str(state_dir)], stdout=subprocess.DEVNULL,
-                                  stderr=open(out_dir / "daemon.log", "w"), env=env)
-        t_end = time.monotonic() + 60
-        while listener.cap.status is None:          # ready: the first heartbeat is on the bus
-            if daemon.poll() is not None or time.monotonic() > t_end:
-                raise RuntimeError(f"estimator daemon did not start (see {out_dir / 'daemon.log'})")
-            time.sleep(0.05)
-        node = subprocess.Popen([sys.executable, "-m", "sim_bench", "node", "--bus", bus, "--scenario", sc.name,
-                                 "--seconds", str(sc.seconds), "--seed", str(seed)], stdout=subprocess.PIPE,
-                                stderr=open(out_dir / "node.log", "w"), env=env, text=True)
+        daemon = DaemonProcess(bus, out_dir / "daemon.log", state_dir=state_dir).start()
+        # ready: READY=1 on the notify socket, then the first heartbeat on the bus
+        if not daemon.notify.wait_for("READY=1", 120, daemon.alive):
+            raise RuntimeError(f"estimator daemon did not start: {daemon.why()}")
+        with listener.lock:
+            if not listener.heartbeat.wait_for(lambda: listener.cap.status is not None, 60):
+                raise RuntimeError(f"estimator daemon sent no heartbeat: {daemon.why()}")
+        node = spawn(["-m", "sim_bench", "node", "--bus", bus, "--scenario", sc.name, "--seconds", str(sc.seconds),
+                      "--seed", str(seed)], out_dir / "node.log", stdout=subprocess.PIPE)
         t0 = time.monotonic()
         peak_rss = 0.0
         while node.poll() is None:
-            time.sleep(0.5)
-            peak_rss = max(peak_rss, _rss_mb(daemon.pid))
+            try:
+                node.wait(timeout=0.5)   # the progress line ticks while the node runs
+            except subprocess.TimeoutExpired:
+                pass
+            peak_rss = max(peak_rss, rss_mb(daemon.pid))
             if progress:
                 with listener.lock:
                     rows = list(listener.cap.rows[-200:])
@@ -281,17 +294,15 @@ def run_bench(scenario_name: str, bus: str | None, seconds: float | None, out_di
         node_out = node.stdout.read() if node.stdout else ""
         if progress:
             print()
-        time.sleep(1.0)   # the last estimates and a final heartbeat
+        listener.wait_idle(timeout=15.0)   # the last estimates and a final heartbeat
         duration = time.monotonic() - t0
-        daemon.send_signal(signal.SIGTERM)
         t_stop = time.monotonic()
-        daemon.wait(timeout=10)
+        daemon_exit = daemon.stop(timeout=10)
         stop_s = time.monotonic() - t_stop
     finally:
-        for p in (node, daemon):
-            if p is not None and p.poll() is None:
-                p.kill()
-                p.wait()
+        stop_process(node)
+        if daemon is not None:
+            daemon.stop()
         if listener is not None:
             listener.close()
         if hub is not None:
@@ -305,10 +316,10 @@ def run_bench(scenario_name: str, bus: str | None, seconds: float | None, out_di
     except (ValueError, IndexError, KeyError):
         s["node"] = {}
     s.update(bus=bus, seconds=sc.seconds, seed=seed, throughput_per_s=len(rows) / max(duration, 1e-9),
-             daemon_exit=daemon.returncode, daemon_stop_s=stop_s, daemon_rss_mb=peak_rss,
+             daemon_exit=daemon_exit, daemon_stop_s=stop_s, daemon_rss_mb=peak_rss,
              description=sc.description)
-    if daemon.returncode != 0:
-        s["failures"].append(f"daemon exit code {daemon.returncode}")
+    if daemon_exit != 0:
+        s["failures"].append(f"daemon exit code {daemon_exit}")
     if stop_s > 2.0:
         s["failures"].append(f"daemon took {stop_s:.2f} s to stop")
     (out_dir / f"bench-{sc.name}.json").write_text(json.dumps({"score": s, "rows": rows}, indent=1, default=float))

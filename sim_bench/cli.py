@@ -24,6 +24,13 @@ def _write_json(path: Path, report: dict) -> None:
     print(f"wrote {path}")
 
 
+def _params(args: argparse.Namespace):
+    """``--params FILE`` (what ``estimator calibrate --out`` writes) or Tables 1-2."""
+    from estimator.model.parameters import InjectorParameters, load_nominal
+
+    return InjectorParameters.from_toml(args.params) if args.params is not None else load_nominal()
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     """Simulate one injection with the fast simulator and write the trace CSV."""
     from estimator.model.drive import resample_current, sample_times, standard_drive
@@ -32,15 +39,19 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     t_end = args.t_end_us * 1e-6
     if not (0 < t_end <= 5e-3):
         raise EstimatorError(f"--t-end-us {args.t_end_us} must be in (0, 5000] µs")
+    if not (-10.0 <= args.lh_um <= 50.0):
+        raise EstimatorError(f"--lh-um {args.lh_um} must be within -10..50 µm (the model's range is about -2..10 µm)")
+    if not (0.0 <= args.preload_n <= 1000.0):
+        raise EstimatorError(f"--preload-n {args.preload_n} must be within 0..1000 N")
     t = sample_times(t_end)
     if args.current:
         tr = read_trace(args.current)
         current = resample_current(tr.column("t_s"), tr.column("current_A"), t_end)
     else:
         current = standard_drive(t)
-    sim = FastSimulator()
+    sim = FastSimulator(_params(args))
     res = sim.simulate(current, args.nu, args.lh_um * 1e-6, args.preload_n, exact=True)
-    if not res.success[0]:
+    if not (res.success[0] and np.all(np.isfinite(res.voltage_v[0]))):
         raise EstimatorError(f"simulation failed: {res.message[0]} (N_u={args.nu} N/V, L_h={args.lh_um} µm, "
                              f"F_open={args.preload_n} N)")
     meta = {"nu_n_per_v": args.nu, "lh_um": args.lh_um, "preload_force_n": args.preload_n,
@@ -179,6 +190,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     """End-to-end bench: daemon + node processes on a real bus, scored against SimTruth."""
     from sim_bench import bench, scenarios
 
+    if args.seconds is not None and not (1.0 <= args.seconds <= 86_400):
+        raise EstimatorError(f"--seconds {args.seconds} must be within 1..86400 s")
     names = list(scenarios.SCENARIOS) if args.scenario == "all" else [args.scenario]
     for n in names:
         if n not in scenarios.SCENARIOS:
@@ -209,19 +222,14 @@ def cmd_daemon_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_hub(args: argparse.Namespace) -> int:
-    """Serve the loopback CAN hub until interrupted."""
-    import time
-
+    """Serve the loopback CAN hub until interrupted (SIGINT, SIGTERM, SIGHUP stop it and its server)."""
     from sim_bench.hub import Hub
 
     with Hub(args.port) as hub:
         print(f"CAN hub: --bus {hub.spec}", flush=True)
-        try:
-            while hub.proc is not None and hub.proc.poll() is None:
-                time.sleep(0.5)
-        except KeyboardInterrupt:
-            pass
-    return 0
+        assert hub.proc is not None
+        code = hub.proc.wait()   # a signal to us raises KeyboardInterrupt here; the with-block stops the server
+    raise EstimatorError(f"the hub server exited by itself with code {code}")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -237,6 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--preload-n", type=float, default=28.0, help="valve preload F_open in N (default 28)")
     s.add_argument("--t-end-us", type=float, default=500.0, help="simulated time in µs (default 500)")
     s.add_argument("--out", type=Path, required=True, help="output trace CSV")
+    s.add_argument("--params", type=Path, default=None, help="model parameter TOML (default Tables 1-2)")
     s.set_defaults(func=cmd_simulate)
 
     s = sub.add_parser("speed-sim", help="benchmark the fast simulator")
@@ -322,5 +331,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point; returns the process exit code."""
+    """Entry point; returns the process exit code. SIGTERM/SIGHUP unwind like Ctrl-C: children are stopped."""
+    from sim_bench.procs import install_stop_signals
+
+    install_stop_signals()
     return run_cli(build_parser(), argv)

@@ -9,9 +9,6 @@ LatencyP99) and from outside (feeder's trailer send -> EstimateState received, w
 from __future__ import annotations
 
 import math
-import signal
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -23,7 +20,8 @@ from estimator.codec.ingest import Ingest
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateState, EstimatorStatus
 from estimator.service.bus import open_bus, to_frame, to_message
-from sim_bench.bench import _rss_mb, resolve_bus
+from sim_bench.bench import resolve_bus
+from sim_bench.procs import DaemonProcess, rss_mb
 from sim_bench.plant import Plant, PlantConfig
 
 
@@ -65,6 +63,7 @@ class _Watcher(threading.Thread):
         self.status: EstimatorStatus | None = None
         self.estimates = 0
         self.stop = threading.Event()
+        self.got_status = threading.Event()
 
     def run(self) -> None:
         while not self.stop.is_set():
@@ -83,6 +82,7 @@ class _Watcher(threading.Thread):
                     self.latency.append(now - t)
             elif isinstance(rec, EstimatorStatus):
                 self.status = rec
+                self.got_status.set()
 
 
 def _feed(bus, codec: Codec, pool, rate: float, seconds: float, watcher: _Watcher) -> dict:
@@ -120,17 +120,13 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
     pool = injection_pool(codec)
     bus, hub = resolve_bus(bus, out_dir)
     report: dict = {"bus": bus, "rate_per_s": rate, "seconds": seconds}
-    d = subprocess.Popen([sys.executable, "-m", "estimator", "run", "--bus", bus], stdout=subprocess.DEVNULL,
-                         stderr=open(out_dir / "daemon-bench.log", "w"))
+    d = DaemonProcess(bus, out_dir / "daemon-bench.log").start()
     try:
         with open_bus(bus) as b:
             w = _Watcher(b, codec)
             w.start()
-            t_end = time.monotonic() + 60
-            while w.status is None and time.monotonic() < t_end and d.poll() is None:
-                time.sleep(0.05)
-            if w.status is None:
-                raise RuntimeError("daemon did not start")
+            if not d.notify.wait_for("READY=1", 120, d.alive) or not w.got_status.wait(60):
+                raise RuntimeError(f"daemon did not start: {d.why()}")
             # warm-up: the first injection of each injector is a cold start (grid search, ~60 ms); the
             # heartbeat's p99 covers the last 10 s, so the nominal phase must start after it
             _feed(b, codec, pool, rate, 3.0, w)
@@ -145,7 +141,7 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
                 def sample_rss() -> None:
                     nonlocal peak
                     while not stop_rss.wait(0.2):
-                        peak = max(peak, _rss_mb(d.pid))
+                        peak = max(peak, rss_mb(d.pid))
                 th = threading.Thread(target=sample_rss, daemon=True)
                 th.start()
                 fed = _feed(b, codec, pool, r, seconds, w)
@@ -163,16 +159,13 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
                                  - (st0.rejected_missing + st0.rejected_timeout + st0.rejected_crc
                                     + st0.rejected_invalid)) if st else 0,
                     "queue_depth_end": st.queue_depth if st else 0, "daemon_rss_peak_mb": peak,
-                    "daemon_alive": d.poll() is None,
+                    "daemon_alive": d.alive(),
                 }
             w.stop.set()
             w.join(timeout=2)
-        d.send_signal(signal.SIGTERM)
-        d.wait(timeout=10)
-        report["daemon_exit"] = d.returncode
+        report["daemon_exit"] = d.stop(timeout=10)
     finally:
-        if d.poll() is None:
-            d.kill()
+        d.stop()
         if hub is not None:
             hub.stop()
     return report

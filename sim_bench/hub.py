@@ -8,9 +8,15 @@ from __future__ import annotations
 
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
+
+from estimator.errors import EstimatorError
+from sim_bench.procs import spawn, stop_process
+
+
+class HubError(EstimatorError):
+    """The hub cannot start (port out of range or in use, server exited)."""
 
 
 def free_port() -> int:
@@ -24,6 +30,8 @@ class Hub:
     """Starts and stops the hub server process (context manager)."""
 
     def __init__(self, port: int | None = None, log_path: Path | None = None) -> None:
+        if port is not None and not 1 <= port <= 65535:
+            raise HubError(f"--port {port} must be within 1..65535")
         self.port = port or free_port()
         self.log_path = log_path
         self.proc: subprocess.Popen | None = None
@@ -34,30 +42,29 @@ class Hub:
         return f"remote:ws://127.0.0.1:{self.port}/"
 
     def start(self, timeout: float = 15.0) -> "Hub":
-        out = open(self.log_path, "w") if self.log_path else subprocess.DEVNULL
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "can_remote", "--interface", "virtual", "--channel", f"hub{self.port}",
-             "--host", "127.0.0.1", "--port", str(self.port), "--fd"], stdout=out, stderr=subprocess.STDOUT)
+        """Start the server and wait until it accepts connections; HubError if it cannot."""
+        try:
+            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+                s.bind(("127.0.0.1", self.port))
+        except OSError as exc:
+            raise HubError(f"cannot serve the hub on 127.0.0.1:{self.port}: {exc.strerror or exc}") from None
+        self.proc = spawn(["-m", "can_remote", "--interface", "virtual", "--channel", f"hub{self.port}",
+                           "--host", "127.0.0.1", "--port", str(self.port), "--fd"], self.log_path)
         t_end = time.monotonic() + timeout
         while time.monotonic() < t_end:
             if self.proc.poll() is not None:
-                raise RuntimeError(f"CAN hub exited with code {self.proc.returncode}")
+                raise HubError(f"CAN hub exited with code {self.proc.returncode} (see {self.log_path})")
             try:
                 with socket.create_connection(("127.0.0.1", self.port), timeout=0.2):
                     return self
             except OSError:
-                time.sleep(0.05)
+                time.sleep(0.05)   # polling a port that is not yet open: nothing to wait on instead
         self.stop()
-        raise RuntimeError(f"CAN hub did not listen on 127.0.0.1:{self.port} within {timeout} s")
+        raise HubError(f"CAN hub did not listen on 127.0.0.1:{self.port} within {timeout} s")
 
     def stop(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=3)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        """Stop the server (SIGTERM, then SIGKILL after 3 s)."""
+        stop_process(self.proc, timeout=3)
         self.proc = None
 
     def __enter__(self) -> "Hub":

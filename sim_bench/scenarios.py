@@ -8,6 +8,7 @@ valve spring's 28 N (Table 2) plus a rail-pressure share that varies per injecti
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -102,4 +103,7 @@ def get(name: str, **overrides) -> Scenario:
     """A scenario by name with optional field overrides (e.g. seconds)."""
     if name not in SCENARIOS:
         raise KeyError(f"unknown scenario {name!r}; one of {', '.join(SCENARIOS)}")
+    seconds = overrides.get("seconds")
+    if seconds is not None and not (math.isfinite(seconds) and 0 < seconds <= 86_400):
+        raise KeyError(f"seconds = {seconds} must be within (0, 86400] s")
     return replace(SCENARIOS[name], **{k: v for k, v in overrides.items() if v is not None})

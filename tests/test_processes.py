@@ -13,9 +13,10 @@ import can
 import pytest
 
 from estimator.codec.injection_frames import injection_frames
-from estimator.codec.records import Codec, EstimateQuality, EstimateState, EstimatorStatus
+from estimator.codec.records import Codec, EstimateQuality, EstimateState, ValvePrediction
 from estimator.service.bus import open_bus, to_frame, to_message
 from sim_bench.hub import Hub
+from sim_bench.procs import BusMonitor, DaemonProcess, wait_until
 
 from .conftest import REPO
 from .helpers import measured
@@ -29,70 +30,58 @@ def hub(tmp_path):
         yield h
 
 
-def start_daemon(hub, state_dir, tmp_path, name="daemon"):
+@pytest.fixture()
+def monitor(hub, tmp_path):
+    m = BusMonitor(hub.spec, capture=tmp_path / "capture.log")
+    m.start()
+    yield m
+    m.close()
+
+
+def start_daemon(hub, monitor, state_dir, tmp_path, name="daemon") -> DaemonProcess:
     cfg = tmp_path / "e.toml"
     cfg.write_text("[estimator]\npersist_period_s = 0.2\n")
-    return subprocess.Popen([sys.executable, "-m", "estimator", "run", "--bus", hub.spec, "--state-dir", str(state_dir),
-                             "--config", str(cfg)], cwd=REPO, stderr=open(tmp_path / f"{name}.log", "w"))
+    d = DaemonProcess(hub.spec, tmp_path / f"{name}.log", state_dir=state_dir, config=cfg).start()
+    d.wait_ready(monitor)
+    return d
 
 
-def wait_ready(bus, codec, timeout=60):
-    """Wait for a heartbeat of a freshly started daemon (a killed one's may still be queued)."""
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        m = bus.recv(0.1)
-        rec = codec.decode(to_frame(m)) if m is not None else None
-        if isinstance(rec, EstimatorStatus) and rec.uptime_s == 0 and rec.accepted == 0:
-            return
-    raise AssertionError("daemon never sent a heartbeat")
-
-
-def _pump(bus, codec, out, timeout, done, capture=None):
-    """Receive until ``done(out)`` or timeout, collecting EstimateState/Quality by (injector, counter)."""
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end and not done(out):
-        m = bus.recv(0.1)
-        if m is None:
-            continue
-        if capture is not None:
-            capture.on_message_received(m)
-        rec = codec.decode(to_frame(m))
-        if isinstance(rec, (EstimateState, EstimateQuality)):
-            out.setdefault((rec.injector_id, rec.counter), {})[type(rec).__name__] = rec
-
-
-def feed_and_collect(bus, codec, injections, injector=0, first_counter=0, capture=None):
+def feed_and_collect(bus, monitor, codec, injections, injector=0, first_counter=0):
+    """Send each injection and wait for its EstimateState, EstimateQuality and ValvePrediction."""
     out = {}
     for k, inj in enumerate(injections):
         key = (injector, first_counter + k)
         for fr in injection_frames(codec, injector, first_counter + k, inj.dt_s, inj.current_a, inj.voltage_v):
-            bus.send(to_message(fr))
-        # the state frame, then the quality frame that follows it
-        _pump(bus, codec, out, 30, lambda o: key in o, capture)
-        _pump(bus, codec, out, 5, lambda o: len(o.get(key, {})) >= 2, capture)
+            bus.send(to_message(fr))   # the monitor is another client of the hub: it captures these too
+
+        def have(m, key=key):
+            got = {type(r).__name__: r for _, r in m.records[-40:] if getattr(r, "counter", None) == key[1]
+                   and getattr(r, "injector_id", None) == key[0] and isinstance(r, (EstimateState, EstimateQuality,
+                                                                                  ValvePrediction))}
+            if len(got) == 3:
+                out[key] = got
+            return len(got) == 3
+        assert monitor.wait_for(have, 60), f"no estimate for {key}"
     return out
 
 
-def test_restart_after_sigkill_resumes_from_persisted_state(hub, tmp_path):
+def test_restart_after_sigkill_resumes_from_persisted_state(hub, monitor, tmp_path):
     codec = Codec()
     state = tmp_path / "state"
     injs = [measured(17.6, 4.4, 3000 + k, window_s=100e-6)[0] for k in range(9)]
     with open_bus(hub.spec) as bus:
-        d = start_daemon(hub, state, tmp_path)
+        d = start_daemon(hub, monitor, state, tmp_path)
         try:
-            wait_ready(bus, codec)
-            before = feed_and_collect(bus, codec, injs[:8])
+            before = feed_and_collect(bus, monitor, codec, injs[:8])
             assert len(before) == 8
-            time.sleep(0.6)                       # at least one periodic persist
+            # the periodic persist (every 0.2 s) has written all eight: wait for that, not for a time
+            assert wait_until(lambda: _persisted_updates(state) >= 8, 60), "state never persisted"
             d.send_signal(signal.SIGKILL)
-            d.wait(timeout=5)
-            assert (state / "estimator-state.json").exists()
-            d = start_daemon(hub, state, tmp_path, "daemon2")
-            wait_ready(bus, codec)
-            after = feed_and_collect(bus, codec, injs[8:], first_counter=8)
+            d.stop()
+            d = start_daemon(hub, monitor, state, tmp_path, "daemon2")
+            after = feed_and_collect(bus, monitor, codec, injs[8:], first_counter=8)
         finally:
-            d.send_signal(signal.SIGTERM)
-            d.wait(timeout=5)
+            assert d.stop() == 0
     last = before[(0, 7)]["EstimateState"]
     nxt = after[(0, 8)]
     assert nxt["EstimateQuality"].evaluations < 50            # warm start from the persisted state
@@ -101,34 +90,27 @@ def test_restart_after_sigkill_resumes_from_persisted_state(hub, tmp_path):
     assert "restored the state of 1 injector" in (tmp_path / "daemon2.log").read_text()
 
 
-def test_replay_of_the_capture_reproduces_the_live_estimates_and_cantools_decodes_it(hub, tmp_path):
+def _persisted_updates(state) -> int:
+    try:
+        doc = json.loads((state / "estimator-state.json").read_text())
+        return int(doc["injectors"]["0"]["accepted"])
+    except (OSError, ValueError, KeyError):
+        return 0
+
+
+def test_replay_of_the_capture_reproduces_the_live_estimates_and_cantools_decodes_it(hub, monitor, tmp_path):
     codec = Codec()
     capture = tmp_path / "capture.log"
     injs = [measured(16.8, 2.7, 3100 + k, window_s=100e-6)[0] for k in range(5)]
-    writer = can.CanutilsLogWriter(str(capture), channel="vcan0")
     with open_bus(hub.spec) as bus:
-        d = start_daemon(hub, tmp_path / "st", tmp_path)
+        d = start_daemon(hub, monitor, tmp_path / "st", tmp_path)
         try:
-            wait_ready(bus, codec)
-
-            class Tee:   # record what we send, too: the hub does not echo our own frames
-                def send(self, msg):
-                    msg.timestamp = time.time()
-                    writer.on_message_received(msg)
-                    bus.send(msg)
-
-                def recv(self, t):
-                    return bus.recv(t)
-            live = feed_and_collect(Tee(), codec, injs, injector=4, capture=writer)
-            t_end = time.monotonic() + 0.5           # the last prediction and a heartbeat or two
-            while time.monotonic() < t_end:
-                m = bus.recv(0.05)
-                if m is not None:
-                    writer.on_message_received(m)
+            live = feed_and_collect(bus, monitor, codec, injs, injector=4)
+            t0 = time.monotonic()     # one more heartbeat into the capture
+            assert monitor.wait_for(lambda m: any(t > t0 for t, _ in m.heartbeats), 30)
         finally:
-            d.send_signal(signal.SIGTERM)
-            d.wait(timeout=5)
-            writer.stop()
+            assert d.stop() == 0
+    monitor.close()
     out = tmp_path / "replay.log"
     jl = tmp_path / "replay.jsonl"
     r = subprocess.run([sys.executable, "-m", "estimator", "replay", str(capture), "--out", str(out), "--json", str(jl)],

@@ -29,6 +29,10 @@ class Counters:
     frames_unknown: int = 0
     frames_total: int = 0
     bus_errors: int = 0
+    commands_applied: int = 0
+    commands_refused: int = 0
+    commands_unknown: int = 0
+    worker_errors: int = 0       # unexpected exceptions in the worker (a bug; logged rate-limited)
     reasons: dict[str, int] = field(default_factory=dict)
 
     def reject(self, reason: str) -> None:

@@ -113,13 +113,16 @@ class EstimatorStatus(Record):
     latency_p99_ms: float = 0.0
     uptime_s: int = 0
     bus_errors: int = 0
+    commands_refused: int = 0
+    commands_unknown: int = 0
     MESSAGE: ClassVar[str] = "EstimatorStatus"
     SIGNALS: ClassVar[dict[str, str]] = {
         "accepted": "InjectionsAccepted", "rejected_crc": "RejectedCrc", "rejected_missing": "RejectedMissing",
         "rejected_timeout": "RejectedTimeout", "rejected_invalid": "RejectedInvalid",
         "rejected_outlier": "RejectedOutlier", "frames_dropped": "FramesDropped",
         "frames_malformed": "FramesMalformed", "queue_depth": "QueueDepth", "latency_p99_ms": "LatencyP99",
-        "uptime_s": "Uptime", "bus_errors": "BusErrors"}
+        "uptime_s": "Uptime", "bus_errors": "BusErrors", "commands_refused": "CommandsRefused",
+        "commands_unknown": "CommandsUnknown"}
 
 
 @dataclass(frozen=True)

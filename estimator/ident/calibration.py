@@ -72,6 +72,12 @@ def calibrate(traces: list[CalibrationTrace], base: InjectorParameters | None = 
     """Solve eq. 25 for the traces (at least two temperatures for the temperature laws)."""
     if len(traces) < 2:
         raise ValueError("calibration needs at least two traces (temperatures)")
+    if len({float(t.temperature_c) for t in traces}) < 2:
+        raise ValueError("calibration needs traces at two or more different temperatures (eq. 25's laws N_u(T), R(T))")
+    if not (math.isfinite(window_s) and 20e-6 <= window_s <= 2e-3):
+        raise ValueError(f"window {window_s * 1e6:g} µs must be within 20..2000 µs")
+    if not (math.isfinite(gamma_v_per_m) and gamma_v_per_m > 0):
+        raise ValueError(f"gamma {gamma_v_per_m!r} V/m must be a positive number")
     base = base or load_nominal()
     m = len(traces)
     wide = replace(base.psa, nu_min_n_per_v=1.0, nu_max_n_per_v=100.0)
@@ -122,11 +128,13 @@ def calibrate(traces: list[CalibrationTrace], base: InjectorParameters | None = 
         d, logc = np.polyfit(temps, np.log(r), 1)
     else:
         a, b, logc, d = float(np.mean(nu)), 0.0, float(np.mean(np.log(r))), 0.0
+    r0a, r0b = base.psa.r0a_ohm, base.psa.r0b_v_per_n
     if np.ptp(nu) > 1e-9:
         slope, intercept = np.polyfit(nu, np.log(r), 1)
+        if not (abs(intercept) < 700):
+            raise ValueError(f"the traces do not determine R(N_u) (ln R0a = {intercept:.3g}); are they at "
+                             "different temperatures of one injector?")
         r0a, r0b = math.exp(intercept), -slope
-    else:
-        r0a, r0b = base.psa.r0a_ohm, base.psa.r0b_v_per_n
     return CalibrationResult(kp, ks, rb, nu, r, temps, l1(theta), (float(a), float(b)), (math.exp(logc), float(d)),
                              float(r0a), float(r0b), evals)
 

@@ -48,8 +48,10 @@ from estimator.ident.local_fit import refine
 from estimator.ident.measurement import Injection
 from estimator.ident.model_selection import likelihood_ratio
 from estimator.ident.search import Box
+from estimator.ident.simulators import SimulatorPool
 from estimator.ident.status import Status
-from estimator.model.fast_sim import FastSimulator
+from estimator.model.fast_sim import NU_EXTRAPOLATION_N_PER_V, FastSimulator
+from estimator.model.parameters import InjectorParameters
 
 STATE_VERSION = 2
 ROBUST_CHECK_EVERY = 4         # in robust mode, every 4th injection also fits the plain model (model-error test)
@@ -185,6 +187,44 @@ def _check_array(d: dict, name: str, shape: tuple[int, ...], finite: bool) -> np
     if finite and not np.all(np.isfinite(a)):
         raise ValueError(f"{name} has non-finite values")
     return a
+
+
+def physical_problem(st: TrackerState, config: TrackerConfig, box: Box) -> str | None:
+    """Why a (restored) state is outside what this estimator can hold, or None.
+
+    ``box`` is the search box in (N/V, µm): Table 1's N_u range (with the simulator's margin) and the
+    model's L_h range. The drift rate and the temperature slope must be within their configured
+    bounds (a little slack for rounding), the variances within the caps the filter applies itself,
+    the counters below 2**53.
+    """
+    noise = process_noise(config, box)
+    lo, hi = box.lo, box.hi
+    for name in ("model_error_run", "clean_run", "doubts", "accepted", "rejected", "updates"):
+        if getattr(st, name) >= 2 ** 53:
+            return f"{name} = {getattr(st, name)} is not a plausible count"
+    if st.temperature_c is not None and not -50.0 <= st.temperature_c <= 205.0:
+        return f"temperature_c = {st.temperature_c} degC is outside the contract's -50..205 degC"
+    points = []
+    if st.initialized:
+        x, p = np.asarray(st.x, dtype=float), np.asarray(st.p, dtype=float)
+        points.append(("x", x[:2]))
+        if abs(x[kalman.RATE]) > 1.01 * config.max_rate_n_per_v_s:
+            return f"drift rate {x[kalman.RATE]:.4g} N/V/s is beyond the bound {config.max_rate_n_per_v_s} N/V/s"
+        if abs(x[kalman.SLOPE] - config.slope_n_per_v_degc) > 10 * config.slope_sigma:
+            return f"temperature slope {x[kalman.SLOPE]:.4g} N/V/degC is beyond ten prior sigma"
+        if np.any(np.diag(p) > 1.01 * np.asarray(noise.max_var)):
+            return "p has variances beyond the filter's caps"
+    if st.pending is not None:
+        points.append(("pending z", np.asarray(st.pending.z, dtype=float)))
+        r = np.asarray(st.pending.r, dtype=float)
+        if not np.allclose(r, r.T, rtol=1e-9, atol=1e-15) or np.any(np.linalg.eigvalsh(r) < 0):
+            return "pending r is not a covariance"
+    for what, (nu, lh) in points:
+        if not (lo[0] <= nu <= hi[0]):
+            return f"{what}: N_u = {nu:.4g} N/V is outside [{lo[0]:g}, {hi[0]:g}] N/V"
+        if not (lo[1] <= lh <= hi[1]):
+            return f"{what}: L_h = {lh:.4g} µm is outside [{lo[1]:g}, {hi[1]:g}] µm"
+    return None
 
 
 @dataclass
@@ -483,7 +523,7 @@ def _carry_search(st: TrackerState, raw: Estimate, r: np.ndarray, config: Tracke
 
 
 def _publish(filt: tuple[np.ndarray, np.ndarray] | None, raw: Estimate, status: Status, reason: str,
-             sim: FastSimulator, inj: Injection, predict: bool, outliers: int = 0) -> TrackResult:
+             sim: FastSimulator | None, inj: Injection, predict: bool, outliers: int = 0) -> TrackResult:
     """The published result: ``filt`` = (state, covariance) to publish, None if nothing is known."""
     nan = float("nan")
     if filt is None:
@@ -501,29 +541,54 @@ def _publish(filt: tuple[np.ndarray, np.ndarray] | None, raw: Estimate, status: 
 
 
 class Tracker:
-    """Thin stateful wrapper: one :class:`TrackerState` per injector id, simulators per sample period."""
+    """Thin stateful wrapper: one :class:`TrackerState` per injector id, simulators from a bounded pool."""
 
-    def __init__(self, config: TrackerConfig | None = None, sim: FastSimulator | None = None) -> None:
+    def __init__(self, config: TrackerConfig | None = None, sim: FastSimulator | None = None,
+                 pool: SimulatorPool | None = None) -> None:
         self.config = config or TrackerConfig()
-        self._sims: dict[float, FastSimulator] = {}
+        self.pool = pool if pool is not None else SimulatorPool(sim.params if sim is not None else None)
         if sim is not None:
-            self._sims[round(sim.dt_s, 12)] = sim
+            self.pool.add(sim)
         self.states: dict[int, TrackerState] = {}
 
+    @property
+    def params(self) -> InjectorParameters:
+        """The model parameters of every simulator."""
+        return self.pool.params
+
     def simulator(self, dt_s: float) -> FastSimulator:
-        """The fast simulator for a sample period (created on first use)."""
-        key = round(dt_s, 12)
-        if key not in self._sims:
-            self._sims[key] = FastSimulator(dt_s=dt_s)
-        return self._sims[key]
+        """The fast simulator for a sample period in s (from the pool, built on first use)."""
+        return self.pool.get(dt_s)
 
     def update(self, inj: Injection) -> TrackResult:
-        """Feed one injection of ``inj.injector_id``; returns the result."""
+        """Feed one injection of ``inj.injector_id``; returns the result.
+
+        A sample period the pool refuses gives a ``rejected`` result and leaves the state alone.
+        """
         state = self.states.get(inj.injector_id, TrackerState())
-        dt = inj.dt_s if (math.isfinite(inj.dt_s) and inj.dt_s > 0) else 0.5e-6
-        new_state, result = update(state, inj, self.simulator(dt), self.config)
+        refusal = self.pool.refusal(inj.dt_s)
+        if refusal is not None:
+            return _publish(None, rejected(refusal), Status.REJECTED, refusal, None, inj, False)
+        new_state, result = update(state, inj, self.simulator(inj.dt_s), self.config)
         self.states[inj.injector_id] = new_state
         return result
+
+    def restore(self, states: dict[int, TrackerState]) -> list[str]:
+        """Take restored states that are physically possible for this estimator; returns one line per
+        state dropped (the dropped ones are gone: the next save will not contain them)."""
+        ident = self.config.ident
+        psa = self.params.psa
+        nu_lo = max(ident.nu_bounds_n_per_v[0], psa.nu_min_n_per_v - NU_EXTRAPOLATION_N_PER_V)
+        nu_hi = min(ident.nu_bounds_n_per_v[1], psa.nu_max_n_per_v + NU_EXTRAPOLATION_N_PER_V)
+        box = Box(np.array([nu_lo, ident.lh_bounds_um[0]]), np.array([nu_hi, ident.lh_bounds_um[1]]))
+        problems = []
+        for inj_id, st in states.items():
+            why = physical_problem(st, self.config, box)
+            if why is None:
+                self.states[inj_id] = st
+            else:
+                problems.append(f"injector {inj_id}: {why}")
+        return problems
 
     def reset(self, injector_id: int) -> None:
         """Forget everything about one injector."""

@@ -9,7 +9,6 @@ error is below 1e-13 relative (``tests/test_fast_sim.py`` checks it against dire
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 from scipy.linalg import expm
@@ -124,7 +123,9 @@ class FastSimulator:
         per_region = (dyn.N_REGIONS, dyn.NZ, dyn.NZ)
         self._a_coup = np.ascontiguousarray(np.broadcast_to(self._scaled(self.structure.a_coupling), per_region))
         self._a_damp = np.ascontiguousarray(np.broadcast_to(self._scaled(self.structure.a_damping), per_region))
-        self._exact_cache = lru_cache(maxsize=256)(self._exact_uncached)
+        # a plain dict, not functools.lru_cache on a bound method: that makes a reference cycle, and
+        # a simulator dropped from a pool would then stay in memory until the cyclic GC runs
+        self._exact: dict[float, np.ndarray] = {}
 
     # ---- discretisation -------------------------------------------------------------------
     def _scaled(self, a_si: np.ndarray) -> np.ndarray:
@@ -138,6 +139,15 @@ class FastSimulator:
     def _exact_uncached(self, nu: float) -> np.ndarray:
         a = self.scaled_matrices(np.array([nu]))[0]
         return expm(a * (self.dt_s * dyn.TIME_SCALE))
+
+    def _exact_cache(self, nu: float) -> np.ndarray:
+        """exp(A_r(N_u) h) for one N_u, cached (at most 256 values, oldest out)."""
+        phi = self._exact.get(nu)
+        if phi is None:
+            if len(self._exact) >= 256:
+                self._exact.pop(next(iter(self._exact)))
+            phi = self._exact[nu] = self._exact_uncached(nu)
+        return phi
 
     def _table(self) -> np.ndarray:
         if self._phi_table is None:

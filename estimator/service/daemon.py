@@ -4,6 +4,12 @@ Lifecycle, in order (python-can ``notifier.py``; issues #1526, #1667): the bus i
 shut last; the Notifier runs inside it and is stopped first; one worker thread does everything
 else. Signal handlers only set an Event. sd_notify: READY=1 once running, WATCHDOG=1 only while
 the worker makes progress, STOPPING=1 at shutdown.
+
+Signals: SIGTERM and SIGINT stop the daemon (state saved, exit 0). SIGHUP reloads the configuration
+file (``systemctl reload``): the state is saved first, then everything but the bus, the DBC, the
+state directory, the queue size and ``max_injectors`` takes effect at once (those need a restart
+and say so in the log); a file that does not validate is reported and the running configuration
+kept. Time in the pipeline is the bus's (see :mod:`estimator.codec.bus_clock`).
 """
 
 from __future__ import annotations
@@ -14,23 +20,26 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import Callable
 
 import can
 import numpy as np
 
+from estimator.codec.bus_clock import BusClock
 from estimator.codec.database import load_database
 from estimator.codec.frame import Frame
 from estimator.codec.ingest import Ingest
 from estimator.codec.records import Codec
-from estimator.ident.config import IdentConfig, TrackerConfig
+from estimator.errors import EstimatorError
+from estimator.ident.simulators import SimulatorPool
 from estimator.ident.tracker import Tracker
 from estimator.service.bus import open_bus, to_frame, to_message
-from estimator.service.config import DaemonConfig
+from estimator.service.config import ConfigError, DaemonConfig
 from estimator.service.processor import Processor
 from estimator.service.ratelimit import RateLimitedLog
 from estimator.service.sdnotify import SdNotify
-from estimator.service.state_store import load_states, save_states
+from estimator.service.state_store import keep_rejected, load_states, save_states
 
 log = logging.getLogger(__name__)
 STATE_FILE = "estimator-state.json"
@@ -100,22 +109,43 @@ class Stats:
         return float(np.percentile([s for _, s in self.samples], 99)) * 1e3
 
 
+# keys a SIGHUP cannot change (they shape the bus connection and the memory already allocated)
+RESTART_KEYS = ("bus", "dbc", "state_dir", "queue_frames", "max_injectors")
+
+
+def build_pool(cfg: DaemonConfig) -> SimulatorPool:
+    """The bounded simulator pool as configured (parameters from ``cfg.params`` or Tables 1-2)."""
+    from estimator.model.parameters import InjectorParameters, load_nominal
+
+    params = InjectorParameters.from_toml(cfg.params) if cfg.params is not None else load_nominal()
+    return SimulatorPool(params, cfg.max_sample_periods, cfg.sample_periods_ns)
+
+
 def build_tracker(cfg: DaemonConfig) -> Tracker:
     """The recursive estimator as configured."""
-    ident = IdentConfig(window_s=cfg.window_us * 1e-6, robust=cfg.robust, sigma_limit_lh_um=cfg.sigma_limit_lh_um)
-    return Tracker(TrackerConfig(ident=ident, q_nu_n_per_v=cfg.q_nu_n_per_v, q_lh_um=cfg.q_lh_um))
+    return Tracker(cfg.tracker_config(), pool=build_pool(cfg))
+
+
+def build_pipeline(cfg: DaemonConfig) -> tuple[Codec, Ingest, Processor, BusClock]:
+    """Codec, ingest, processor and bus clock: the same in the live daemon and in the replay."""
+    codec = Codec(load_database(cfg.dbc))
+    ingest = Ingest(codec, cfg.assembly_timeout_ms * 1e-3, cfg.max_injectors)
+    processor = Processor(codec, build_tracker(cfg), ingest.counters, cfg.commands)
+    return codec, ingest, processor, BusClock(cfg.silent_bus_s)
 
 
 class Daemon:
     """One estimator instance on one bus."""
 
-    def __init__(self, cfg: DaemonConfig) -> None:
+    def __init__(self, cfg: DaemonConfig, loader: Callable[[], DaemonConfig] | None = None) -> None:
         self.cfg = cfg
-        self.codec = Codec(load_database(cfg.dbc))
-        self.tracker = build_tracker(cfg)
-        self.ingest = Ingest(self.codec, cfg.assembly_timeout_ms * 1e-3, cfg.max_injectors)
-        self.processor = Processor(self.codec, self.tracker, self.ingest.counters)
+        self.loader = loader
+        self.codec, self.ingest, self.processor, self.clock = build_pipeline(cfg)
+        self.tracker = self.processor.tracker
         self.stop = threading.Event()
+        self.reload_requested = threading.Event()
+        self._wake = threading.Event()      # main loop: a signal arrived
+        self._pending_cfg: DaemonConfig | None = None
         self.notify = SdNotify()
         self.stats = Stats()
         self.progress = time.monotonic()
@@ -132,11 +162,13 @@ class Daemon:
         if self.state_path is None:
             return
         states, problem = load_states(self.state_path)
-        if problem:
-            log.warning("%s", problem)
-        self.tracker.states.update(states)
-        if states:
-            log.info("restored the state of %d injector(s) from %s", len(states), self.state_path)
+        problems = ([problem] if problem else []) + self.tracker.restore(states)
+        if problems:
+            kept = keep_rejected(self.state_path)
+            log.warning("state file %s: dropped (starting those injectors cold; original kept as %s): %s",
+                        self.state_path, kept, "; ".join(problems))
+        if self.tracker.states:
+            log.info("restored the state of %d injector(s) from %s", len(self.tracker.states), self.state_path)
 
     def persist(self) -> None:
         """Write the state now (atomic); errors are logged, not fatal."""
@@ -172,20 +204,26 @@ class Daemon:
         next_status = time.monotonic()
         next_persist = time.monotonic() + self.cfg.persist_period_s
         while not self.stop.is_set():
+            if self._pending_cfg is not None:
+                self._apply(self._pending_cfg)
+                self._pending_cfg = None
+                next_persist = time.monotonic()
             item = lst.get(timeout=0.01)
             mono = time.monotonic()
             self.progress = mono
             try:
                 if item is not None:
                     frame, arrived = item
-                    now = frame.timestamp or time.time()
+                    now = self.clock.on_frame(frame.timestamp, arrived)   # bus time, as in a replay
                     for pub in self.processor.handle(self.ingest.feed(frame, now)):
                         self.send(pub.frames[:1])
                         self.stats.add(mono, time.monotonic() - arrived)
                         self.send(pub.frames[1:])
                         self._dirty = True
                 else:
-                    self.processor.handle(self.ingest.poll(time.time()))
+                    t_idle = self.clock.idle(mono)     # the silent-bus guard (wall clock)
+                    if t_idle is not None:
+                        self.processor.handle(self.ingest.poll(t_idle))
                 self.ingest.counters.frames_dropped = lst.dropped
                 mono = time.monotonic()
                 if mono >= next_status:
@@ -197,13 +235,59 @@ class Daemon:
                     if self._dirty:
                         self.persist()
             except Exception:   # a bug must not kill the service silently: log it, keep serving
-                log.exception("worker error (continuing)")
+                self.ingest.counters.worker_errors += 1
+                self.rlog.log(logging.ERROR, "worker", "worker error (continuing)", exc_info=True)
+
+    # ---- reload (SIGHUP) --------------------------------------------------------------------
+    def request_reload(self) -> None:
+        """Main thread: read and validate the configuration again; the worker applies it."""
+        self.notify.notify(f"RELOADING=1\nMONOTONIC_USEC={time.clock_gettime_ns(time.CLOCK_MONOTONIC) // 1000}")
+        if self.loader is None:
+            log.warning("SIGHUP: no configuration file to reload; running configuration kept")
+            self.notify.notify("READY=1\nSTATUS=reload skipped: no configuration file")
+            return
+        try:
+            new = self.loader()
+            build_pool(new)   # the parameter file must load, too
+        except (ConfigError, EstimatorError, OSError) as exc:
+            log.error("SIGHUP: configuration not reloaded, running configuration kept: %s", exc)
+            self.notify.notify(f"READY=1\nSTATUS=reload failed: {exc}")
+            return
+        fixed = [k for k in RESTART_KEYS if getattr(new, k) != getattr(self.cfg, k)]
+        if fixed:
+            log.warning("SIGHUP: %s changed; that takes effect at the next restart", ", ".join(fixed))
+        self._pending_cfg = new
+
+    def _apply(self, new: DaemonConfig) -> None:
+        """Worker thread: persist, then switch to ``new`` (restart-only keys keep their running values)."""
+        self.persist()
+        keep = {k: getattr(self.cfg, k) for k in RESTART_KEYS}
+        new = DaemonConfig(**{**{f.name: getattr(new, f.name) for f in fields(DaemonConfig)}, **keep})
+        tracker = Tracker(new.tracker_config(), pool=build_pool(new))
+        tracker.states = self.tracker.states
+        self.tracker = self.processor.tracker = tracker
+        self.processor.commands = new.commands
+        self.ingest.assembler.timeout_s = new.assembly_timeout_ms * 1e-3
+        self.clock.silent_bus_s = new.silent_bus_s
+        logging.getLogger().setLevel(new.log_level_number)
+        self.cfg = new
+        log.info("configuration reloaded (commands %s, window %.0f µs, log level %s)", new.commands,
+                 new.window_us, new.log_level)
+        self.notify.notify(f"READY=1\nSTATUS=running on {self.cfg.bus} (configuration reloaded)")
 
     # ---- lifecycle --------------------------------------------------------------------------
     def install_signal_handlers(self) -> None:
-        """SIGTERM/SIGINT only set the stop Event."""
+        """SIGTERM/SIGINT set the stop Event, SIGHUP the reload Event; nothing else runs in a handler."""
+        def on_stop(*_: object) -> None:
+            self.stop.set()
+            self._wake.set()
+
+        def on_hup(*_: object) -> None:
+            self.reload_requested.set()
+            self._wake.set()
         for sig in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(sig, lambda *_: self.stop.set())
+            signal.signal(sig, on_stop)
+        signal.signal(signal.SIGHUP, on_hup)
 
     def warm_up(self) -> None:
         """Load the compiled kernels and the N_u table before READY, so the first injection is not late."""
@@ -221,6 +305,7 @@ class Daemon:
             self._bus = bus
             self._listener = QueueListener(self.cfg.queue_frames)
             notifier = can.Notifier(bus, [self._listener], timeout=0.05)
+            self.started = time.monotonic()      # uptime counts from the open bus (the first heartbeat says 0)
             worker = threading.Thread(target=self._worker, name="estimator-worker", daemon=True)
             worker.start()
             log.info("estimator running on %s (state %s)", self.cfg.bus, self.state_path or "not persisted")
@@ -228,7 +313,12 @@ class Daemon:
             self.notify.notify(f"STATUS=running on {self.cfg.bus}")
             ping = SdNotify.watchdog_interval_s()
             try:
-                while not self.stop.wait(ping or 0.5):
+                while not self.stop.is_set():
+                    self._wake.wait(ping or 0.5)
+                    self._wake.clear()
+                    if self.reload_requested.is_set() and not self.stop.is_set():
+                        self.reload_requested.clear()
+                        self.request_reload()
                     if ping and time.monotonic() - self.progress < 2 * ping:
                         self.notify.notify("WATCHDOG=1")
                     self.ingest.counters.bus_errors += self._listener.errors
@@ -247,14 +337,16 @@ class Daemon:
         c = self.ingest.counters
         return (f"accepted {c.accepted}, rejected crc {c.rejected_crc} missing {c.rejected_missing} timeout "
                 f"{c.rejected_timeout} invalid {c.rejected_invalid} outlier {c.rejected_outlier}, frames dropped "
-                f"{c.frames_dropped} malformed {c.frames_malformed}, bus errors {c.bus_errors}")
+                f"{c.frames_dropped} malformed {c.frames_malformed}, bus errors {c.bus_errors}, commands applied "
+                f"{c.commands_applied} refused {c.commands_refused} unknown {c.commands_unknown}, worker errors "
+                f"{c.worker_errors}")
 
 
-def run_daemon(cfg: DaemonConfig) -> int:
-    """CLI entry: build, install signal handlers, run."""
+def run_daemon(cfg: DaemonConfig, loader: Callable[[], DaemonConfig] | None = None) -> int:
+    """CLI entry: build, install signal handlers, run (``loader`` re-reads the configuration on SIGHUP)."""
     # The receive thread must not wait for the worker: the compiled kernels release the GIL, and the
     # interpreter hands it over every 0.5 ms instead of 5 ms (a 5 ms wait shows up as latency p99).
     sys.setswitchinterval(0.0005)
-    d = Daemon(cfg)
+    d = Daemon(cfg, loader)
     d.install_signal_handlers()
     return d.run()

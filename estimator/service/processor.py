@@ -12,7 +12,7 @@ from dataclasses import dataclass, fields
 
 from estimator.codec.assembler import Completed, Rejected
 from estimator.codec.ingest import Counters, Event, Malformed
-from estimator.codec.records import (COMMAND_RESET, COMMAND_SET_PRIOR, Codec, EstimateQuality,
+from estimator.codec.records import (COMMAND_NONE, COMMAND_RESET, COMMAND_SET_PRIOR, Codec, EstimateQuality,
                                      EstimateState, EstimatorCommand, EstimatorStatus, ValvePrediction)
 from estimator.ident.measurement import Injection
 from estimator.ident.status import Status
@@ -20,6 +20,7 @@ from estimator.ident.tracker import Tracker, TrackResult
 from estimator.service.ratelimit import RateLimitedLog
 
 log = logging.getLogger(__name__)
+COMMAND_POLICIES = ("off", "reset-only", "all")   # who may steer the estimator over the bus (config key commands)
 # the heartbeat's counters are the Counters fields of the same name
 _STATUS_COUNTERS = tuple(f.name for f in fields(EstimatorStatus) if f.name in {g.name for g in fields(Counters)})
 
@@ -44,11 +45,18 @@ class Published:
 class Processor:
     """Runs the tracker on completed injections and builds the estimator's output frames."""
 
-    def __init__(self, codec: Codec, tracker: Tracker, counters: Counters) -> None:
+    def __init__(self, codec: Codec, tracker: Tracker, counters: Counters, commands: str = "reset-only") -> None:
+        if commands not in COMMAND_POLICIES:
+            raise ValueError(f"commands = {commands!r} must be one of {', '.join(COMMAND_POLICIES)}")
         self.codec = codec
         self.tracker = tracker
         self.counters = counters
+        self.commands = commands
         self.rlog = RateLimitedLog(log)
+        status = codec.db.get_message_by_name(EstimatorStatus.MESSAGE)
+        # rolling counters: each wraps at its signal's width (32 or 16 bits)
+        self._masks = {name: (1 << status.get_signal_by_name(EstimatorStatus.SIGNALS[name]).length) - 1
+                       for name in _STATUS_COUNTERS}
 
     def handle(self, events: list[Event]) -> list[Published]:
         """Process events in order; returns one Published per injection that reached the estimator."""
@@ -66,19 +74,48 @@ class Processor:
                 self._command(e)
         return out
 
+    def prior_problem(self, nu_n_per_v: float, lh_um: float) -> str | None:
+        """Why a prior (N/V, µm) is outside the physical ranges (Table 1's N_u, the model's L_h), or None."""
+        psa = self.tracker.params.psa
+        lo, hi = self.tracker.config.ident.lh_bounds_um
+        if not (math.isfinite(nu_n_per_v) and psa.nu_min_n_per_v <= nu_n_per_v <= psa.nu_max_n_per_v):
+            return f"N_u = {nu_n_per_v:.4f} N/V outside [{psa.nu_min_n_per_v:g}, {psa.nu_max_n_per_v:g}] N/V"
+        if not (math.isfinite(lh_um) and lo <= lh_um <= hi):
+            return f"L_h = {lh_um:.3f} µm outside [{lo:g}, {hi:g}] µm"
+        return None
+
     def _command(self, c: EstimatorCommand) -> None:
+        """Apply a command as the policy allows: ``off`` none, ``reset-only`` resets, ``all`` resets and priors."""
+        cnt = self.counters
+        if c.command == COMMAND_NONE:
+            return
+        if c.command not in (COMMAND_RESET, COMMAND_SET_PRIOR):
+            cnt.commands_unknown += 1
+            self.rlog.log(logging.WARNING, "command-unknown", "injector %d: undefined command code %d ignored",
+                          c.injector_id, c.command)
+            return
+        name = "reset" if c.command == COMMAND_RESET else "set_prior"
+        allowed = self.commands == "all" or (self.commands == "reset-only" and c.command == COMMAND_RESET)
+        if not allowed:
+            cnt.commands_refused += 1
+            self.rlog.log(logging.WARNING, f"command-policy-{name}", "injector %d: command %s refused (commands = %s)",
+                          c.injector_id, name, self.commands)
+            return
         if c.command == COMMAND_RESET:
             self.tracker.reset(c.injector_id)
+            cnt.commands_applied += 1
             log.info("injector %d: reset by command", c.injector_id)
-        elif c.command == COMMAND_SET_PRIOR:
-            psa = self.tracker.simulator(0.5e-6).params.psa
-            if not (psa.nu_min_n_per_v <= c.prior_nu_n_per_v <= psa.nu_max_n_per_v and -5.0 <= c.prior_lh_um <= 15.0):
-                self.rlog.log(logging.WARNING, "prior-range", "injector %d: prior N_u=%.3f N/V, L_h=%.3f µm out of "
-                              "range, ignored", c.injector_id, c.prior_nu_n_per_v, c.prior_lh_um)
-                return
-            self.tracker.set_prior(c.injector_id, c.prior_nu_n_per_v, c.prior_lh_um)
-            log.info("injector %d: prior N_u=%.4f N/V, L_h=%.3f µm by command", c.injector_id, c.prior_nu_n_per_v,
-                     c.prior_lh_um)
+            return
+        problem = self.prior_problem(c.prior_nu_n_per_v, c.prior_lh_um)
+        if problem:
+            cnt.commands_refused += 1
+            self.rlog.log(logging.WARNING, "command-prior-range", "injector %d: prior refused: %s",
+                          c.injector_id, problem)
+            return
+        self.tracker.set_prior(c.injector_id, c.prior_nu_n_per_v, c.prior_lh_um)
+        cnt.commands_applied += 1
+        log.info("injector %d: prior N_u=%.4f N/V, L_h=%.3f µm by command", c.injector_id, c.prior_nu_n_per_v,
+                 c.prior_lh_um)
 
     def _estimate(self, e: Completed) -> Published:
         h = e.header
@@ -109,6 +146,6 @@ class Processor:
 
     def status_frame(self, queue_depth: int, latency_p99_ms: float, uptime_s: float):
         """The EstimatorStatus heartbeat frame."""
-        counts = {name: getattr(self.counters, name) & 0xFFFFFFFF for name in _STATUS_COUNTERS}  # 32-bit rolling
+        counts = {name: getattr(self.counters, name) & self._masks[name] for name in _STATUS_COUNTERS}
         return self.codec.encode(EstimatorStatus(**counts, queue_depth=queue_depth, latency_p99_ms=latency_p99_ms,
                                                  uptime_s=int(uptime_s)))

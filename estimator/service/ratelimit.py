@@ -15,7 +15,7 @@ class RateLimitedLog:
         self._last: dict[str, float] = {}
         self._suppressed: dict[str, int] = {}
 
-    def log(self, level: int, key: str, msg: str, *args: object) -> None:
+    def log(self, level: int, key: str, msg: str, *args: object, exc_info: bool = False) -> None:
         """Log now if ``key`` was quiet for ``interval_s``, else count it."""
         now = time.monotonic()
         last = self._last.get(key)
@@ -25,4 +25,4 @@ class RateLimitedLog:
         n = self._suppressed.pop(key, 0)
         self._last[key] = now
         suffix = f" ({n} more since the last report)" if n else ""
-        self.logger.log(level, msg + suffix, *args)
+        self.logger.log(level, msg + suffix, *args, exc_info=exc_info)

@@ -1,61 +1,90 @@
 """Offline replay: any python-can log (candump -L included) through the daemon's own pipeline.
 
-Frames are fed with their recorded timestamps as the clock, as fast as possible; the outputs are
-the frames the daemon would have sent (as a candump -L log) and/or one JSON line per injection.
+Frames are fed with their recorded timestamps as the clock (:class:`~estimator.codec.bus_clock.BusClock`,
+as live), as fast as possible; at the end of the capture the silent-bus guard runs out, as it would
+live. The outputs are the frames the daemon would have sent (as a candump -L log) and/or one JSON
+line per injection. A line of a candump log that cannot be read is skipped, counted and reported
+with its line number; the rest of the capture is replayed. The estimator's own output frames in a
+capture are skipped (live, the daemon does not receive them).
 """
 
 from __future__ import annotations
 
+import io
 import json
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TextIO
+from typing import Iterator, TextIO
 
 import can
 
-from estimator.codec.database import load_database
-from estimator.codec.ingest import Counters, Ingest
-from estimator.codec.records import Codec
+from estimator.codec.ingest import Counters
 from estimator.service.bus import to_frame, to_message
 from estimator.service.config import DaemonConfig
-from estimator.service.daemon import build_tracker
-from estimator.service.processor import Processor
+from estimator.service.daemon import build_pipeline
 
 log = logging.getLogger(__name__)
+CANDUMP_SUFFIXES = (".log",)
 
 
 @dataclass
 class ReplayResult:
-    """Counters and the number of injections published."""
+    """Counters, the number of injections published, and the capture lines that could not be read."""
 
     counters: Counters
     published: int
     frames_in: int
+    bad_lines: list[tuple[int, str]] = field(default_factory=list)   # (line number, problem), at most 100 kept
+    bad_line_count: int = 0
+
+
+def read_capture(capture: Path, bad: ReplayResult) -> Iterator[can.Message]:
+    """Messages of a capture. candump logs are read line by line (a bad line is skipped and recorded);
+    other formats through :class:`can.LogReader` (an unreadable file raises ValueError/OSError)."""
+    if capture.suffix.lower() not in CANDUMP_SUFFIXES:
+        yield from can.LogReader(str(capture))
+        return
+    with open(capture, "rb") as f:
+        for no, raw in enumerate(f, start=1):
+            try:
+                line = raw.decode("ascii")
+                if not line.strip():
+                    continue
+                msgs = list(can.CanutilsLogReader(io.StringIO(line)))
+            except (ValueError, IndexError, UnicodeDecodeError) as exc:
+                bad.bad_line_count += 1
+                if len(bad.bad_lines) < 100:
+                    bad.bad_lines.append((no, f"{type(exc).__name__}: {exc}"[:120]))
+                continue
+            yield from msgs
 
 
 def replay(capture: Path, cfg: DaemonConfig, out_log: Path | None = None, out_json: TextIO | None = None,
            channel: str = "vcan0") -> ReplayResult:
     """Run the pipeline over a capture. Raises OSError/ValueError for unreadable files."""
-    codec = Codec(load_database(cfg.dbc))
-    ingest = Ingest(codec, cfg.assembly_timeout_ms * 1e-3, cfg.max_injectors)
-    processor = Processor(codec, build_tracker(cfg), ingest.counters)
+    codec, ingest, processor, clock = build_pipeline(cfg)
     writer = can.CanutilsLogWriter(str(out_log), channel=channel) if out_log else None
-    published = frames = 0
+    result = ReplayResult(ingest.counters, 0, 0)
+    m = codec.messages
+    # live, the daemon does not receive its own frames: a capture's copies must not move the clock
+    own = {m.state.frame_id, m.quality.frame_id, m.prediction.frame_id, m.status.frame_id}
     try:
-        for msg in can.LogReader(str(capture)):
-            if msg.is_error_frame or msg.is_remote_frame:
+        for msg in read_capture(capture, result):
+            if msg.is_error_frame or msg.is_remote_frame or (msg.arbitration_id in own and not msg.is_extended_id):
                 continue
-            frames += 1
+            result.frames_in += 1
             fr = to_frame(msg)
-            for pub in processor.handle(ingest.feed(fr, fr.timestamp)):
-                published += 1
+            now = clock.on_frame(fr.timestamp)
+            for pub in processor.handle(ingest.feed(fr, now)):
+                result.published += 1
                 if writer is not None:
                     for out in pub.frames:
                         writer.on_message_received(to_message(out, timestamp=fr.timestamp))
                 if out_json is not None:
                     out_json.write(json.dumps(pub.to_dict()) + "\n")
+        processor.handle(ingest.poll(clock.end()))   # what the silent-bus guard does live
     finally:
         if writer is not None:
             writer.stop()
-    return ReplayResult(ingest.counters, published, frames)
+    return result

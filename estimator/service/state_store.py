@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -14,6 +15,7 @@ from estimator.ident.tracker import TrackerState
 log = logging.getLogger(__name__)
 FORMAT = "piezo-injector-estimator-state"
 VERSION = 1
+MAX_BYTES = 1 << 20   # 8 injectors take about 10 kB; anything this large is not ours
 
 
 def save_states(path: Path, states: dict[int, TrackerState]) -> None:
@@ -50,8 +52,10 @@ def load_states(path: Path) -> tuple[dict[int, TrackerState], str | None]:
     if not path.exists():
         return {}, None
     try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
+        if path.stat().st_size > MAX_BYTES:
+            return {}, f"state file {path} is larger than {MAX_BYTES} bytes; ignoring it"
+        doc = json.loads(path.read_bytes().decode("utf-8"))
+    except (OSError, ValueError, RecursionError) as exc:
         return {}, f"state file {path} unreadable ({exc}); starting without it"
     if not isinstance(doc, dict) or doc.get("format") != FORMAT or doc.get("version") != VERSION:
         return {}, f"state file {path} is not a {FORMAT} v{VERSION} file; ignoring it"
@@ -66,6 +70,17 @@ def load_states(path: Path) -> tuple[dict[int, TrackerState], str | None]:
             if not 0 <= inj <= 7:
                 raise ValueError("injector id out of range")
             states[inj] = TrackerState.from_dict(value)
-        except (ValueError, TypeError) as exc:
+        except (ValueError, TypeError, RecursionError) as exc:
             problems.append(f"injector {key}: {exc}")
     return states, ("; ".join(problems) if problems else None)
+
+
+def keep_rejected(path: Path) -> Path | None:
+    """Copy a state file that was (partly) rejected to ``<name>.rejected`` before it is overwritten,
+    so nothing is lost for a post-mortem. Returns the copy's path (None if it could not be made)."""
+    dest = path.with_name(path.name + ".rejected")
+    try:
+        shutil.copyfile(path, dest)
+    except OSError:
+        return None
+    return dest

@@ -53,6 +53,7 @@ def count_lines(path: Path, frame_id: str) -> int:
 
 
 def wait_for(pred, timeout: float, step: float = 1.0) -> bool:
+    """Until ``pred()`` holds (checked every ``step`` s; candump's file is all there is to watch)."""
     t_end = time.monotonic() + timeout
     while time.monotonic() < t_end:
         if pred():
@@ -86,14 +87,17 @@ def test_daemon_node_candump_cansend_replay(tmp_path):
         assert node.returncode == 0, node.stderr
         wait_estimates(10)
         # reset injector 0 with cansend: EstimatorCommand 0x220, Command=1 (bits 3-4) -> byte 0 = 0x08
+        beats = count_lines(capture, "210")
         subprocess.run(["cansend", "vcan0", "220#0800000000000000"], check=True)
-        time.sleep(2.0)
+        # three heartbeats later the worker has taken the command from its queue (it runs them in order)
+        assert wait_for(lambda: count_lines(capture, "210") >= beats + 3, 300, step=0.2)
         node2 = subprocess.run([sys.executable, "-m", "sim_bench", "node", "--bus", "socketcan:vcan0",
                                 "--injectors", "1", "--rate", "2", "--count", "1", "--seed", "4"],
                                cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
         assert node2.returncode == 0, node2.stderr
         wait_estimates(11)
-        time.sleep(1.0)   # a heartbeat after the last injection
+        beats = count_lines(capture, "210")   # a heartbeat after the last injection
+        assert wait_for(lambda: count_lines(capture, "210") >= beats + 2, 300, step=0.2)
     finally:
         daemon.send_signal(signal.SIGTERM)
         try:

@@ -1,0 +1,71 @@
+"""EstimatorCommand policy: off / reset-only / all, priors only within the physical ranges, undefined
+codes counted; every refusal is counted in the heartbeat (CommandsRefused, CommandsUnknown)."""
+
+from __future__ import annotations
+
+import pytest
+
+from estimator.codec.ingest import Counters
+from estimator.codec.records import COMMAND_RESET, COMMAND_SET_PRIOR, Codec, EstimatorCommand, EstimatorStatus
+from estimator.ident.config import TrackerConfig
+from estimator.ident.tracker import Tracker, TrackerState
+from estimator.service.processor import Processor
+
+
+def processor(policy: str) -> Processor:
+    p = Processor(Codec(), Tracker(TrackerConfig()), Counters(), policy)
+    p.tracker.states[1] = TrackerState().with_prior(17.0, 3.0)
+    return p
+
+
+def heartbeat(p: Processor) -> EstimatorStatus:
+    return p.codec.decode(p.status_frame(0, 0.0, 1.0))
+
+
+@pytest.mark.parametrize("policy, reset_applies, prior_applies", [
+    ("off", False, False), ("reset-only", True, False), ("all", True, True)])
+def test_policy(policy, reset_applies, prior_applies):
+    p = processor(policy)
+    p.handle([EstimatorCommand(2, COMMAND_SET_PRIOR, 18.0, 4.0)])
+    assert (2 in p.tracker.states) == prior_applies
+    p.handle([EstimatorCommand(1, COMMAND_RESET)])
+    assert (1 not in p.tracker.states) == reset_applies
+    hb = heartbeat(p)
+    assert hb.commands_refused == (not reset_applies) + (not prior_applies)
+    assert p.counters.commands_applied == reset_applies + prior_applies
+
+
+@pytest.mark.parametrize("nu, lh", [(17.0, 14.9), (17.0, -2.5), (14.0, 3.0), (21.5, 3.0), (32.7, 32.7), (0.0, 0.0)])
+def test_priors_outside_the_physical_ranges_are_refused(nu, lh):
+    p = processor("all")
+    p.handle([EstimatorCommand(2, COMMAND_SET_PRIOR, nu, lh)])
+    assert 2 not in p.tracker.states
+    assert heartbeat(p).commands_refused == 1
+
+
+def test_prior_at_the_range_edges_is_taken():
+    p = processor("all")
+    p.handle([EstimatorCommand(2, COMMAND_SET_PRIOR, 21.0, 10.0), EstimatorCommand(3, COMMAND_SET_PRIOR, 15.0, -2.0)])
+    assert {2, 3} <= set(p.tracker.states)
+
+
+def test_undefined_code_is_counted_in_the_heartbeat():
+    codec = Codec()
+    msg = codec.db.get_message_by_name("EstimatorCommand")
+    data = msg.encode({"InjectorId": 1, "Command": 3, "PriorNu": 0, "PriorIdleStroke": 0}, strict=True)
+    from estimator.codec.frame import Frame
+    from estimator.codec.ingest import Ingest
+    ing = Ingest(codec)
+    p = Processor(codec, Tracker(TrackerConfig()), ing.counters, "all")
+    for _ in range(3):
+        p.handle(ing.feed(Frame(msg.frame_id, bytes(data), False, 1.0), 1.0))
+    hb = heartbeat(p)
+    assert hb.commands_unknown == 3 and hb.commands_refused == 0
+
+
+def test_counters_roll_at_their_signal_width():
+    p = processor("off")
+    p.counters.commands_refused = 65536 + 5
+    p.counters.accepted = 2 ** 32 + 7
+    hb = heartbeat(p)
+    assert hb.commands_refused == 5 and hb.accepted == 7
