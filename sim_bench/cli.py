@@ -221,6 +221,18 @@ def cmd_daemon_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_reliability(args: argparse.Namespace) -> int:
+    """The daemon under faults (sample periods, stalls, floods, poisoned state, commands); exit 1 on a loss."""
+    from sim_bench import reliability
+
+    rep = reliability.run_all(args.out, args.bus)
+    rep["failures"] = reliability.failures(rep)
+    print(reliability.format_report(rep))
+    print("PASS" if not rep["failures"] else "FAIL: " + "; ".join(rep["failures"]))
+    _write_json(args.json_out, rep)
+    return 1 if rep["failures"] else 0
+
+
 def cmd_hub(args: argparse.Namespace) -> int:
     """Serve the loopback CAN hub until interrupted (SIGINT, SIGTERM, SIGHUP stop it and its server)."""
     from sim_bench.hub import Hub
@@ -290,6 +302,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, default=DEFAULT_OUT / "daemon")
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "daemon-bench.json")
     s.set_defaults(func=cmd_daemon_bench)
+
+    s = sub.add_parser("reliability", help="daemon under faults: sample periods, stalls, floods, state, commands")
+    s.add_argument("--bus", default=None, help="default: socketcan:vcan0 if it exists, else a loopback hub")
+    s.add_argument("--out", type=Path, default=DEFAULT_OUT / "reliability")
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "reliability.json")
+    s.set_defaults(func=cmd_reliability)
 
     s = sub.add_parser("hub", help="serve a loopback CAN hub (python-can-remote) on 127.0.0.1")
     s.add_argument("--port", type=int, default=None)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import estimator  # noqa: F401  (first: it limits BLAS to one thread before numpy loads)
+
 import pytest
 
 from estimator.model.fast_sim import FastSimulator

@@ -36,3 +36,17 @@ def test_layer_imports(package):
         for mod in imported_modules(f):
             for bad in FORBIDDEN[package]:
                 assert not (mod == bad or mod.startswith(bad + ".")), f"{f.relative_to(REPO)} imports {mod}"
+
+
+def test_numpy_runs_one_blas_thread_under_our_entry_points():
+    """Spinning BLAS worker threads stall a loaded machine (README, Reliability): importing the
+    package first keeps OpenBLAS to the calling thread, unless the environment says otherwise."""
+    import os
+    import subprocess
+    import sys
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}
+    code = "import {}, numpy, os; print(len(os.listdir('/proc/self/task')))"
+    for pkg in ("estimator", "sim_bench"):
+        r = subprocess.run([sys.executable, "-c", code.format(pkg)], env=env, capture_output=True, text=True,
+                           timeout=120, cwd=REPO)
+        assert r.stdout.strip() == "1", (pkg, r.stdout, r.stderr)

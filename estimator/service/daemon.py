@@ -91,22 +91,25 @@ class QueueListener(can.Listener):
 
 @dataclass
 class Stats:
-    """Latency samples (last 10 s) for the heartbeat's p99."""
+    """Latency samples (last 10 s, at most 100 000) for the heartbeat's p99; the worker adds, the
+    heartbeat thread reads (hence the lock)."""
 
     window_s: float = 10.0
 
     def __post_init__(self) -> None:
-        self.samples: collections.deque[tuple[float, float]] = collections.deque()
+        self.samples: collections.deque[tuple[float, float]] = collections.deque(maxlen=100_000)
+        self._lock = threading.Lock()
 
     def add(self, t: float, latency_s: float) -> None:
-        self.samples.append((t, latency_s))
-        while self.samples and self.samples[0][0] < t - self.window_s:
-            self.samples.popleft()
+        with self._lock:
+            self.samples.append((t, latency_s))
+            while self.samples and self.samples[0][0] < t - self.window_s:
+                self.samples.popleft()
 
     def p99_ms(self) -> float:
-        if not self.samples:
-            return 0.0
-        return float(np.percentile([s for _, s in self.samples], 99)) * 1e3
+        with self._lock:
+            values = [s for _, s in self.samples]
+        return float(np.percentile(values, 99)) * 1e3 if values else 0.0
 
 
 # keys a SIGHUP cannot change (they shape the bus connection and the memory already allocated)
@@ -144,6 +147,7 @@ class Daemon:
         self.tracker = self.processor.tracker
         self.stop = threading.Event()
         self.reload_requested = threading.Event()
+        self._send_lock = threading.Lock()
         self._wake = threading.Event()      # main loop: a signal arrived
         self._pending_cfg: DaemonConfig | None = None
         self.notify = SdNotify()
@@ -182,7 +186,16 @@ class Daemon:
 
     # ---- bus output -------------------------------------------------------------------------
     def send(self, frames: list[Frame]) -> None:
-        """Send frames; a failed send (ENOBUFS, interface down) is retried with backoff, then dropped."""
+        """Send frames; a failed send (ENOBUFS, interface down) is retried with backoff, then dropped.
+
+        Called by the worker (estimates) and the heartbeat thread; one lock keeps their frames whole on
+        interfaces whose send is not thread-safe (the websocket of the loopback hub).
+        """
+        assert self._bus is not None
+        with self._send_lock:
+            self._send(frames)
+
+    def _send(self, frames: list[Frame]) -> None:
         assert self._bus is not None
         for fr in frames:
             delay = 0.001
@@ -201,7 +214,6 @@ class Daemon:
     def _worker(self) -> None:
         assert self._listener is not None
         lst = self._listener
-        next_status = time.monotonic()
         next_persist = time.monotonic() + self.cfg.persist_period_s
         while not self.stop.is_set():
             if self._pending_cfg is not None:
@@ -226,10 +238,6 @@ class Daemon:
                         self.processor.handle(self.ingest.poll(t_idle))
                 self.ingest.counters.frames_dropped = lst.dropped
                 mono = time.monotonic()
-                if mono >= next_status:
-                    next_status = mono + self.cfg.status_period_s
-                    self.send([self.processor.status_frame(len(lst.queue), self.stats.p99_ms(),
-                                                           mono - self.started)])
                 if mono >= next_persist:
                     next_persist = mono + self.cfg.persist_period_s
                     if self._dirty:
@@ -237,6 +245,19 @@ class Daemon:
             except Exception:   # a bug must not kill the service silently: log it, keep serving
                 self.ingest.counters.worker_errors += 1
                 self.rlog.log(logging.ERROR, "worker", "worker error (continuing)", exc_info=True)
+
+    def _heartbeat(self) -> None:
+        """EstimatorStatus every ``status_period_s``, from its own thread: a long identification (a
+        cold start on a loaded machine, a new sample period) does not silence it. The worker's own
+        liveness is what the systemd watchdog checks."""
+        assert self._listener is not None
+        while not self.stop.is_set():
+            try:
+                self.send([self.processor.status_frame(len(self._listener.queue), self.stats.p99_ms(),
+                                                       time.monotonic() - self.started)])
+            except Exception:   # never let the heartbeat die with a traceback per tick
+                self.rlog.log(logging.ERROR, "heartbeat", "heartbeat error (continuing)", exc_info=True)
+            self.stop.wait(self.cfg.status_period_s)
 
     # ---- reload (SIGHUP) --------------------------------------------------------------------
     def request_reload(self) -> None:
@@ -308,6 +329,8 @@ class Daemon:
             self.started = time.monotonic()      # uptime counts from the open bus (the first heartbeat says 0)
             worker = threading.Thread(target=self._worker, name="estimator-worker", daemon=True)
             worker.start()
+            beat = threading.Thread(target=self._heartbeat, name="estimator-heartbeat", daemon=True)
+            beat.start()
             log.info("estimator running on %s (state %s)", self.cfg.bus, self.state_path or "not persisted")
             self.notify.notify("READY=1")
             self.notify.notify(f"STATUS=running on {self.cfg.bus}")
@@ -328,6 +351,7 @@ class Daemon:
                 notifier.stop(timeout=0.5)
                 self.stop.set()
                 worker.join(timeout=1.0)
+                beat.join(timeout=1.0)
                 self.persist()
                 log.info("estimator stopped: %s", self.summary())
         return 0

@@ -1,0 +1,260 @@
+"""Reliability bench: the daemon as a child process on a real bus, under faults a bus, a disk and a
+loaded machine produce; prints a table and writes JSON (``python -m sim_bench reliability``).
+
+Faults: injections with 300 distinct sample periods (memory, heartbeat gaps), SIGSTOP between
+header and trailer (live vs replay of the same capture), a flood of hostile frames on the input
+identifiers, a poisoned state file, commands under the default policy, SIGHUP with a broken
+config. Each row says what traffic was held and what was lost.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from estimator.codec.injection_frames import injection_frames
+from estimator.codec.records import (COMMAND_SET_PRIOR, Codec, EstimateState, EstimatorCommand, EstimatorStatus)
+from estimator.ident.measurement import Injection
+from estimator.service.bus import open_bus, to_message
+from sim_bench.bench import resolve_bus
+from sim_bench.plant import Plant, PlantConfig
+from sim_bench.procs import REPO, BusMonitor, DaemonProcess, rss_mb
+
+
+def _injections(n: int, seed: int) -> list[Injection]:
+    plant = Plant(PlantConfig(window_s=100e-6))
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        m = plant.measure(17.0, 3.0e-6, 28.0, rng)
+        out.append(Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n))
+    return out
+
+
+def _hb(mon: BusMonitor) -> EstimatorStatus:
+    return mon.heartbeats[-1][1]
+
+
+def _handled(hb: EstimatorStatus) -> int:
+    return (hb.accepted + hb.rejected_crc + hb.rejected_missing + hb.rejected_timeout + hb.rejected_invalid
+            + hb.rejected_outlier)
+
+
+def _send(bus, codec: Codec, injector: int, counter: int, inj: Injection, period_s: float | None = None) -> None:
+    for fr in injection_frames(codec, injector, counter, period_s or inj.dt_s, inj.current_a, inj.voltage_v):
+        bus.send(to_message(fr))
+
+
+def periods(bus_spec: str, out: Path, n: int = 300) -> dict:
+    """Injections that differ only in SamplePeriod (500..500+n-1 ns)."""
+    codec = Codec()
+    inj = _injections(1, 1)[0]
+    mon = BusMonitor(bus_spec)
+    mon.start()
+    d = DaemonProcess(bus_spec, out / "periods-daemon.log").start()
+    try:
+        d.wait_ready(mon)
+        rss = []
+        with open_bus(bus_spec) as bus:
+            for k in range(n):
+                _send(bus, codec, k % 8, k % 256, inj, (500 + k) * 1e-9)
+                if k % 8 == 7:
+                    mon.wait_for(lambda m: m.heartbeats and _handled(_hb(m)) >= k - 8, 120, d.alive)
+                    rss.append(rss_mb(d.pid))
+            mon.wait_for(lambda m: _handled(_hb(m)) >= n - 8, 120, d.alive)
+        t = np.array([t for t, _ in mon.heartbeats])
+        hb = _hb(mon)
+        return {"fault": f"{n} distinct sample periods", "injections": n, "handled": _handled(hb),
+                "rss_first_mb": rss[0], "rss_max_mb": max(rss), "rss_growth_mb": max(rss) - rss[0],
+                "heartbeat_max_gap_s": float(np.diff(t).max()), "daemon_exit": d.stop()}
+    finally:
+        d.stop()
+        mon.close()
+
+
+def stall(bus_spec: str, out: Path, n: int = 10, stop_s: float = 0.5) -> dict:
+    """SIGSTOP after the blocks, trailer sent meanwhile, SIGCONT after ``stop_s``; then replay."""
+    codec = Codec()
+    cfg = out / "stall.toml"
+    cfg.write_text("[estimator]\nassembly_timeout_ms = 150.0\n")
+    capture = out / "stall-capture.log"
+    mon = BusMonitor(bus_spec, capture=capture)
+    mon.start()
+    d = DaemonProcess(bus_spec, out / "stall-daemon.log", config=cfg).start()
+    try:
+        d.wait_ready(mon)
+        with open_bus(bus_spec) as bus:
+            for k, inj in enumerate(_injections(n, 2)):
+                frames = injection_frames(codec, 3, k, inj.dt_s, inj.current_a, inj.voltage_v)
+                for fr in frames[:-1]:
+                    bus.send(to_message(fr))
+                time.sleep(0.02)
+                d.send_signal(signal.SIGSTOP)
+                bus.send(to_message(frames[-1]))
+                time.sleep(stop_s)
+                d.send_signal(signal.SIGCONT)
+                mon.wait_for(lambda m: m.heartbeats and _hb(m).accepted + _hb(m).rejected_timeout >= k + 1, 60, d.alive)
+        live = _hb(mon)
+        code = d.stop()
+    finally:
+        d.stop()
+        mon.close()
+    jl = out / "stall-replay.jsonl"
+    r = subprocess.run([sys.executable, "-m", "estimator", "replay", str(capture), "--json", str(jl), "--config",
+                        str(cfg)], cwd=REPO, capture_output=True, text=True, timeout=300)
+    rows = [json.loads(x) for x in jl.read_text().splitlines()] if jl.exists() else []
+    return {"fault": f"SIGSTOP {stop_s * 1e3:.0f} ms between header and trailer", "injections": n,
+            "live_accepted": live.accepted, "live_timeouts": live.rejected_timeout, "replay_accepted": len(rows),
+            "replay_ok": r.returncode == 0, "daemon_exit": code}
+
+
+def flood(bus_spec: str, out: Path, frames: int = 5000, seed: int = 3) -> dict:
+    """Random bytes on the input identifiers (and random identifiers), then five good injections."""
+    codec = Codec()
+    rng = random.Random(seed)
+    ids = [0x100, 0x101, 0x102, 0x220]
+    mon = BusMonitor(bus_spec)
+    mon.start()
+    d = DaemonProcess(bus_spec, out / "flood-daemon.log").start()
+    try:
+        d.wait_ready(mon)
+        with open_bus(bus_spec) as bus:
+            import can
+            for _ in range(frames):
+                fd = rng.random() < 0.7
+                n = rng.choice([0, 1, 2, 8, 12, 16, 20, 24, 32, 48, 64]) if fd else rng.randint(0, 8)
+                arb = rng.choice(ids) if rng.random() < 0.8 else rng.randint(0, 0x7FF)
+                bus.send(can.Message(arbitration_id=arb, data=bytes(rng.getrandbits(8) for _ in range(n)), is_fd=fd,
+                                     is_extended_id=False))
+            good = _injections(5, 4)
+            for k, inj in enumerate(good):
+                _send(bus, codec, 5, k, inj)
+            ok = mon.wait_for(lambda m: sum(1 for r in m.of_type(EstimateState) if r.injector_id == 5) >= 5, 120, d.alive)
+        t0 = time.monotonic()
+        mon.wait_for(lambda m: sum(t > t0 for t, _ in m.heartbeats) >= 2, 30, d.alive)
+        hb = _hb(mon)
+        return {"fault": f"{frames} random frames on the input identifiers", "malformed": hb.frames_malformed,
+                "unknown_commands": hb.commands_unknown, "good_after": 5, "good_estimated": 5 if ok else 0,
+                "rss_mb": rss_mb(d.pid), "daemon_exit": d.stop()}
+    finally:
+        d.stop()
+        mon.close()
+
+
+def poisoned_state(bus_spec: str, out: Path) -> dict:
+    """A state file with one good injector and three poisoned ones; the daemon must start and serve."""
+    from estimator.ident.tracker import Tracker
+
+    state = out / "state"
+    state.mkdir(parents=True, exist_ok=True)
+    t = Tracker()
+    for inj in _injections(4, 5):
+        t.update(inj)
+    good = t.states[0].to_dict()
+    bad_type = dict(good, accepted="many")
+    bad_range = dict(good, x=[100.0, 500.0, 0.0, 0.06])
+    doc = {"format": "piezo-injector-estimator-state", "version": 1, "saved_at": 0,
+           "injectors": {"0": good, "1": bad_type, "2": bad_range, "3": [1, 2]}}
+    (state / "estimator-state.json").write_text(json.dumps(doc))
+    codec = Codec()
+    mon = BusMonitor(bus_spec)
+    mon.start()
+    d = DaemonProcess(bus_spec, out / "state-daemon.log", state_dir=state).start()
+    try:
+        d.wait_ready(mon)
+        with open_bus(bus_spec) as bus:
+            for k, inj in enumerate(_injections(3, 6)):
+                for inj_id in (0, 1, 2, 3):
+                    _send(bus, codec, inj_id, k, inj)
+            mon.wait_for(lambda m: len(m.of_type(EstimateState)) >= 12, 120, d.alive)
+        code = d.stop()
+    finally:
+        d.stop()
+        mon.close()
+    saved = json.loads((state / "estimator-state.json").read_text())["injectors"]
+    return {"fault": "state file: 1 good entry, 3 poisoned (type, range, shape)", "estimates": 12,
+            "published": len(mon.of_type(EstimateState)), "restored_good": "0" in saved,
+            "kept_copy": (state / "estimator-state.json.rejected").exists(), "daemon_exit": code}
+
+
+def commands(bus_spec: str, out: Path) -> dict:
+    """Default policy (reset-only): set_prior refused, undefined code counted."""
+    codec = Codec()
+    mon = BusMonitor(bus_spec)
+    mon.start()
+    d = DaemonProcess(bus_spec, out / "commands-daemon.log").start()
+    try:
+        d.wait_ready(mon)
+        msg = codec.db.get_message_by_name("EstimatorCommand")
+        import can
+        with open_bus(bus_spec) as bus:
+            bus.send(to_message(codec.encode(EstimatorCommand(0, COMMAND_SET_PRIOR, 17.0, 14.9))))
+            bus.send(can.Message(arbitration_id=msg.frame_id, data=msg.encode(
+                {"InjectorId": 0, "Command": 3, "PriorNu": 0, "PriorIdleStroke": 0}), is_fd=False, is_extended_id=False))
+            mon.wait_for(lambda m: m.heartbeats and _hb(m).commands_refused >= 1 and _hb(m).commands_unknown >= 1, 30,
+                         d.alive)
+        hb = _hb(mon)
+        return {"fault": "set_prior L_h 14.9 µm + undefined code (commands = reset-only)",
+                "refused": hb.commands_refused, "unknown": hb.commands_unknown, "daemon_exit": d.stop()}
+    finally:
+        d.stop()
+        mon.close()
+
+
+def run_all(out: Path, bus: str | None = None) -> dict:
+    """Every fault on one bus (a loopback hub unless ``bus`` or vcan0)."""
+    out.mkdir(parents=True, exist_ok=True)
+    spec, hub = resolve_bus(bus, out)
+    try:
+        rows = [periods(spec, out), stall(spec, out), flood(spec, out), poisoned_state(spec, out), commands(spec, out)]
+    finally:
+        if hub is not None:
+            hub.stop()
+    return {"benchmark": "reliability", "bus": spec, "rows": rows}
+
+
+def format_report(rep: dict) -> str:
+    """One line per fault: what was sent, what the daemon did, what was lost."""
+    lines = [f"reliability on {rep['bus']}"]
+    p = rep["rows"][0]
+    lines.append(f"  {p['fault']:<58} handled {p['handled']}/{p['injections']}, RSS {p['rss_first_mb']:.0f} -> "
+                 f"{p['rss_max_mb']:.0f} MB (+{p['rss_growth_mb']:.1f}), heartbeat gap max "
+                 f"{p['heartbeat_max_gap_s']:.2f} s, exit {p['daemon_exit']}")
+    s = rep["rows"][1]
+    lines.append(f"  {s['fault']:<58} live accepted {s['live_accepted']}/{s['injections']} (timeouts "
+                 f"{s['live_timeouts']}), replay accepted {s['replay_accepted']}, exit {s['daemon_exit']}")
+    f = rep["rows"][2]
+    lines.append(f"  {f['fault']:<58} malformed {f['malformed']}, unknown commands {f['unknown_commands']}, "
+                 f"good after: {f['good_estimated']}/{f['good_after']}, RSS {f['rss_mb']:.0f} MB, exit {f['daemon_exit']}")
+    st = rep["rows"][3]
+    lines.append(f"  {st['fault']:<58} published {st['published']}/{st['estimates']}, good entry kept "
+                 f"{st['restored_good']}, original kept {st['kept_copy']}, exit {st['daemon_exit']}")
+    c = rep["rows"][4]
+    lines.append(f"  {c['fault']:<58} refused {c['refused']}, unknown {c['unknown']}, exit {c['daemon_exit']}")
+    return "\n".join(lines)
+
+
+def failures(rep: dict) -> list[str]:
+    """What makes the bench exit 1."""
+    p, s, f, st, c = rep["rows"]
+    out = []
+    if p["rss_growth_mb"] >= 50 or p["heartbeat_max_gap_s"] >= 2.0 or p["handled"] < p["injections"] - 8:
+        out.append("sample periods: memory, heartbeat or handling")
+    if s["live_accepted"] != s["replay_accepted"] or not s["replay_ok"]:
+        out.append("stall: live != replay")
+    if f["good_estimated"] != f["good_after"]:
+        out.append("flood: good injections lost")
+    if st["published"] < st["estimates"] or not st["restored_good"] or not st["kept_copy"]:
+        out.append("state: not served or not kept")
+    if c["refused"] < 1 or c["unknown"] < 1:
+        out.append("commands: not counted")
+    if any(row["daemon_exit"] != 0 for row in rep["rows"]):
+        out.append("a daemon did not exit 0")
+    return out
