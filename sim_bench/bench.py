@@ -26,7 +26,7 @@ from estimator.codec.records import (Codec, EstimateQuality, EstimateState, Esti
 from estimator.service.bus import BusSetupError, check_socketcan, open_bus, to_frame
 from sim_bench import scenarios
 from sim_bench.hub import Hub
-from sim_bench.procs import DaemonProcess, rss_mb, spawn, stop_process
+from sim_bench.procs import BusMonitor, DaemonProcess, rss_mb, spawn, stop_process
 
 # Targets per scenario: max |L_h error| (µm) after 30 injections of each injector, max |N_u error| (%).
 TARGETS = {
@@ -72,36 +72,18 @@ def resolve_bus(bus: str | None, out_dir: Path) -> tuple[str, Hub | None]:
     return hub.spec, hub
 
 
-class Listener(threading.Thread):
-    """Receives everything, writes the candump log, joins estimates with truth."""
+class Listener(BusMonitor):
+    """Receives everything, writes the candump log, joins estimates with truth (the bench's monitor)."""
 
     def __init__(self, bus_spec: str, log_path: Path, codec: Codec) -> None:
-        super().__init__(daemon=True, name="bench-listener")
-        self.bus = open_bus(bus_spec)
-        self.writer = can.CanutilsLogWriter(str(log_path), channel="vcan0")
-        self.codec = codec
+        super().__init__(bus_spec, codec, capture=log_path, keep=1)
         self.cap = Capture()
-        self.stop_event = threading.Event()
-        self.lock = threading.Lock()
-        self.heartbeat = threading.Condition(self.lock)   # notified on every EstimatorStatus
-        self.heartbeats = 0
+        self.lock = self.cond        # the bench reads cap under it
+        self.heartbeat = self.cond   # notified on every frame; heartbeats are counted
+        self.heartbeats_seen = 0
 
-    def run(self) -> None:
-        while not self.stop_event.is_set():
-            try:
-                msg = self.bus.recv(0.05)
-            except can.CanError:
-                continue
-            if msg is None:
-                continue
-            now = time.monotonic()
-            self.writer.on_message_received(msg)
-            try:
-                rec = self.codec.decode(to_frame(msg))
-            except Exception:   # malformed frames (the faults scenario sends them on purpose)
-                continue
-            with self.lock:
-                self._handle(rec, now)
+    def on_record(self, now: float, rec) -> None:
+        self._handle(rec, now)
 
     def _handle(self, rec, now: float) -> None:
         c = self.cap
@@ -118,8 +100,7 @@ class Listener(threading.Thread):
                 self._join(row, rec)
         elif isinstance(rec, EstimatorStatus):
             c.status = rec
-            self.heartbeats += 1
-            self.heartbeat.notify_all()
+            self.heartbeats_seen += 1
         elif isinstance(rec, (EstimateState, EstimateQuality, ValvePrediction)):
             key = (rec.injector_id, rec.counter)
             row = c.pending.setdefault(key, {"injector": rec.injector_id, "counter": rec.counter})
@@ -153,12 +134,12 @@ class Listener(threading.Thread):
         t_end = time.monotonic() + timeout
         last = None
         with self.lock:
-            seen = self.heartbeats
+            seen = self.heartbeats_seen
             while time.monotonic() < t_end:
                 self.heartbeat.wait(min(0.5, max(t_end - time.monotonic(), 0.0)))
-                if self.heartbeats == seen or self.cap.status is None:
+                if self.heartbeats_seen == seen or self.cap.status is None:
                     continue
-                seen = self.heartbeats
+                seen = self.heartbeats_seen
                 st = self.cap.status
                 now = (st.accepted, st.rejected_crc, st.rejected_missing, st.rejected_timeout, st.rejected_invalid,
                        st.rejected_outlier, st.queue_depth)
@@ -166,12 +147,6 @@ class Listener(threading.Thread):
                     return True
                 last = now
         return False
-
-    def close(self) -> None:
-        self.stop_event.set()
-        self.join(timeout=2)
-        self.writer.stop()
-        self.bus.shutdown()
 
 
 def _rms(x) -> float:

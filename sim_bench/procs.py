@@ -10,8 +10,10 @@ its bus is open; :meth:`DaemonProcess.wait_ready` then also waits for the first 
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import ctypes
+import itertools
 import os
 import signal
 import socket
@@ -104,17 +106,19 @@ class NotifySocket:
 class BusMonitor(threading.Thread):
     """Receives everything on a bus (like candump), decodes it, optionally writes a candump log.
 
-    ``records`` holds (monotonic arrival time, record) of every decoded frame, ``heartbeats`` the
-    EstimatorStatus ones; :meth:`wait_for` blocks until a predicate over them holds.
+    ``records`` holds (monotonic arrival time, record) of the last ``keep`` decoded frames,
+    ``heartbeats`` the EstimatorStatus ones; :meth:`wait_for` blocks until a predicate over them
+    holds. Subclasses override :meth:`on_record` (called with ``cond`` held) to do more.
     """
 
-    def __init__(self, bus_spec: str, codec: Codec | None = None, capture: Path | None = None) -> None:
+    def __init__(self, bus_spec: str, codec: Codec | None = None, capture: Path | None = None,
+                 keep: int = 200_000) -> None:
         super().__init__(daemon=True, name="bus-monitor")
         self.bus = open_bus(bus_spec)
         self.codec = codec or Codec()
         self.writer = can.CanutilsLogWriter(str(capture), channel="vcan0") if capture else None
-        self.records: list[tuple[float, Record]] = []
-        self.heartbeats: list[tuple[float, EstimatorStatus]] = []
+        self.records: collections.deque[tuple[float, Record]] = collections.deque(maxlen=keep)
+        self.heartbeats: collections.deque[tuple[float, EstimatorStatus]] = collections.deque(maxlen=keep)
         self.cond = threading.Condition()
         self._stop_event = threading.Event()
 
@@ -136,10 +140,14 @@ class BusMonitor(threading.Thread):
             if rec is None:
                 continue
             with self.cond:
-                self.records.append((now, rec))
-                if isinstance(rec, EstimatorStatus):
-                    self.heartbeats.append((now, rec))
+                self.on_record(now, rec)
                 self.cond.notify_all()
+
+    def on_record(self, now: float, rec: Record) -> None:
+        """Keep one decoded record that arrived at monotonic ``now`` (``cond`` is held)."""
+        self.records.append((now, rec))
+        if isinstance(rec, EstimatorStatus):
+            self.heartbeats.append((now, rec))
 
     def wait_for(self, predicate: Callable[["BusMonitor"], bool], timeout: float,
                  alive: Callable[[], bool] = lambda: True) -> bool:
@@ -152,6 +160,11 @@ class BusMonitor(threading.Thread):
                     return False
                 self.cond.wait(min(left, 0.2))
         return True
+
+    def recent(self, n: int) -> list[tuple[float, Record]]:
+        """The last ``n`` (arrival time, record) pairs, oldest first."""
+        with self.cond:
+            return list(itertools.islice(reversed(self.records), n))[::-1]
 
     def of_type(self, kind: type, since: float = 0.0) -> list:
         """Decoded records of one type that arrived at or after monotonic ``since``."""

@@ -10,6 +10,8 @@ import pytest
 
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import InjectorParameters, load_nominal
+from sim_bench.hub import Hub
+from sim_bench.procs import BusMonitor
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -22,3 +24,19 @@ def params() -> InjectorParameters:
 @pytest.fixture(scope="session")
 def sim() -> FastSimulator:
     return FastSimulator()
+
+
+@pytest.fixture()
+def hub(tmp_path):
+    """A loopback CAN hub (python-can-remote on 127.0.0.1) for real processes."""
+    with Hub(log_path=tmp_path / "hub.log") as h:
+        yield h
+
+
+@pytest.fixture()
+def monitor(hub, tmp_path):
+    """Everything on the hub, decoded, and written to ``tmp_path/capture.log`` (candump -L)."""
+    m = BusMonitor(hub.spec, capture=tmp_path / "capture.log")
+    m.start()
+    yield m
+    m.close()

@@ -19,27 +19,12 @@ import pytest
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import COMMAND_SET_PRIOR, Codec, EstimateState, EstimatorCommand, EstimatorStatus
 from estimator.service.bus import open_bus, to_message
-from sim_bench.hub import Hub
-from sim_bench.procs import BusMonitor, DaemonProcess, rss_mb
+from sim_bench.procs import DaemonProcess, rss_mb
 
 from .conftest import REPO
 from .helpers import measured
 
 pytestmark = pytest.mark.timeout(400)
-
-
-@pytest.fixture()
-def hub(tmp_path):
-    with Hub(log_path=tmp_path / "hub.log") as h:
-        yield h
-
-
-@pytest.fixture()
-def monitor(hub, tmp_path):
-    m = BusMonitor(hub.spec, capture=tmp_path / "capture.log")
-    m.start()
-    yield m
-    m.close()
 
 
 def estimates(monitor, since=0.0):

@@ -15,27 +15,12 @@ import pytest
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateQuality, EstimateState, ValvePrediction
 from estimator.service.bus import open_bus, to_frame, to_message
-from sim_bench.hub import Hub
-from sim_bench.procs import BusMonitor, DaemonProcess, wait_until
+from sim_bench.procs import DaemonProcess, wait_until
 
 from .conftest import REPO
 from .helpers import measured
 
 pytestmark = pytest.mark.timeout(300)
-
-
-@pytest.fixture()
-def hub(tmp_path):
-    with Hub(log_path=tmp_path / "hub.log") as h:
-        yield h
-
-
-@pytest.fixture()
-def monitor(hub, tmp_path):
-    m = BusMonitor(hub.spec, capture=tmp_path / "capture.log")
-    m.start()
-    yield m
-    m.close()
 
 
 def start_daemon(hub, monitor, state_dir, tmp_path, name="daemon") -> DaemonProcess:
@@ -55,7 +40,7 @@ def feed_and_collect(bus, monitor, codec, injections, injector=0, first_counter=
             bus.send(to_message(fr))   # the monitor is another client of the hub: it captures these too
 
         def have(m, key=key):
-            got = {type(r).__name__: r for _, r in m.records[-40:] if getattr(r, "counter", None) == key[1]
+            got = {type(r).__name__: r for _, r in m.recent(40) if getattr(r, "counter", None) == key[1]
                    and getattr(r, "injector_id", None) == key[0] and isinstance(r, (EstimateState, EstimateQuality,
                                                                                   ValvePrediction))}
             if len(got) == 3:
