@@ -33,6 +33,7 @@ benches: $(STAMP)
 	$(PY) -m sim_bench table3
 	$(PY) -m sim_bench speed
 	$(PY) -m sim_bench daemon-bench
+	$(PY) -m sim_bench reliability
 	$(PY) -m sim_bench bench --scenario all --quiet
 
 clean:

@@ -200,3 +200,15 @@ def test_bench_stops_hub_daemon_and_node_on_sigterm(tmp_path):
         if p.poll() is None:
             p.kill()
     assert wait_until(lambda: not any(_alive(c) for c in children), 10), "children orphaned"
+
+
+def test_log_level_from_the_config_is_honoured(hub, monitor, tmp_path):
+    cfg = tmp_path / "e.toml"
+    cfg.write_text('[estimator]\nlog_level = "warning"\n')
+    d = DaemonProcess(hub.spec, tmp_path / "daemon.log", config=cfg).start()
+    try:
+        d.wait_ready(monitor)
+    finally:
+        assert d.stop() == 0
+    log = (tmp_path / "daemon.log").read_text()
+    assert "INFO" not in log and "estimator running" not in log
