@@ -177,7 +177,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     from estimator.service.config import DaemonConfig
     from estimator.service.daemon import run_daemon
 
-    overrides = dict(bus=args.bus, state_dir=args.state_dir, dbc=args.dbc, params=args.params)
+    from estimator.service.bus import overrides_from_args
+
+    overrides = dict(state_dir=args.state_dir, dbc=args.dbc, params=args.params, **overrides_from_args(args))
     cfg = DaemonConfig.load(args.config, **overrides)
     if not args.debug:
         logging.getLogger().setLevel(cfg.log_level_number)
@@ -274,9 +276,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--params", type=Path, default=None, help="starting parameter TOML (default Tables 1-2)")
     s.set_defaults(func=cmd_calibrate)
 
-    s = sub.add_parser("run", help="run the estimator daemon on a CAN bus")
-    s.add_argument("--bus", default=None, help="socketcan:IFACE | remote:ws://HOST:PORT/ | virtual:NAME "
-                   "(default socketcan:vcan0)")
+    s = sub.add_parser("run", help="run the estimator daemon on a CAN bus (any python-can interface)")
+    from estimator.service.bus import add_arguments as add_bus_arguments
+
+    add_bus_arguments(s)
     s.add_argument("--config", type=Path, help="TOML file with an [estimator] table")
     s.add_argument("--state-dir", type=Path, default=None, help="where per-injector state persists "
                    "(default $STATE_DIRECTORY, else not persisted)")

@@ -160,7 +160,7 @@ def cmd_node(args: argparse.Namespace) -> int:
 
     import can
 
-    from estimator.service.bus import open_bus, to_message
+    from estimator.service.bus import open_bus, resolve, spec_from_args, to_message
     from sim_bench import scenarios
     from sim_bench.node import InjectorNode
 
@@ -173,14 +173,15 @@ def cmd_node(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    with open_bus(args.bus) as bus:
+    spec = resolve(spec_from_args(args))
+    with open_bus(spec) as bus:
         def send(frame) -> None:
             try:
                 bus.send(to_message(frame), timeout=0.05)
             except can.CanError as exc:
                 raise OSError(str(exc)) from None
         node = InjectorNode(send, sc, args.seed)
-        log.info("node: scenario %s, %d injectors at %.1f Hz on %s", sc.name, sc.injectors, sc.rate_hz, args.bus)
+        log.info("node: scenario %s, %d injectors at %.1f Hz on %s", sc.name, sc.injectors, sc.rate_hz, spec)
         node.run(stop, seconds=None if args.count else sc.seconds, count=args.count)
     print(node.summary_json(), flush=True)
     return 0
@@ -274,8 +275,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "table3.json")
     s.set_defaults(func=cmd_table3)
 
-    s = sub.add_parser("node", help="the simulated injector node on a CAN bus")
-    s.add_argument("--bus", required=True, help="socketcan:IFACE | remote:ws://HOST:PORT/ | virtual:NAME")
+    s = sub.add_parser("node", help="the simulated injector node on a CAN bus (any python-can interface)")
+    from estimator.service.bus import add_arguments as add_bus_arguments
+
+    add_bus_arguments(s)
     s.add_argument("--scenario", default="nominal")
     s.add_argument("--injectors", type=int, default=None)
     s.add_argument("--rate", type=float, default=None, help="injections per second per injector")

@@ -37,8 +37,11 @@ def test_config_file_and_overrides(tmp_path):
 
 def test_bus_spec_and_fd_mtu_check(tmp_path):
     assert BusSpec.parse("socketcan:vcan0") == BusSpec("socketcan", "vcan0")
-    with pytest.raises(BusSetupError, match="use socketcan"):
+    with pytest.raises(BusSetupError, match="use INTERFACE:CHANNEL"):
         BusSpec.parse("vcan0")
+    assert BusSpec.parse("pcan:PCAN_USBBUS1", bitrate=500000) == BusSpec("pcan", "PCAN_USBBUS1", bitrate=500000)
+    with pytest.raises(BusSetupError, match="python-can supports: .*kvaser.*socketcan"):
+        BusSpec.parse("pcann:PCAN_USBBUS1")
     (tmp_path / "vcan9").mkdir()
     (tmp_path / "vcan9" / "mtu").write_text("16\n")
     with pytest.raises(BusSetupError, match="ip link set vcan9 mtu 72"):
@@ -47,6 +50,58 @@ def test_bus_spec_and_fd_mtu_check(tmp_path):
     check_socketcan("vcan9", tmp_path)
     with pytest.raises(BusSetupError, match="ip link add dev vcan8 type vcan"):
         check_socketcan("vcan8", tmp_path)
+    with pytest.raises(BusSetupError, match="ip link set can0 type can bitrate 500000 dbitrate 2000000 fd on"):
+        check_socketcan("can0", tmp_path)          # real hardware gets real-hardware advice
+    (tmp_path / "can1").mkdir()
+    (tmp_path / "can1" / "mtu").write_text("16\n")
+    with pytest.raises(BusSetupError, match="type can bitrate .* fd on"):
+        check_socketcan("can1", tmp_path)
+
+
+def test_bus_options_the_python_can_way(monkeypatch, tmp_path):
+    """--bus shorthand, python-can's -i/-c/-b/--data-bitrate/--bus-kwargs, and its configuration."""
+    import argparse
+
+    import can
+
+    from estimator.service.bus import add_arguments, open_bus, resolve, spec_from_args
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    s = spec_from_args(p.parse_args(["-i", "virtual", "-c", "x1", "-b", "500000", "--data-bitrate", "2000000",
+                                     "--bus-kwargs", "preserve_timestamps=True"]))
+    assert s == BusSpec("virtual", "x1", True, 500000, 2000000, {"preserve_timestamps": True})
+    with pytest.raises(BusSetupError, match="not both"):
+        spec_from_args(p.parse_args(["--bus", "virtual:a", "-c", "b"]))
+    with pytest.raises(BusSetupError, match="go together"):
+        spec_from_args(p.parse_args(["-c", "b"]))
+    # nothing given: python-can's environment decides ...
+    monkeypatch.setenv("CAN_INTERFACE", "virtual")
+    monkeypatch.setenv("CAN_CHANNEL", "from-env")
+    monkeypatch.setattr(can.util, "CONFIG_FILES", [str(tmp_path / "none.ini")])
+    r = resolve(spec_from_args(p.parse_args([])))
+    assert (r.interface, r.channel) == ("virtual", "from-env")
+    with open_bus(r) as bus:
+        assert bus.channel_info.startswith("Virtual")
+    # ... and its config file
+    monkeypatch.delenv("CAN_INTERFACE")
+    monkeypatch.delenv("CAN_CHANNEL")
+    ini = tmp_path / "can.ini"
+    ini.write_text("[default]\ninterface = virtual\nchannel = from-file\n")
+    monkeypatch.setattr(can.util, "CONFIG_FILES", [str(ini)])
+    r = resolve(None)
+    assert (r.interface, r.channel) == ("virtual", "from-file")
+    # none at all: vcan0
+    monkeypatch.setattr(can.util, "CONFIG_FILES", [str(tmp_path / "none.ini")])
+    assert resolve(None) == BusSpec("socketcan", "vcan0")
+    # every interface name in the config is checked against python-can's list
+    cfg = tmp_path / "e.toml"
+    cfg.write_text('[estimator]\nbus = "nosuch:x"\n')
+    with pytest.raises(ConfigError, match="python-can supports"):
+        DaemonConfig.load(cfg)
+    cfg.write_text('[estimator]\nbus = "pcan:PCAN_USBBUS1"\nbitrate = 500000\ndata_bitrate = 2000000\n'
+                   '[estimator.bus_options]\nstate = "ACTIVE"\n')
+    spec = DaemonConfig.load(cfg).bus_spec()
+    assert spec == BusSpec("pcan", "PCAN_USBBUS1", True, 500000, 2000000, {"state": "ACTIVE"})
 
 
 def test_state_store_atomic_and_defensive(tmp_path):

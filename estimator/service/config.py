@@ -14,7 +14,7 @@ import logging
 import math
 import os
 import sys
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -26,6 +26,7 @@ else:  # pragma: no cover
 from estimator.codec.assembler import MAX_SAMPLE_PERIOD_NS
 from estimator.errors import EstimatorError
 from estimator.ident.config import IdentConfig, TrackerConfig
+from estimator.service.bus import BusSetupError, BusSpec
 from estimator.service.processor import COMMAND_POLICIES
 
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
@@ -57,8 +58,22 @@ def _choice(*options: str) -> Callable[[Any], str | None]:
     return check
 
 
-def _text(v: Any) -> str | None:
-    return None if isinstance(v, str) and v else "must be a non-empty string"
+def _text_or_none(v: Any) -> str | None:
+    return None if v is None or (isinstance(v, str) and v) else "must be a non-empty string"
+
+
+def _rate_or_none(v: Any) -> str | None:
+    ok = v is None or (isinstance(v, int) and not isinstance(v, bool) and 10_000 <= v <= 15_000_000)
+    return None if ok else "must be a whole number of bit/s in [10000, 15000000]"
+
+
+def _flag(v: Any) -> str | None:
+    return None if isinstance(v, bool) else "must be true or false"
+
+
+def _options(v: Any) -> str | None:
+    ok = isinstance(v, dict) and all(isinstance(k, str) and k for k in v) and len(v) <= 64
+    return None if ok else "must be a table of python-can keyword arguments"
 
 
 def _path_or_none(v: Any) -> str | None:
@@ -75,7 +90,11 @@ def _periods(v: Any) -> str | None:
 class DaemonConfig:
     """Everything the daemon needs (units in the names); see ``systemd/estimator.toml`` for each key."""
 
-    bus: str = "socketcan:vcan0"
+    bus: str | None = None              # INTERFACE:CHANNEL; None: python-can's configuration, else socketcan:vcan0
+    bitrate: int | None = None          # nominal bit rate, bit/s (interfaces that set it; SocketCAN: ip link)
+    data_bitrate: int | None = None     # CAN FD data-phase bit rate, bit/s
+    fd: bool = True                     # CAN FD (the sample frames need it)
+    bus_options: dict[str, Any] = field(default_factory=dict)   # interface-specific python-can keyword arguments
     state_dir: Path | None = None
     dbc: Path | None = None
     params: Path | None = None          # model parameters (what `estimator calibrate --out` writes); default Tables 1-2
@@ -105,6 +124,17 @@ class DaemonConfig:
             self.tracker_config()
         except ValueError as exc:   # a combination the identification refuses
             raise ConfigError(f"tracker/identification settings: {exc}") from None
+        try:
+            self.bus_spec()
+        except BusSetupError as exc:
+            raise ConfigError(f"bus = {_show(self.bus)}: {exc}") from None
+
+    def bus_spec(self) -> BusSpec:
+        """The bus as python-can opens it (see :mod:`estimator.service.bus`)."""
+        base = dict(fd=self.fd, bitrate=self.bitrate, data_bitrate=self.data_bitrate, options=dict(self.bus_options))
+        if self.bus is None:
+            return BusSpec(None, None, **base)
+        return BusSpec.parse(self.bus, **base)
 
     def tracker_config(self) -> TrackerConfig:
         """The tracker <- identification part of the tree."""
@@ -176,7 +206,11 @@ def _show(v: Any) -> str:
 
 
 _RULES: dict[str, Callable[[Any], str | None]] = {
-    "bus": _text,
+    "bus": _text_or_none,
+    "bitrate": _rate_or_none,
+    "data_bitrate": _rate_or_none,
+    "fd": _flag,
+    "bus_options": _options,
     "state_dir": _path_or_none,
     "dbc": _path_or_none,
     "params": _path_or_none,

@@ -34,7 +34,7 @@ from estimator.codec.records import Codec
 from estimator.errors import EstimatorError
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.tracker import Tracker
-from estimator.service.bus import open_bus, to_frame, to_message
+from estimator.service.bus import open_bus, resolve, to_frame, to_message
 from estimator.service.config import ConfigError, DaemonConfig
 from estimator.service.processor import Processor
 from estimator.service.ratelimit import RateLimitedLog
@@ -113,7 +113,8 @@ class Stats:
 
 
 # keys a SIGHUP cannot change (they shape the bus connection and the memory already allocated)
-RESTART_KEYS = ("bus", "dbc", "state_dir", "queue_frames", "max_injectors")
+RESTART_KEYS = ("bus", "bitrate", "data_bitrate", "fd", "bus_options", "dbc", "state_dir", "queue_frames",
+                "max_injectors")
 
 
 def build_pool(cfg: DaemonConfig) -> SimulatorPool:
@@ -150,6 +151,7 @@ class Daemon:
         self._send_lock = threading.Lock()
         self._wake = threading.Event()      # main loop: a signal arrived
         self._pending_cfg: DaemonConfig | None = None
+        self.bus_name = str(cfg.bus or "python-can configuration")
         self.notify = SdNotify()
         self.stats = Stats()
         self.progress = time.monotonic()
@@ -294,7 +296,7 @@ class Daemon:
         self.cfg = new
         log.info("configuration reloaded (commands %s, window %.0f µs, log level %s)", new.commands,
                  new.window_us, new.log_level)
-        self.notify.notify(f"READY=1\nSTATUS=running on {self.cfg.bus} (configuration reloaded)")
+        self.notify.notify(f"READY=1\nSTATUS=running on {self.bus_name} (configuration reloaded)")
 
     # ---- lifecycle --------------------------------------------------------------------------
     def install_signal_handlers(self) -> None:
@@ -322,7 +324,9 @@ class Daemon:
         """Run until stopped; returns the exit code."""
         self.restore()
         self.warm_up()
-        with open_bus(self.cfg.bus) as bus:
+        spec = resolve(self.cfg.bus_spec())
+        self.bus_name = str(spec)
+        with open_bus(spec) as bus:
             self._bus = bus
             self._listener = QueueListener(self.cfg.queue_frames)
             notifier = can.Notifier(bus, [self._listener], timeout=0.05)
@@ -331,9 +335,9 @@ class Daemon:
             worker.start()
             beat = threading.Thread(target=self._heartbeat, name="estimator-heartbeat", daemon=True)
             beat.start()
-            log.info("estimator running on %s (state %s)", self.cfg.bus, self.state_path or "not persisted")
+            log.info("estimator running on %s (state %s)", self.bus_name, self.state_path or "not persisted")
             self.notify.notify("READY=1")
-            self.notify.notify(f"STATUS=running on {self.cfg.bus}")
+            self.notify.notify(f"STATUS=running on {self.bus_name}")
             ping = SdNotify.watchdog_interval_s()
             try:
                 while not self.stop.is_set():
