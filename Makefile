@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 VCANVM := ../shared/vcan-vm
 
-.PHONY: demo test test-vcan benches clean
+.PHONY: demo test test-vcan test-install benches clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -24,6 +24,10 @@ test: $(STAMP)
 # The vcan0 + candump suite: natively where vcan0 exists, otherwise inside the QEMU VM of ../shared/vcan-vm.
 test-vcan: $(STAMP)
 	@bash tests/vcan/run.sh
+
+# A wheel built here, installed in a fresh venv and run from outside the checkout (~30 s; CI runs it).
+test-install: $(STAMP)
+	@bash tests/install/run.sh
 
 # Every benchmark of the README (takes a while).
 benches: $(STAMP)

@@ -2,6 +2,8 @@
 
 import os as _os
 
+__version__ = "0.2.0"
+
 # One BLAS thread per process. Our matrices are 7x7 and small batches: a multi-threaded OpenBLAS
 # never helps them, and its spinning worker threads turn a loaded machine into stalls (measured with
 # two CPU hogs on 2 cores: 60 updates took 163 s, worst 15 s, instead of 4 s, worst 0.17 s).

@@ -8,7 +8,7 @@ import logging
 import sys
 from pathlib import Path
 
-from estimator.cli_support import run_cli
+from estimator.cli_support import run_cli, version_line
 from estimator.errors import EstimatorError
 
 log = logging.getLogger("estimator")
@@ -238,8 +238,10 @@ def cmd_check_dbc(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with all subcommands."""
-    p = argparse.ArgumentParser(prog="python -m estimator", description=__doc__)
+    p = argparse.ArgumentParser(prog="python -m estimator", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
+    p.add_argument("--version", action="version", version=version_line())
     sub = p.add_subparsers(dest="command", required=True)
 
     def params_opt(s: argparse.ArgumentParser) -> None:

@@ -10,6 +10,21 @@ from typing import Callable
 from estimator.errors import EstimatorError
 
 
+def version_line() -> str:
+    """``--version``: this package and the libraries whose versions matter for a bug report."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    import estimator
+
+    parts = [f"piezo-injector-estimator {estimator.__version__}"]
+    for dist in ("python-can", "cantools", "numpy", "scipy", "numba"):
+        try:
+            parts.append(f"{dist} {version(dist)}")
+        except PackageNotFoundError:
+            parts.append(f"{dist} missing")
+    return ", ".join(parts) + f" (Python {sys.version.split()[0]})"
+
+
 def run_cli(parser: argparse.ArgumentParser, argv: list[str] | None) -> int:
     """Parse, configure logging (``--debug`` for tracebacks), run ``args.func``; exit code 2 on errors."""
     args = parser.parse_args(argv)

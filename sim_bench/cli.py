@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator.cli_support import run_cli
+from estimator.cli_support import run_cli, version_line
 from estimator.errors import EstimatorError
 from estimator.trace_io import read_trace, write_trace
 from sim_bench import tracking_bench
@@ -247,8 +247,10 @@ def cmd_hub(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with all subcommands."""
-    p = argparse.ArgumentParser(prog="python -m sim_bench", description=__doc__)
+    p = argparse.ArgumentParser(prog="python -m sim_bench", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
+    p.add_argument("--version", action="version", version=version_line())
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("simulate", help="simulate one injection and write a trace CSV")

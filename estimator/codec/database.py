@@ -10,7 +10,7 @@ from cantools.database.can import Database, Message
 
 from estimator.errors import EstimatorError
 
-DBC_PATH = Path(__file__).resolve().parents[2] / "dbc" / "injector.dbc"   # the checkout's (editable install)
+DBC_RESOURCE = ("estimator.dbc", "injector.dbc")   # dbc/ of the checkout, installed as package data
 SAMPLES_PER_BLOCK_MIN = 14
 MAX_CURRENT_STEP_A = 0.001
 MAX_VOLTAGE_STEP_V = 0.01
@@ -38,8 +38,14 @@ class ContractError(EstimatorError):
 
 
 def default_dbc_path() -> Path:
-    """The repository's dbc/injector.dbc (the project is installed editable; elsewhere pass --dbc)."""
-    return DBC_PATH
+    """The packaged ``dbc/injector.dbc`` (``estimator.dbc`` in an installed wheel, ``dbc/`` in a checkout)."""
+    from importlib.resources import files
+
+    try:
+        res = files(DBC_RESOURCE[0]) / DBC_RESOURCE[1]
+    except ModuleNotFoundError:   # running from a checkout that was never installed
+        return Path(__file__).resolve().parents[2] / "dbc" / DBC_RESOURCE[1]
+    return Path(str(res))
 
 
 def check_contract(db: Database) -> list[str]:

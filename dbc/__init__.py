@@ -1,0 +1,1 @@
+"""The CAN contract (``injector.dbc``), shipped inside the package as ``estimator.dbc``."""

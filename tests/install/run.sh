@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# A wheel built from this checkout, installed in a fresh venv, run from outside the checkout:
+# the packaged DBC, --version, check-dbc, identify and track must work without the source tree.
+set -euo pipefail
+REPO="$(cd "$(dirname "$0")/../.." && pwd)"
+PY="$REPO/.venv/bin/python"
+WORK="$(mktemp -d)"
+trap 'rm -rf "$WORK"' EXIT
+"$PY" -m pip wheel -q --disable-pip-version-check --no-deps -w "$WORK/dist" "$REPO"
+python3 -m venv "$WORK/venv"
+"$WORK/venv/bin/python" -m pip install -q --disable-pip-version-check "$WORK"/dist/*.whl
+cd "$WORK"                                   # nothing of the checkout on the path from here
+"$PY" -m sim_bench simulate --out "$WORK/a.csv" --nu 17.2 --lh-um 3.3 > /dev/null
+"$PY" -m sim_bench simulate --out "$WORK/b.csv" --nu 17.2 --lh-um 3.3 > /dev/null
+BIN="$WORK/venv/bin"
+"$BIN/injector-estimator" --version
+"$BIN/injector-estimator" check-dbc | grep -q "ok -" || { echo "check-dbc failed"; exit 1; }
+"$BIN/python" -c "import estimator.codec.database as d, sys; p = d.default_dbc_path(); \
+assert 'site-packages' in str(p) and p.exists(), p; print('packaged DBC:', p)"
+"$BIN/injector-estimator" identify "$WORK/a.csv" --json | "$BIN/python" -c "import json, sys; d = json.load(sys.stdin); \
+assert d['status'] in ('ok', 'uncertain') and abs(d['lh_um'] - 3.3) < 0.2, d; print('identify:', d['status'], d['lh_um'])"
+"$BIN/injector-estimator" track "$WORK/a.csv" "$WORK/b.csv" | wc -l | grep -q 2
+"$BIN/injector-sim" --version > /dev/null
+echo "install check: ok (wheel $(basename "$WORK"/dist/*.whl))"
