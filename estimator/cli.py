@@ -196,13 +196,16 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if not args.capture.exists():
         raise EstimatorError(f"capture {args.capture} does not exist")
     out_json = open(args.json, "w") if args.json and str(args.json) != "-" else (sys.stdout if args.json else None)
+    out_csv = open(args.csv, "w", newline="") if args.csv and str(args.csv) != "-" else (
+        sys.stdout if args.csv else None)
     try:
-        res = replay(args.capture, cfg, args.out, out_json)
+        res = replay(args.capture, cfg, args.out, out_json, out_csv=out_csv)
     except (ValueError, can_errors()) as exc:
         raise EstimatorError(f"cannot replay {args.capture}: {exc}") from None
     finally:
-        if out_json not in (None, sys.stdout):
-            out_json.close()
+        for f in (out_json, out_csv):
+            if f not in (None, sys.stdout):
+                f.close()
     c = res.counters
     print(f"replayed {res.frames_in} frames: {res.published} injections estimated; rejected crc {c.rejected_crc}, "
           f"missing {c.rejected_missing}, timeout {c.rejected_timeout}, invalid {c.rejected_invalid}, outlier "
@@ -289,10 +292,13 @@ def build_parser() -> argparse.ArgumentParser:
     params_opt(s)
     s.set_defaults(func=cmd_run)
 
-    s = sub.add_parser("replay", help="run a capture (any python-can log, candump -L too) through the pipeline")
+    s = sub.add_parser("replay", help="run a capture (.log candump -L, .asc, .blf, .trc, .csv, .mf4) through the pipeline")
     s.add_argument("capture", type=Path)
-    s.add_argument("--out", type=Path, help="write the output frames as a candump -L log")
+    s.add_argument("--out", type=Path, help="write the output frames; format by suffix: .log (candump -L), .asc, .blf, "
+                   ".csv, .mf4")
     s.add_argument("--json", type=Path, help="write one JSON line per injection ('-' for stdout)")
+    s.add_argument("--csv", type=Path, help="write one CSV row per injection: time, injector, counter, status, "
+                   "filtered and raw N_u/L_h, sigmas, prediction ('-' for stdout)")
     s.add_argument("--config", type=Path)
     s.add_argument("--dbc", type=Path, default=None)
     params_opt(s)

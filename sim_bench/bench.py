@@ -11,13 +11,12 @@ from __future__ import annotations
 import json
 import math
 import subprocess
-import threading
+import sys
 import time
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import can
 import numpy as np
 
 from estimator.ident.status import ESTIMATED
@@ -222,7 +221,7 @@ def format_score(s: dict) -> str:
 
 
 def run_bench(scenario_name: str, bus: str | None, seconds: float | None, out_dir: Path, seed: int = 0,
-              progress: bool = True, plots: bool = True) -> dict:
+              progress: bool = True, plots: bool = True, capture_format: str = "log") -> dict:
     """Run one scenario end to end; returns the score dict (also written to out_dir)."""
     sc = scenarios.get(scenario_name, seconds=seconds)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -236,7 +235,7 @@ def run_bench(scenario_name: str, bus: str | None, seconds: float | None, out_di
     node = None
     listener = None
     try:
-        listener = Listener(bus, out_dir / "capture.log", codec)
+        listener = Listener(bus, out_dir / f"capture.{capture_format}", codec)
         listener.start()
         daemon = DaemonProcess(bus, out_dir / "daemon.log", state_dir=state_dir).start()
         # ready: READY=1 on the notify socket, then the first heartbeat on the bus
@@ -265,10 +264,10 @@ def run_bench(scenario_name: str, bus: str | None, seconds: float | None, out_di
                         f"|dL_h| now {max(e) if e else float('nan'):.3f} µm  p99 {np.percentile(lat, 99) if lat else 0:.1f} ms"
                         f"  dropped {st.frames_dropped if st else 0}  rejected "
                         f"{(st.rejected_crc + st.rejected_missing + st.rejected_timeout + st.rejected_invalid) if st else 0}")
-                print(line, end="", flush=True)
+                print(line, end="", flush=True, file=sys.stderr)
         node_out = node.stdout.read() if node.stdout else ""
         if progress:
-            print()
+            print(file=sys.stderr)
         listener.wait_idle(timeout=15.0)   # the last estimates and a final heartbeat
         duration = time.monotonic() - t0
         t_stop = time.monotonic()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -201,7 +202,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     summary = []
     for n in names:
         s = bench.run_bench(n, args.bus, args.seconds, args.out / n if len(names) > 1 else args.out, args.seed,
-                            progress=not args.quiet, plots=not args.no_plots)
+                            progress=not args.quiet and sys.stderr.isatty(), plots=not args.no_plots,
+                            capture_format=args.capture_format)
         print(bench.format_score(s))
         summary.append(s)
         failed |= bool(s["failures"])
@@ -296,8 +298,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seconds", type=float, default=None, help="node run time (default: the scenario's)")
     s.add_argument("--out", type=Path, default=DEFAULT_OUT / "bench")
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--quiet", action="store_true", help="no live progress line")
+    s.add_argument("--quiet", action="store_true", help="no live progress line (it goes to stderr, on a terminal only)")
     s.add_argument("--no-plots", action="store_true")
+    s.add_argument("--capture-format", choices=("log", "asc", "blf", "csv", "mf4"), default="log",
+                   help="format of the bus capture (default log: candump -L)")
     s.set_defaults(func=cmd_bench)
 
     s = sub.add_parser("daemon-bench", help="daemon: ingest rate, latency at 200 injections/s, 2x overload")

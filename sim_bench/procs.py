@@ -29,6 +29,7 @@ import can
 
 from estimator.codec.records import Codec, EstimatorStatus, Record
 from estimator.service.bus import open_bus, to_frame
+from estimator.service.replay import open_writer
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -116,7 +117,7 @@ class BusMonitor(threading.Thread):
         super().__init__(daemon=True, name="bus-monitor")
         self.bus = open_bus(bus_spec)
         self.codec = codec or Codec()
-        self.writer = can.CanutilsLogWriter(str(capture), channel="vcan0") if capture else None
+        self.writer = open_writer(capture) if capture else None   # format by suffix (.log: candump -L)
         self.records: collections.deque[tuple[float, Record]] = collections.deque(maxlen=keep)
         self.heartbeats: collections.deque[tuple[float, EstimatorStatus]] = collections.deque(maxlen=keep)
         self.cond = threading.Condition()

@@ -25,6 +25,10 @@ COMMAND_POLICIES = ("off", "reset-only", "all")   # who may steer the estimator 
 _STATUS_COUNTERS = tuple(f.name for f in fields(EstimatorStatus) if f.name in {g.name for g in fields(Counters)})
 
 
+ROW_FIELDS = ("time_s", "injector_id", "counter", "status", "nu_n_per_v", "lh_um", "sigma_nu_n_per_v", "sigma_lh_um",
+              "raw_nu_n_per_v", "raw_lh_um", "t_contact_us", "t_open_us", "stroke_um", "evaluations", "reason")
+
+
 @dataclass(frozen=True)
 class Published:
     """One processed injection: its identification, the result and the frames sent for it."""
@@ -34,6 +38,17 @@ class Published:
     t_last: float
     result: TrackResult
     frames: list
+
+    def to_row(self, time_s: float) -> dict:
+        """One CSV row (replay ``--csv``): filtered and raw estimate, prediction, status; units in the names."""
+        f = self.result.filtered_dict()
+        raw = self.result.raw.to_dict()
+        row = {"time_s": f"{time_s:.6f}", "injector_id": self.injector_id, "counter": self.counter,
+               "status": self.result.status.value, "raw_nu_n_per_v": raw.get("nu_n_per_v"),
+               "raw_lh_um": raw.get("lh_um"), "evaluations": self.result.evaluations, "reason": self.result.reason}
+        for k in ("nu_n_per_v", "lh_um", "sigma_nu_n_per_v", "sigma_lh_um", "t_contact_us", "t_open_us", "stroke_um"):
+            row[k] = f.get(k)
+        return row
 
     def to_dict(self) -> dict:
         """JSON-ready line (replay output)."""

@@ -10,6 +10,7 @@ capture are skipped (live, the daemon does not receive them).
 
 from __future__ import annotations
 
+import csv
 import io
 import json
 import logging
@@ -23,9 +24,32 @@ from estimator.codec.ingest import Counters
 from estimator.service.bus import to_frame, to_message
 from estimator.service.config import DaemonConfig
 from estimator.service.daemon import build_pipeline
+from estimator.service.processor import ROW_FIELDS
 
 log = logging.getLogger(__name__)
 CANDUMP_SUFFIXES = (".log",)
+CAPTURE_SUFFIXES = (".log", ".asc", ".blf", ".trc", ".csv", ".mf4")   # python-can's readers (.mf4: asammdf)
+# python-can's TRC writer cannot write CAN FD frames, and the sample frames are CAN FD
+OUTPUT_SUFFIXES = tuple(s for s in CAPTURE_SUFFIXES if s != ".trc")
+
+
+def check_capture_suffix(path: Path, what: str) -> None:
+    """Refuse a capture file name whose suffix python-can cannot read (``capture``) or write (``output``)."""
+    allowed = CAPTURE_SUFFIXES if what == "capture" else OUTPUT_SUFFIXES
+    if path.suffix.lower() not in allowed:
+        why = " (python-can's TRC writer has no CAN FD)" if path.suffix.lower() == ".trc" else ""
+        raise ValueError(f"{what} {path}: unknown suffix {path.suffix!r}{why}; one of {', '.join(allowed)}")
+
+
+def open_writer(path: Path, channel: str = "vcan0") -> can.io.generic.MessageWriter:
+    """A python-can writer chosen by suffix (candump -L for .log)."""
+    check_capture_suffix(path, "output")
+    if path.suffix.lower() == ".log":
+        return can.CanutilsLogWriter(str(path), channel=channel)
+    try:
+        return can.Logger(str(path))
+    except ImportError as exc:
+        raise ValueError(f"output {path}: {exc} (MDF4 needs asammdf: pip install '.[mdf]')") from None
 
 
 @dataclass
@@ -42,8 +66,17 @@ class ReplayResult:
 def read_capture(capture: Path, bad: ReplayResult) -> Iterator[can.Message]:
     """Messages of a capture. candump logs are read line by line (a bad line is skipped and recorded);
     other formats through :class:`can.LogReader` (an unreadable file raises ValueError/OSError)."""
+    check_capture_suffix(capture, "capture")
     if capture.suffix.lower() not in CANDUMP_SUFFIXES:
-        yield from can.LogReader(str(capture))
+        try:
+            reader = can.LogReader(str(capture))
+        except ImportError as exc:
+            raise ValueError(f"capture {capture}: {exc} (MDF4 needs asammdf: pip install '.[mdf]')") from None
+        with reader:
+            for msg in reader:
+                if len(msg.data) > 8 and not msg.is_fd:   # python-can's CSV has no FD flag: > 8 bytes is FD
+                    msg.is_fd = True
+                yield msg
         return
     with open(capture, "rb") as f:
         for no, raw in enumerate(f, start=1):
@@ -61,11 +94,17 @@ def read_capture(capture: Path, bad: ReplayResult) -> Iterator[can.Message]:
 
 
 def replay(capture: Path, cfg: DaemonConfig, out_log: Path | None = None, out_json: TextIO | None = None,
-           channel: str = "vcan0") -> ReplayResult:
-    """Run the pipeline over a capture. Raises OSError/ValueError for unreadable files."""
+           channel: str = "vcan0", out_csv: TextIO | None = None) -> ReplayResult:
+    """Run the pipeline over a capture (any python-can format by suffix). ``out_log``: the output frames
+    (format by suffix); ``out_json``: one JSON line per injection; ``out_csv``: one CSV row per injection.
+    Raises OSError/ValueError for unreadable files."""
     codec, ingest, processor, clock = build_pipeline(cfg)
-    writer = can.CanutilsLogWriter(str(out_log), channel=channel) if out_log else None
+    writer = open_writer(out_log, channel) if out_log else None
     result = ReplayResult(ingest.counters, 0, 0)
+    csv_rows = None
+    if out_csv is not None:
+        csv_rows = csv.DictWriter(out_csv, fieldnames=ROW_FIELDS)
+        csv_rows.writeheader()
     m = codec.messages
     # live, the daemon does not receive its own frames: a capture's copies must not move the clock
     own = {m.state.frame_id, m.quality.frame_id, m.prediction.frame_id, m.status.frame_id}
@@ -83,6 +122,8 @@ def replay(capture: Path, cfg: DaemonConfig, out_log: Path | None = None, out_js
                         writer.on_message_received(to_message(out, timestamp=fr.timestamp))
                 if out_json is not None:
                     out_json.write(json.dumps(pub.to_dict()) + "\n")
+                if csv_rows is not None:
+                    csv_rows.writerow(pub.to_row(fr.timestamp))
         processor.handle(ingest.poll(clock.end()))   # what the silent-bus guard does live
     finally:
         if writer is not None:
