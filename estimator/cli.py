@@ -245,6 +245,9 @@ def build_parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
     p.add_argument("--version", action="version", version=version_line())
+    p.add_argument("--log-format", choices=("auto", "text", "journal", "json"), default="auto",
+                   help="log lines on stderr: auto (journal priorities <N> under systemd, else text), text, "
+                        "journal or json (one object per line)")
     sub = p.add_subparsers(dest="command", required=True)
 
     def params_opt(s: argparse.ArgumentParser) -> None:

@@ -28,8 +28,9 @@ def version_line() -> str:
 def run_cli(parser: argparse.ArgumentParser, argv: list[str] | None) -> int:
     """Parse, configure logging (``--debug`` for tracebacks), run ``args.func``; exit code 2 on errors."""
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.debug else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from estimator.logfmt import configure
+
+    configure(logging.DEBUG if args.debug else logging.INFO, getattr(args, "log_format", "auto"))
     func: Callable[[argparse.Namespace], int] = args.func
     try:
         return func(args)

@@ -212,3 +212,20 @@ def test_log_level_from_the_config_is_honoured(hub, monitor, tmp_path):
         assert d.stop() == 0
     log = (tmp_path / "daemon.log").read_text()
     assert "INFO" not in log and "estimator running" not in log
+
+
+def test_systemd_status_line_carries_live_counters(hub, monitor, tmp_path):
+    codec = Codec()
+    d = DaemonProcess(hub.spec, tmp_path / "daemon.log").start()
+    try:
+        d.wait_ready(monitor)
+        inj, _ = measured(17.0, 3.0, 5, window_s=100e-6)
+        with open_bus(hub.spec) as bus:
+            for fr in injection_frames(codec, 1, 0, inj.dt_s, inj.current_a, inj.voltage_v):
+                bus.send(to_message(fr))
+        assert monitor.wait_for(lambda m: m.heartbeats and last_heartbeat(m).accepted == 1, 60, d.alive)
+        assert d.notify.wait_for("STATUS=running on remote*", 30, d.alive, count=2), d.notify.states
+        line = [x for x in d.notify.states if x.startswith("STATUS=running on remote")][-1]
+        assert "1 estimated, 0 rejected" in line and "1 injector(s)" in line
+    finally:
+        assert d.stop() == 0

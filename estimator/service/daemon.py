@@ -43,6 +43,7 @@ from estimator.service.state_store import keep_rejected, load_states, save_state
 
 log = logging.getLogger(__name__)
 STATE_FILE = "estimator-state.json"
+STATUS_LINE_PERIOD_S = 5.0   # sd_notify STATUS= with live counters (systemctl status)
 
 
 class QueueListener(can.Listener):
@@ -339,6 +340,7 @@ class Daemon:
             self.notify.notify("READY=1")
             self.notify.notify(f"STATUS=running on {self.bus_name}")
             ping = SdNotify.watchdog_interval_s()
+            next_status_line = time.monotonic() + STATUS_LINE_PERIOD_S
             try:
                 while not self.stop.is_set():
                     self._wake.wait(ping or 0.5)
@@ -346,6 +348,9 @@ class Daemon:
                     if self.reload_requested.is_set() and not self.stop.is_set():
                         self.reload_requested.clear()
                         self.request_reload()
+                    if time.monotonic() >= next_status_line:
+                        next_status_line = time.monotonic() + STATUS_LINE_PERIOD_S
+                        self.notify.notify(f"STATUS={self.status_line()}")
                     if ping and time.monotonic() - self.progress < 2 * ping:
                         self.notify.notify("WATCHDOG=1")
                     self.ingest.counters.bus_errors += self._listener.errors
@@ -359,6 +364,14 @@ class Daemon:
                 self.persist()
                 log.info("estimator stopped: %s", self.summary())
         return 0
+
+    def status_line(self) -> str:
+        """``systemctl status`` line: bus and the counters that matter at a glance."""
+        c = self.ingest.counters
+        rejected = c.rejected_crc + c.rejected_missing + c.rejected_timeout + c.rejected_invalid
+        return (f"running on {self.bus_name}: {c.accepted} estimated, {rejected} rejected, {c.rejected_outlier} "
+                f"outliers, {c.frames_dropped} frames dropped, {len(self.tracker.states)} injector(s), "
+                f"p99 {self.stats.p99_ms():.1f} ms")
 
     def summary(self) -> str:
         """The counters in one line."""
