@@ -239,6 +239,14 @@ def cmd_check_dbc(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_dbc_path(args: argparse.Namespace) -> int:
+    """Print the path of the packaged DBC (for cantools decode/monitor/plot)."""
+    from estimator.codec.database import default_dbc_path
+
+    print(default_dbc_path())
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with all subcommands."""
     p = argparse.ArgumentParser(prog="python -m estimator", description=__doc__,
@@ -306,6 +314,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--dbc", type=Path, default=None)
     params_opt(s)
     s.set_defaults(func=cmd_replay)
+
+    s = sub.add_parser("dbc-path", help="print where the packaged DBC is: cantools monitor $(injector-estimator dbc-path)")
+    s.set_defaults(func=cmd_dbc_path)
 
     s = sub.add_parser("check-dbc", help="validate the DBC against the contract")
     s.add_argument("--dbc", type=Path, default=None)

@@ -162,6 +162,7 @@ def cmd_node(args: argparse.Namespace) -> int:
     import can
 
     from estimator.service.bus import open_bus, resolve, spec_from_args, to_message
+    from estimator.service.sdnotify import SdNotify
     from sim_bench import scenarios
     from sim_bench.node import InjectorNode
 
@@ -183,6 +184,7 @@ def cmd_node(args: argparse.Namespace) -> int:
                 raise OSError(str(exc)) from None
         node = InjectorNode(send, sc, args.seed)
         log.info("node: scenario %s, %d injectors at %.1f Hz on %s", sc.name, sc.injectors, sc.rate_hz, spec)
+        SdNotify().notify(f"READY=1\nSTATUS=simulating {sc.injectors} injector(s), scenario {sc.name}, on {spec}")
         node.run(stop, seconds=None if args.count else sc.seconds, count=args.count)
     print(node.summary_json(), flush=True)
     return 0

@@ -15,6 +15,7 @@ cd "$WORK"                                   # nothing of the checkout on the pa
 BIN="$WORK/venv/bin"
 "$BIN/injector-estimator" --version
 "$BIN/injector-estimator" check-dbc | grep -q "ok -" || { echo "check-dbc failed"; exit 1; }
+"$BIN/injector-estimator" dbc-path | grep -q "site-packages/estimator/dbc/injector.dbc" || { echo "dbc-path"; exit 1; }
 "$BIN/python" -c "import estimator.codec.database as d, sys; p = d.default_dbc_path(); \
 assert 'site-packages' in str(p) and p.exists(), p; print('packaged DBC:', p)"
 "$BIN/injector-estimator" identify "$WORK/a.csv" --json | "$BIN/python" -c "import json, sys; d = json.load(sys.stdin); \
