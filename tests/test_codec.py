@@ -120,3 +120,26 @@ def test_crc_depends_on_every_sample():
         c2[k] ^= 1
         assert samples_crc32(c2, v) != ref
     assert samples_crc32(v, c) != ref
+
+
+def test_per_injector_messages_are_multiplexed_for_cantools_monitor():
+    """EstimateState, EstimateQuality, ValvePrediction and SimTruth carry InjectorId as multiplexer
+    (extended multiplexing over 0-7): cantools monitor keys its rows by it, one row per injector."""
+    import cantools
+    from cantools.subparsers.__utils__ import format_multiplexed_name
+
+    db = cantools.database.load_file(str(DBC), strict=True)
+    for name in ("EstimateState", "EstimateQuality", "ValvePrediction", "SimTruth"):
+        msg = db.get_message_by_name(name)
+        assert msg.is_multiplexed()
+        assert [s.name for s in msg.signals if s.is_multiplexer] == ["InjectorId"]
+        assert all(s.multiplexer_ids == list(range(8)) for s in msg.signals if not s.is_multiplexer)
+    codec = Codec()
+    msg = db.get_message_by_name("EstimateState")
+    rows = set()
+    for inj in range(4):
+        fr = codec.encode(EstimateState(inj, 7, 17.0 + inj, 2.0 + inj, 0))
+        decoded = msg.decode(fr.data)
+        rows.add(format_multiplexed_name(msg, decoded))
+        assert codec.decode(fr) == EstimateState(inj, 7, 17.0 + inj, 2.0 + inj, 0)
+    assert rows == {f"EstimateState :: InjectorId={k}" for k in range(4)}
