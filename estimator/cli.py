@@ -239,6 +239,20 @@ def cmd_check_dbc(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_plot_capture(args: argparse.Namespace) -> int:
+    """N_u, L_h, opening time over time from a capture, one line per injector."""
+    from estimator.capture_plots import plot_capture
+
+    if not args.capture.exists():
+        raise EstimatorError(f"capture {args.capture} does not exist")
+    try:
+        path = plot_capture(args.capture, args.out)
+    except ValueError as exc:
+        raise EstimatorError(f"cannot read {args.capture}: {exc}") from None
+    print(f"wrote {path}")
+    return 0
+
+
 def cmd_dbc_path(args: argparse.Namespace) -> int:
     """Print the path of the packaged DBC (for cantools decode/monitor/plot)."""
     from estimator.codec.database import default_dbc_path
@@ -314,6 +328,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--dbc", type=Path, default=None)
     params_opt(s)
     s.set_defaults(func=cmd_replay)
+
+    s = sub.add_parser("plot-capture", help="PNG: N_u, L_h, opening time over time from a capture, per injector")
+    s.add_argument("capture", type=Path, help="any python-can capture (.log, .asc, .blf, .trc, .csv, .mf4)")
+    s.add_argument("--out", type=Path, default=Path("capture.png"), help="output PNG (default capture.png)")
+    s.set_defaults(func=cmd_plot_capture)
 
     s = sub.add_parser("dbc-path", help="print where the packaged DBC is: cantools monitor $(injector-estimator dbc-path)")
     s.set_defaults(func=cmd_dbc_path)

@@ -84,3 +84,19 @@ def test_csv_table_and_unknown_suffixes(tmp_path, messages):
     bad.write_text("")
     r = run("-m", "estimator", "replay", str(bad))
     assert r.returncode == 2 and "unknown suffix '.xyz'" in r.stderr
+
+
+def test_plot_capture_draws_one_series_per_injector(tmp_path, messages):
+    from estimator.capture_plots import series
+    cap = tmp_path / "cap.log"
+    write(cap, messages)
+    out = tmp_path / "est.blf"
+    replayed(cap, tmp_path, "--out", str(out))
+    s = series(out)
+    assert set(s) == {2} and len(s[2]["lh"]) == 4 and len(s[2]["t_open"]) == 4
+    png = tmp_path / "fig.png"
+    r = run("-m", "estimator", "plot-capture", str(out), "--out", str(png))
+    assert r.returncode == 0, r.stderr
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    r = run("-m", "estimator", "plot-capture", str(cap), "--out", str(png))     # injection frames only
+    assert r.returncode == 2 and "no estimates" in r.stderr
