@@ -30,10 +30,24 @@ def _config(args: argparse.Namespace):
         raise EstimatorError(str(exc)) from None
 
 
-def _load(path: Path):
-    from estimator.trace_io import injection_from_trace, read_trace
+def _trace(path: Path, args: argparse.Namespace | None = None):
+    """A trace: CSV, or MDF4 (.mf4/.mdf) with the channel options."""
+    from estimator.mdf_io import is_mdf, read_mdf_trace
+    from estimator.trace_io import read_trace
 
-    return injection_from_trace(read_trace(path))
+    if not is_mdf(path):
+        return read_trace(path)
+    meta = {k: str(v) for k, v in (("preload_force_n", getattr(args, "preload_n", None)),
+                                   ("temperature_c", getattr(args, "temperature_c", None))) if v is not None}
+    period = getattr(args, "sample_period_us", None)
+    return read_mdf_trace(path, getattr(args, "current_channel", None) or "", getattr(args, "voltage_channel", None)
+                          or "", getattr(args, "s3_channel", None), period * 1e-6 if period else None, meta)
+
+
+def _load(path: Path, args: argparse.Namespace | None = None):
+    from estimator.trace_io import injection_from_trace
+
+    return injection_from_trace(_trace(path, args))
 
 
 def _params(args: argparse.Namespace):
@@ -74,7 +88,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
     config = _config(args)
     params = _params(args)
     try:
-        inj = _load(args.trace)
+        inj = _load(args.trace, args)
     except TraceError as exc:
         if "cannot read" in str(exc):
             raise
@@ -113,7 +127,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     bad = 0
     for path in args.traces:
         try:
-            res = tracker.update(_load(path))
+            res = tracker.update(_load(path, args))
         except TraceError as exc:   # unreadable or not a trace: reported in its line, the batch goes on
             bad += 1
             log.warning("%s", exc)
@@ -133,11 +147,11 @@ def cmd_track(args: argparse.Namespace) -> int:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Calibrate k_p, k_s, R_b and the temperature laws from traces with s3 (eq. 25)."""
     from estimator.ident.calibration import CalibrationTrace, calibrate, report, to_toml
-    from estimator.trace_io import injection_from_trace, read_trace
+    from estimator.trace_io import injection_from_trace
 
     traces = []
     for path in args.traces:
-        tr = read_trace(path)
+        tr = _trace(path, args)
         temp = tr.meta_float("temperature_c")
         if temp is None:
             raise EstimatorError(f"{path}: calibration traces need '# temperature_c=...'")
@@ -163,7 +177,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
     config = _config(args)
     if not 3 <= args.grid <= 201:
         raise EstimatorError(f"--grid {args.grid}: the contour needs 3..201 points per axis")
-    inj = _load(args.trace)
+    inj = _load(args.trace, args)
     if inj.problem():
         raise EstimatorError(f"{args.trace}: {inj.problem()}")
     paths = plot_identification(inj, args.out, config, args.grid, _simulator(args, inj.dt_s))
@@ -276,12 +290,25 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("--params", type=Path, default=None,
                        help="model parameter TOML (what 'calibrate --out' writes; default Tables 1-2)")
 
+    def mdf_opts(s: argparse.ArgumentParser, s3: bool = False) -> None:
+        g = s.add_argument_group("MDF4 traces (.mf4/.mdf; resampled to a uniform period, see README)")
+        g.add_argument("--current-channel", help="channel with the amplifier current (A)")
+        g.add_argument("--voltage-channel", help="channel with the actuator voltage (V)")
+        if s3:
+            g.add_argument("--s3-channel", help="channel with the PSA displacement s3 (m), for calibrate")
+        g.add_argument("--sample-period-us", type=float, help="resampling period (default: the current channel's "
+                       "median interval)")
+        g.add_argument("--preload-n", type=float, help="valve preload F_open in N (default: MDF comment "
+                       "preload_force_n=, else 28)")
+        g.add_argument("--temperature-c", type=float, help="fuel temperature in degC (default: MDF comment)")
+
     def ident_opts(s: argparse.ArgumentParser) -> None:
         s.add_argument("--window-us", type=float, default=None, help="cost window 0..t1 in µs (default 100)")
         s.add_argument("--robust", choices=("auto", "on", "off"), default=None,
                        help="model-error handling (default auto: likelihood-ratio test)")
         s.add_argument("--norm", choices=("l2", "l1"), default=None, help="search criterion (default l2)")
         params_opt(s)
+        mdf_opts(s)
 
     s = sub.add_parser("params", help="print the nominal model parameters")
     s.add_argument("--nu", type=float, default=16.39, help="N_u in N/V for the derived values")
@@ -304,6 +331,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--gamma", type=float, default=1e6, help="weight of the s3 error in V/m (default 1e6)")
     s.add_argument("--out", type=Path, help="write the TOML here (default: print it)")
     s.add_argument("--params", type=Path, default=None, help="starting parameter TOML (default Tables 1-2)")
+    mdf_opts(s, s3=True)
     s.set_defaults(func=cmd_calibrate)
 
     s = sub.add_parser("run", help="run the estimator daemon on a CAN bus (any python-can interface)")
