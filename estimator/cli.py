@@ -248,7 +248,9 @@ def cmd_check_dbc(args: argparse.Namespace) -> int:
     path = args.dbc or default_dbc_path()
     db = load_database(path)
     codec = Codec(db)
-    print(f"{path}: ok - {len(db.messages)} messages, CAN FD, {codec.layout.per_block} samples per "
+    attrs = getattr(getattr(db, "dbc", None), "attributes", {})
+    rates = "/".join(f"{attrs[k].value / 1e6:g}" for k in ("Baudrate", "BaudrateCANFD") if k in attrs)
+    print(f"{path}: ok - {len(db.messages)} messages, CAN FD {rates} Mbit/s, {codec.layout.per_block} samples per "
           f"InjectionSamples frame ({codec.layout.current_scale * 1e3:g} mA, {codec.layout.voltage_scale * 1e3:g} mV)")
     return 0
 
