@@ -18,3 +18,21 @@ def measured(nu: float, lh_um: float, seed: int, mismatch: bool = False, f_open_
         _PLANTS[key] = Plant(PlantConfig(mismatch=mismatch, window_s=window_s, **kw))
     m = _PLANTS[key].measure(nu, lh_um * 1e-6, f_open_n, np.random.default_rng(seed))
     return Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n), m
+
+
+def injection_messages(injector: int, n: int, seed: int, frame_dt_s: float = 2e-4, gap_s: float = 0.05,
+                       t0: float = 1000.0) -> list:
+    """python-can messages of ``n`` simulated injections of one injector, timestamped like a bus capture."""
+    from estimator.codec.injection_frames import injection_frames
+    from estimator.codec.records import Codec
+    from estimator.service.bus import to_message
+
+    codec = Codec()
+    out, t = [], t0
+    for k in range(n):
+        inj, _ = measured(17.0, 3.0, seed + k, window_s=100e-6)
+        for fr in injection_frames(codec, injector, k, inj.dt_s, inj.current_a, inj.voltage_v):
+            t += frame_dt_s
+            out.append(to_message(fr, timestamp=t))
+        t += gap_s
+    return out

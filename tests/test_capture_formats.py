@@ -9,11 +9,7 @@ import json
 import can
 import pytest
 
-from estimator.codec.injection_frames import injection_frames
-from estimator.codec.records import Codec
-from estimator.service.bus import to_message
-
-from .helpers import measured
+from .helpers import injection_messages
 from .test_cli_sim import run
 
 SUFFIXES = (".log", ".asc", ".blf", ".csv", ".mf4")   # .trc: python-can writes no CAN FD to it (refused below)
@@ -21,15 +17,7 @@ SUFFIXES = (".log", ".asc", ".blf", ".csv", ".mf4")   # .trc: python-can writes 
 
 @pytest.fixture(scope="module")
 def messages():
-    codec = Codec()
-    out, t = [], 1000.0
-    for k in range(4):
-        inj, _ = measured(17.0, 3.0, 90 + k, window_s=100e-6)
-        for fr in injection_frames(codec, 2, k, inj.dt_s, inj.current_a, inj.voltage_v):
-            t += 2e-4
-            out.append(to_message(fr, timestamp=t))
-        t += 0.05
-    return out
+    return injection_messages(2, 4, 90)
 
 
 def write(path, messages):

@@ -89,22 +89,13 @@ def test_bench_zero_seconds(tmp_path):
 
 
 def test_replay_skips_a_garbage_line_and_names_it(tmp_path):
-    from estimator.codec.injection_frames import injection_frames
-    from estimator.codec.records import Codec
-    from estimator.service.bus import to_message
     import can
 
-    from .helpers import measured
-    codec = Codec()
+    from .helpers import injection_messages
     cap = tmp_path / "cap.log"
     w = can.CanutilsLogWriter(str(cap), channel="vcan0")
-    t = 1000.0
-    for k in range(3):
-        inj, _ = measured(17.0, 3.0, 80 + k, window_s=100e-6)
-        for fr in injection_frames(codec, 1, k, inj.dt_s, inj.current_a, inj.voltage_v):
-            t += 1e-4
-            w.on_message_received(to_message(fr, timestamp=t))
-        t += 0.1
+    for msg in injection_messages(1, 3, 80, frame_dt_s=1e-4, gap_s=0.1):
+        w.on_message_received(msg)
     w.stop()
     lines = cap.read_text().splitlines()
     lines.insert(5, "(1000.1) vcan0 this is not a frame")
