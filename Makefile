@@ -9,7 +9,7 @@ VCANVM := ../shared/vcan-vm
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --disable-pip-version-check -e '.[test,plot,mdf]'
+	$(PY) -m pip install -q --disable-pip-version-check -e '.[test,plot,mdf,fleet]'
 	@touch $(STAMP)
 
 # The nominal bench for ~20 s on the default bus (vcan0 if present, else a loopback hub);

@@ -269,6 +269,36 @@ def cmd_plot_capture(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_fleet(args: argparse.Namespace) -> int:
+    """Many captures and traces on a Dask cluster: one row per injection, summary, lot report."""
+    import os
+
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "debug" if args.debug else "warning")
+    try:
+        from estimator.fleet.run import run_fleet
+    except ImportError as exc:
+        raise EstimatorError(f"the fleet command needs dask[distributed] and pyarrow: pip install '.[fleet]' ({exc})") \
+            from None
+    from estimator.service.config import DaemonConfig
+
+    cfg = DaemonConfig.load(args.config, params=args.params)
+    opts = {k: getattr(args, k) for k in ("current_channel", "voltage_channel") if getattr(args, k, None)}
+    if args.sample_period_us:
+        opts["sample_period_s"] = args.sample_period_us * 1e-6
+    res = run_fleet(args.inputs, args.out, cfg, args.workers, args.scheduler, opts, progress=sys.stderr.isatty())
+    print(format_fleet(res))
+    return 1 if res.errors or res.missing else 0
+
+
+def format_fleet(res) -> str:
+    """The report's first line, the lot line and where the files are."""
+    from estimator.fleet.run import format_report
+
+    lines = format_report(res).splitlines()
+    keep = [lines[0]] + [x for x in lines if x.startswith(("  lot:", "  error:", "matched nothing"))]
+    return "\n".join(keep + [f"wrote {f}" for f in res.files])
+
+
 def cmd_dbc_path(args: argparse.Namespace) -> int:
     """Print the path of the packaged DBC (for cantools decode/monitor/plot)."""
     from estimator.codec.database import default_dbc_path
@@ -363,6 +393,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("capture", type=Path, help="any python-can capture (.log, .asc, .blf, .trc, .csv, .mf4)")
     s.add_argument("--out", type=Path, default=Path("capture.png"), help="output PNG (default capture.png)")
     s.set_defaults(func=cmd_plot_capture)
+
+    s = sub.add_parser("fleet", help="many captures/traces on Dask: one row per injection, summary, lot report")
+    s.add_argument("inputs", nargs="+", help="files, directories (recursive) and glob patterns (quote them)")
+    s.add_argument("--out", type=Path, required=True, help="RESULTS.parquet or RESULTS.csv (companions beside it)")
+    g = s.add_mutually_exclusive_group()
+    g.add_argument("--workers", type=int, default=None, help="local cluster processes (default: the cores)")
+    g.add_argument("--scheduler", default=None, help="attach to a running cluster, tcp://HOST:PORT")
+    s.add_argument("--config", type=Path, help="estimator.toml (the same keys as the daemon)")
+    params_opt(s)
+    mdf_opts(s)
+    s.set_defaults(func=cmd_fleet)
 
     s = sub.add_parser("dbc-path", help="print where the packaged DBC is: cantools monitor $(injector-estimator dbc-path)")
     s.set_defaults(func=cmd_dbc_path)

@@ -238,6 +238,18 @@ def cmd_reliability(args: argparse.Namespace) -> int:
     return 1 if rep["failures"] else 0
 
 
+def cmd_lot(args: argparse.Namespace) -> int:
+    """A seeded synthetic production lot (CSV traces with serial numbers, and truth.csv)."""
+    from sim_bench.lot import make_lot
+
+    try:
+        truth = make_lot(args.out, args.injectors, args.injections, args.seed)
+    except ValueError as exc:
+        raise EstimatorError(str(exc)) from None
+    print(f"wrote {args.injectors * args.injections} traces of {args.injectors} injectors and {truth}")
+    return 0
+
+
 def cmd_hub(args: argparse.Namespace) -> int:
     """Serve the loopback CAN hub until interrupted (SIGINT, SIGTERM, SIGHUP stop it and its server)."""
     from sim_bench.hub import Hub
@@ -316,6 +328,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, default=DEFAULT_OUT / "daemon")
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "daemon-bench.json")
     s.set_defaults(func=cmd_daemon_bench)
+
+    s = sub.add_parser("lot", help="a seeded synthetic production lot (traces with serial numbers + truth)")
+    s.add_argument("--injectors", type=int, default=100)
+    s.add_argument("--injections", type=int, default=1, help="traces per injector (1 s apart)")
+    s.add_argument("--seed", type=int, default=11)
+    s.add_argument("--out", type=Path, required=True)
+    s.set_defaults(func=cmd_lot)
 
     s = sub.add_parser("reliability", help="daemon under faults: sample periods, stalls, floods, state, commands")
     s.add_argument("--bus", default=None, help="default: socketcan:vcan0 if it exists, else a loopback hub")

@@ -1,4 +1,4 @@
-"""Imports point one way: model/ident (numpy, scipy) <- codec (cantools) <- service (python-can)."""
+"""Imports point one way: model/ident (numpy, scipy) <- codec (cantools) <- service (python-can) <- fleet (dask)."""
 
 from __future__ import annotations
 
@@ -8,13 +8,15 @@ import pytest
 
 from .conftest import REPO
 
+FLEET = {"dask", "distributed", "estimator.fleet"}
 FORBIDDEN = {
     "estimator/model": {"can", "cantools", "estimator.ident", "estimator.codec", "estimator.service", "sim_bench",
-                        "logging", "socket", "threading"},
+                        "logging", "socket", "threading"} | FLEET,
     "estimator/ident": {"can", "cantools", "estimator.codec", "estimator.service", "sim_bench", "socket",
-                        "threading"},
-    "estimator/codec": {"can", "estimator.service", "sim_bench", "socket", "threading"},
-    "estimator/service": {"sim_bench"},
+                        "threading"} | FLEET,
+    "estimator/codec": {"can", "estimator.service", "sim_bench", "socket", "threading"} | FLEET,
+    "estimator/service": {"sim_bench"} | FLEET,
+    "estimator/fleet": {"sim_bench"},
 }
 
 

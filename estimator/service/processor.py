@@ -29,6 +29,19 @@ ROW_FIELDS = ("time_s", "injector_id", "counter", "status", "nu_n_per_v", "lh_um
               "raw_nu_n_per_v", "raw_lh_um", "t_contact_us", "t_open_us", "stroke_um", "evaluations", "reason")
 
 
+def result_row(res: TrackResult, injector_id: int, counter: int, time_s: float) -> dict:
+    """One injection as a flat row (``ROW_FIELDS``): filtered and raw estimate, prediction, status; units in
+    the names; None where there is no value."""
+    f = res.filtered_dict()
+    raw = res.raw.to_dict()
+    row = {"time_s": round(time_s, 6) if math.isfinite(time_s) else None, "injector_id": injector_id,
+           "counter": counter, "status": res.status.value, "raw_nu_n_per_v": raw.get("nu_n_per_v"),
+           "raw_lh_um": raw.get("lh_um"), "evaluations": res.evaluations, "reason": res.reason}
+    for k in ("nu_n_per_v", "lh_um", "sigma_nu_n_per_v", "sigma_lh_um", "t_contact_us", "t_open_us", "stroke_um"):
+        row[k] = f.get(k)
+    return row
+
+
 @dataclass(frozen=True)
 class Published:
     """One processed injection: its identification, the result and the frames sent for it."""
@@ -40,15 +53,8 @@ class Published:
     frames: list
 
     def to_row(self, time_s: float) -> dict:
-        """One CSV row (replay ``--csv``): filtered and raw estimate, prediction, status; units in the names."""
-        f = self.result.filtered_dict()
-        raw = self.result.raw.to_dict()
-        row = {"time_s": f"{time_s:.6f}", "injector_id": self.injector_id, "counter": self.counter,
-               "status": self.result.status.value, "raw_nu_n_per_v": raw.get("nu_n_per_v"),
-               "raw_lh_um": raw.get("lh_um"), "evaluations": self.result.evaluations, "reason": self.result.reason}
-        for k in ("nu_n_per_v", "lh_um", "sigma_nu_n_per_v", "sigma_lh_um", "t_contact_us", "t_open_us", "stroke_um"):
-            row[k] = f.get(k)
-        return row
+        """One table row (replay ``--csv``, fleet): see :func:`result_row`."""
+        return result_row(self.result, self.injector_id, self.counter, time_s)
 
     def to_dict(self) -> dict:
         """JSON-ready line (replay output)."""

@@ -24,7 +24,7 @@ from estimator.codec.ingest import Counters
 from estimator.service.bus import to_frame, to_message
 from estimator.service.config import DaemonConfig
 from estimator.service.daemon import build_pipeline
-from estimator.service.processor import ROW_FIELDS
+from estimator.service.processor import ROW_FIELDS, Published
 
 log = logging.getLogger(__name__)
 CANDUMP_SUFFIXES = (".log",)
@@ -93,38 +93,53 @@ def read_capture(capture: Path, bad: ReplayResult) -> Iterator[can.Message]:
             yield from msgs
 
 
+def iter_capture(capture: Path, cfg: DaemonConfig, result: ReplayResult | None = None,
+                 pipeline: tuple | None = None) -> Iterator[tuple[Published, float]]:
+    """The daemon's pipeline over a capture: (published injection, its bus time in s), in order.
+
+    ``result`` (optional) collects counters, frame counts and bad lines; ``pipeline`` is a
+    :func:`build_pipeline` tuple to continue from (state carried across captures of one injector).
+    Raises OSError/ValueError for unreadable files.
+    """
+    codec, ingest, processor, clock = pipeline or build_pipeline(cfg)
+    if result is None:
+        result = ReplayResult(ingest.counters, 0, 0)
+    m = codec.messages
+    # live, the daemon does not receive its own frames: a capture's copies must not move the clock
+    own = {m.state.frame_id, m.quality.frame_id, m.prediction.frame_id, m.status.frame_id}
+    for msg in read_capture(capture, result):
+        if msg.is_error_frame or msg.is_remote_frame or (msg.arbitration_id in own and not msg.is_extended_id):
+            continue
+        result.frames_in += 1
+        fr = to_frame(msg)
+        now = clock.on_frame(fr.timestamp)
+        for pub in processor.handle(ingest.feed(fr, now)):
+            result.published += 1
+            yield pub, fr.timestamp
+    processor.handle(ingest.poll(clock.end()))   # what the silent-bus guard does live
+
+
 def replay(capture: Path, cfg: DaemonConfig, out_log: Path | None = None, out_json: TextIO | None = None,
            channel: str = "vcan0", out_csv: TextIO | None = None) -> ReplayResult:
     """Run the pipeline over a capture (any python-can format by suffix). ``out_log``: the output frames
     (format by suffix); ``out_json``: one JSON line per injection; ``out_csv``: one CSV row per injection.
     Raises OSError/ValueError for unreadable files."""
-    codec, ingest, processor, clock = build_pipeline(cfg)
+    pipeline = build_pipeline(cfg)
+    result = ReplayResult(pipeline[1].counters, 0, 0)
     writer = open_writer(out_log, channel) if out_log else None
-    result = ReplayResult(ingest.counters, 0, 0)
     csv_rows = None
     if out_csv is not None:
         csv_rows = csv.DictWriter(out_csv, fieldnames=ROW_FIELDS)
         csv_rows.writeheader()
-    m = codec.messages
-    # live, the daemon does not receive its own frames: a capture's copies must not move the clock
-    own = {m.state.frame_id, m.quality.frame_id, m.prediction.frame_id, m.status.frame_id}
     try:
-        for msg in read_capture(capture, result):
-            if msg.is_error_frame or msg.is_remote_frame or (msg.arbitration_id in own and not msg.is_extended_id):
-                continue
-            result.frames_in += 1
-            fr = to_frame(msg)
-            now = clock.on_frame(fr.timestamp)
-            for pub in processor.handle(ingest.feed(fr, now)):
-                result.published += 1
-                if writer is not None:
-                    for out in pub.frames:
-                        writer.on_message_received(to_message(out, timestamp=fr.timestamp))
-                if out_json is not None:
-                    out_json.write(json.dumps(pub.to_dict()) + "\n")
-                if csv_rows is not None:
-                    csv_rows.writerow(pub.to_row(fr.timestamp))
-        processor.handle(ingest.poll(clock.end()))   # what the silent-bus guard does live
+        for pub, t in iter_capture(capture, cfg, result, pipeline):
+            if writer is not None:
+                for out in pub.frames:
+                    writer.on_message_received(to_message(out, timestamp=t))
+            if out_json is not None:
+                out_json.write(json.dumps(pub.to_dict()) + "\n")
+            if csv_rows is not None:
+                csv_rows.writerow(pub.to_row(t))
     finally:
         if writer is not None:
             writer.stop()

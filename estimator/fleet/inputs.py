@@ -1,0 +1,95 @@
+"""Fleet inputs: globs and directories expanded, and grouped by injector key.
+
+Injector key (documented in the README): a trace's metadata ``serial=...`` (or ``injector_key=...``);
+traces that share a key are one injector's measurements and are processed in one task, in order of
+their ``time_s`` metadata (then file name), with the recursive estimator's state carried from one to
+the next. Everything else (traces without a key, captures) is independent: one task per input.
+"""
+
+from __future__ import annotations
+
+import glob
+from dataclasses import dataclass
+from pathlib import Path
+
+from estimator.service.estimates import source_kind
+
+KEY_FIELDS = ("serial", "injector_key")
+TRACE_SUFFIXES = (".csv", ".mf4", ".mdf")
+CAPTURE_SUFFIXES = (".log", ".asc", ".blf", ".trc", ".csv", ".mf4")
+
+
+@dataclass(frozen=True)
+class Group:
+    """One task: an injector key (None: independent) and its inputs in processing order."""
+
+    key: str | None
+    paths: tuple[str, ...]
+
+
+def expand(inputs: list[str]) -> tuple[list[Path], list[str]]:
+    """Files from paths, globs (``**`` too) and directories (recursively, by suffix); and the inputs
+    that matched nothing (reported, not fatal)."""
+    files: list[Path] = []
+    missing: list[str] = []
+    suffixes = set(TRACE_SUFFIXES) | set(CAPTURE_SUFFIXES)
+    for item in inputs:
+        p = Path(item)
+        if p.is_dir():
+            found = sorted(f for f in p.rglob("*") if f.is_file() and f.suffix.lower() in suffixes)
+        elif any(ch in item for ch in "*?["):
+            found = sorted(Path(f) for f in glob.glob(item, recursive=True) if Path(f).is_file())
+        else:
+            found = [p] if p.exists() else []
+        if not found:
+            missing.append(item)
+        files.extend(found)
+    seen, unique = set(), []
+    for f in files:
+        if f.resolve() not in seen:
+            seen.add(f.resolve())
+            unique.append(f)
+    return unique, missing
+
+
+def header_meta(path: Path, max_lines: int = 64) -> dict[str, str]:
+    """The ``# key=value`` lines at the top of a CSV trace (cheap: nothing else is read)."""
+    meta: dict[str, str] = {}
+    try:
+        with open(path, "rb") as f:
+            for _, raw in zip(range(max_lines), f):
+                line = raw.decode("utf-8", "replace").strip()
+                if not line.startswith("#"):
+                    break
+                k, sep, v = line[1:].partition("=")
+                if sep:
+                    meta[k.strip()] = v.strip()
+    except OSError:
+        pass
+    return meta
+
+
+def group(files: list[Path]) -> list[Group]:
+    """Tasks: keyed traces together in time order, every other input alone."""
+    keyed: dict[str, list[tuple[float, str]]] = {}
+    alone: list[Group] = []
+    for f in files:
+        meta = header_meta(f) if f.suffix.lower() == ".csv" and _is_trace(f) else {}
+        key = next((meta[k] for k in KEY_FIELDS if meta.get(k)), None)
+        if key is None:
+            alone.append(Group(None, (str(f),)))
+            continue
+        try:
+            t = float(meta.get("time_s", "nan"))
+        except ValueError:
+            t = float("nan")
+        keyed.setdefault(key, []).append((t if t == t else float("inf"), str(f)))
+    out = [Group(k, tuple(p for _, p in sorted(v))) for k, v in sorted(keyed.items())]
+    return out + alone
+
+
+def _is_trace(f: Path) -> bool:
+    try:
+        return source_kind(f) == "trace"
+    except OSError:
+        return False

@@ -1,0 +1,209 @@
+"""``python -m estimator fleet``: inputs -> Dask tasks -> one row per injection, a per-injector summary
+and a lot report (Table-3 style, with the L_h and N_u distributions and outliers flagged).
+
+The default cluster is a local one on this machine (``workers`` processes, one thread each, bound to
+127.0.0.1, no dashboard); ``scheduler`` attaches to an existing one (``tcp://HOST:PORT``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from estimator.errors import EstimatorError
+from estimator.fleet.inputs import Group, expand, group
+from estimator.fleet.tasks import WORKER_ENV, process_group
+from estimator.service.config import DaemonConfig
+from estimator.service.estimates import FIELDS
+
+COLUMNS = FIELDS + ("injector_key",)
+OUTLIER_MADS = 5.0      # |x - lot median| beyond this many robust sigmas (1.4826 MAD) is flagged
+
+
+@dataclass
+class FleetResult:
+    """Rows, the per-injector summary, the files written, and what could not be processed."""
+
+    rows: list[dict]
+    summary: list[dict]
+    files: list[Path] = field(default_factory=list)
+    missing: list[str] = field(default_factory=list)
+    errors: int = 0
+    seconds: float = 0.0
+    workers: int = 0
+
+
+def run_fleet(inputs: list[str], out: Path, cfg: DaemonConfig | None = None, workers: int | None = None,
+              scheduler: str | None = None, trace_options: dict[str, Any] | None = None,
+              progress: bool = False) -> FleetResult:
+    """Process every input on a Dask cluster; write ``out`` (.parquet or .csv) and its companions."""
+    if out.suffix.lower() not in (".parquet", ".csv"):
+        raise EstimatorError(f"--out {out}: use .parquet or .csv")
+    files, missing = expand(inputs)
+    if not files:
+        raise EstimatorError(f"no input files in {' '.join(inputs)}")
+    groups = group(files)
+    cfg = cfg or DaemonConfig()
+    t0 = time.perf_counter()
+    rows, n_workers = _compute(groups, cfg, trace_options or {}, workers, scheduler, progress)
+    seconds = time.perf_counter() - t0
+    rows.sort(key=lambda r: (r.get("injector_key") or "", r["source"], _num(r.get("time_s")), r.get("counter") or 0))
+    summary = summarise(rows)
+    res = FleetResult(rows, summary, missing=missing, errors=sum(r.get("status") == "error" for r in rows),
+                      seconds=seconds, workers=n_workers)
+    res.files = write(res, out)
+    return res
+
+
+def _compute(groups: list[Group], cfg: DaemonConfig, trace_options: dict, workers: int | None,
+             scheduler: str | None, progress: bool) -> tuple[list[dict], int]:
+    from dask.distributed import Client, LocalCluster, as_completed
+
+    for k, v in WORKER_ENV.items():   # inherited by the local cluster's worker processes
+        os.environ.setdefault(k, v)
+    if scheduler:
+        client = Client(scheduler)
+        cluster = None
+    else:
+        n = workers or os.cpu_count() or 1
+        if not 1 <= n <= 256:
+            raise EstimatorError(f"--workers {n} must be within 1..256")
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                               dashboard_address=None, silence_logs=40)
+        client = Client(cluster)
+    try:
+        n_workers = len(client.scheduler_info()["workers"])
+        futures = [client.submit(process_group, g.key, g.paths, cfg, trace_options, pure=False) for g in groups]
+        rows: list[dict] = []
+        done = 0
+        for fut in as_completed(futures):
+            try:
+                rows.extend(fut.result())
+            except Exception as exc:   # a worker died on this group: report it, go on
+                g = groups[futures.index(fut)]
+                rows.extend({"source": p, "injector_key": g.key, "status": "error",
+                             "reason": f"task failed: {type(exc).__name__}: {exc}"[:300]} for p in g.paths)
+            done += 1
+            if progress:
+                print(f"\r[{done}/{len(futures)}] inputs, {len(rows)} injections", end="", file=sys.stderr, flush=True)
+        if progress:
+            print(file=sys.stderr)
+        return rows, n_workers
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _num(v: Any) -> float:
+    return float(v) if isinstance(v, (int, float)) and math.isfinite(v) else math.inf
+
+
+def summarise(rows: list[dict]) -> list[dict]:
+    """Per injector (key, else source + injector id): counts, the last filtered estimate, the median raw
+    one, and an outlier flag against the lot (robust: median and MAD of the injectors' L_h and N_u)."""
+    import numpy as np
+
+    by: dict[tuple, list[dict]] = {}
+    for r in rows:
+        ident = (r.get("injector_key") or r["source"], r.get("injector_id"))
+        by.setdefault(ident, []).append(r)
+    out = []
+    for (ident, inj_id), rs in by.items():
+        ok = [r for r in rs if r.get("status") in ("ok", "uncertain", "at_bound", "unconfirmed")
+              and r.get("lh_um") is not None]
+        last = ok[-1] if ok else {}
+        out.append({"injector": ident, "injector_id": inj_id, "injections": len(rs), "estimated": len(ok),
+                    "errors": sum(r.get("status") == "error" for r in rs),
+                    "nu_n_per_v": last.get("nu_n_per_v"), "lh_um": last.get("lh_um"),
+                    "sigma_lh_um": last.get("sigma_lh_um"), "t_open_us": last.get("t_open_us"),
+                    "raw_lh_um_median": float(np.median([r["raw_lh_um"] for r in ok if r.get("raw_lh_um") is not None]))
+                    if ok else None})
+    for name in ("lh_um", "nu_n_per_v"):
+        vals = np.array([s[name] for s in out if s[name] is not None], dtype=float)
+        if vals.size < 5:
+            continue
+        med = float(np.median(vals))
+        mad = 1.4826 * float(np.median(np.abs(vals - med))) or 1e-9
+        for s in out:
+            if s[name] is not None and abs(s[name] - med) > OUTLIER_MADS * mad:
+                s["outlier"] = (s.get("outlier", "") + f" {name}").strip()
+    for s in out:
+        s.setdefault("outlier", "no estimate" if s["lh_um"] is None else "")
+    return out
+
+
+def write(res: FleetResult, out: Path) -> list[Path]:
+    """``out`` (rows), ``<stem>-summary.csv``, ``<stem>-report.txt`` and ``<stem>-lot.png`` (if matplotlib)."""
+    import pandas as pd
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    df = pd.DataFrame(res.rows, columns=list(COLUMNS))
+    if out.suffix.lower() == ".parquet":
+        df.to_parquet(out, index=False)
+    else:
+        df.to_csv(out, index=False)
+    files = [out]
+    summary = out.with_name(out.stem + "-summary.csv")
+    pd.DataFrame(res.summary).to_csv(summary, index=False)
+    report = out.with_name(out.stem + "-report.txt")
+    report.write_text(format_report(res) + "\n")
+    files += [summary, report]
+    try:
+        files.append(plot_lot(res, out.with_name(out.stem + "-lot.png")))
+    except EstimatorError:
+        pass
+    return files
+
+
+def format_report(res: FleetResult) -> str:
+    """The lot in the style of the paper's Table 3: L_h and N_u per injector, with the lot statistics."""
+    import numpy as np
+
+    est = [s for s in res.summary if s["lh_um"] is not None]
+    lines = [f"fleet: {len(res.rows)} injections from {len({r['source'] for r in res.rows})} inputs, "
+             f"{len(res.summary)} injectors, {res.errors} input(s) failed, {res.seconds:.1f} s on {res.workers} "
+             f"worker(s)"]
+    if res.missing:
+        lines.append(f"matched nothing: {', '.join(res.missing)}")
+    lines.append(f"  {'injector':<40} {'id':>2} {'n':>5} {'N_u [N/V]':>10} {'L_h [µm]':>9} {'σ(L_h)':>7}  flag")
+    for s in res.summary:
+        nu = f"{s['nu_n_per_v']:.4f}" if s["nu_n_per_v"] is not None else "-"
+        lh = f"{s['lh_um']:.3f}" if s["lh_um"] is not None else "-"
+        sg = f"{s['sigma_lh_um']:.3f}" if s["sigma_lh_um"] is not None else "-"
+        lines.append(f"  {str(s['injector'])[-40:]:<40} {s['injector_id'] if s['injector_id'] is not None else '-':>2} "
+                     f"{s['injections']:>5} {nu:>10} {lh:>9} {sg:>7}  {s['outlier']}")
+    if est:
+        lh = np.array([s["lh_um"] for s in est])
+        nu = np.array([s["nu_n_per_v"] for s in est])
+        lines.append(f"  lot: L_h mean {lh.mean():.3f} µm, std {lh.std():.3f} µm; N_u mean {nu.mean():.4f} N/V, "
+                     f"std {nu.std():.4f} N/V; flagged {sum(bool(s['outlier']) for s in res.summary)}")
+    for r in [r for r in res.rows if r.get("status") == "error"][:20]:
+        lines.append(f"  error: {r['source']}: {r['reason']}")
+    return "\n".join(lines)
+
+
+def plot_lot(res: FleetResult, path: Path) -> Path:
+    """Histograms of the lot's L_h and N_u, outliers marked."""
+    from estimator.plots import _pyplot
+
+    plt = _pyplot()
+    est = [s for s in res.summary if s["lh_um"] is not None]
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    for a, key, unit in ((ax[0], "lh_um", "L_h [µm]"), (ax[1], "nu_n_per_v", "N_u [N/V]")):
+        a.hist([s[key] for s in est], bins=30, color="C0")
+        for s in est:
+            if s["outlier"]:
+                a.axvline(s[key], color="C3", lw=1)
+        a.set_xlabel(unit)
+        a.set_ylabel("injectors")
+    ax[0].set_title(f"{len(est)} injectors; outliers in red")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
