@@ -238,6 +238,19 @@ def cmd_reliability(args: argparse.Namespace) -> int:
     return 1 if rep["failures"] else 0
 
 
+def cmd_fleet_bench(args: argparse.Namespace) -> int:
+    """The fleet path on a synthetic lot at 1 and 2 workers: throughput, scaling, accuracy."""
+    import os
+
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+    from sim_bench import fleet_bench
+
+    rep = fleet_bench.run(args.out, args.injectors, tuple(args.workers), args.seed)
+    print(fleet_bench.format_report(rep))
+    _write_json(args.json_out, rep)
+    return 0
+
+
 def cmd_lot(args: argparse.Namespace) -> int:
     """A seeded synthetic production lot (CSV traces with serial numbers, and truth.csv)."""
     from sim_bench.lot import make_lot
@@ -328,6 +341,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, default=DEFAULT_OUT / "daemon")
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "daemon-bench.json")
     s.set_defaults(func=cmd_daemon_bench)
+
+    s = sub.add_parser("fleet-bench", help="fleet on a synthetic lot at 1 and 2 workers: throughput, accuracy")
+    s.add_argument("--injectors", type=int, default=1000)
+    s.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    s.add_argument("--seed", type=int, default=11)
+    s.add_argument("--out", type=Path, default=DEFAULT_OUT / "fleet")
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "fleet-bench.json")
+    s.set_defaults(func=cmd_fleet_bench)
 
     s = sub.add_parser("lot", help="a seeded synthetic production lot (traces with serial numbers + truth)")
     s.add_argument("--injectors", type=int, default=100)

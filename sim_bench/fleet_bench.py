@@ -1,0 +1,68 @@
+"""``python -m sim_bench fleet-bench``: a synthetic lot through the fleet command at 1 and 2 workers:
+throughput, scaling, per-injection cost, accuracy against the truth and bad-injector detection."""
+
+from __future__ import annotations
+
+import csv
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from estimator.fleet.run import run_fleet
+from sim_bench.lot import make_lot
+
+
+def run(out: Path, injectors: int = 1000, workers: tuple[int, ...] = (1, 2), seed: int = 11) -> dict:
+    """Make the lot (once), run the fleet per worker count, score against truth.csv."""
+    lot = out / f"lot-{injectors}-{seed}"
+    if not (lot / "truth.csv").exists():
+        t0 = time.perf_counter()
+        make_lot(lot, injectors, 1, seed)
+        print(f"lot of {injectors} injectors written in {time.perf_counter() - t0:.1f} s")
+    truth = {r["serial"]: r for r in csv.DictReader(open(lot / "truth.csv"))}
+    report: dict = {"benchmark": "fleet", "injectors": injectors, "runs": []}
+    for n in workers:
+        t0 = time.perf_counter()
+        res = run_fleet([str(lot / "traces")], out / f"fleet-{n}w.parquet", workers=n)
+        wall = time.perf_counter() - t0
+        rows = [r for r in res.rows if r.get("status") != "error"]
+        e_lh, e_nu, flagged_bad, flagged_good, bad = [], [], 0, 0, 0
+        flags = {s["injector"]: s["outlier"] for s in res.summary}
+        for r in rows:
+            t = truth.get(r.get("injector_key") or "")
+            if t is None or r.get("lh_um") is None or t["mismatch"] == "1":
+                continue
+            e_lh.append(r["lh_um"] - float(t["lh_um"]))
+            e_nu.append(100 * (r["nu_n_per_v"] / float(t["nu_n_per_v"]) - 1))
+        for serial, t in truth.items():
+            bad += t["bad"] == "1"
+            if flags.get(serial):
+                flagged_bad += t["bad"] == "1"
+                flagged_good += t["bad"] != "1"
+        run_ = {"workers": n, "seconds_tasks": res.seconds, "seconds_wall": wall, "injections": len(rows),
+                "errors": res.errors, "injections_per_s": len(rows) / res.seconds,
+                "per_worker_per_s": len(rows) / res.seconds / n, "ms_per_injection_per_worker": 1e3 * res.seconds * n /
+                max(len(rows), 1), "rms_lh_um": float(np.sqrt(np.mean(np.square(e_lh)))) if e_lh else math.nan,
+                "max_abs_lh_um": float(np.max(np.abs(e_lh))) if e_lh else math.nan,
+                "rms_nu_pct": float(np.sqrt(np.mean(np.square(e_nu)))) if e_nu else math.nan,
+                "bad_injectors": bad, "bad_flagged": flagged_bad, "good_flagged": flagged_good}
+        report["runs"].append(run_)
+    r1 = next((r for r in report["runs"] if r["workers"] == 1), None)
+    for r in report["runs"]:
+        r["scaling_efficiency"] = (r["injections_per_s"] / r1["injections_per_s"] / r["workers"]) if r1 else math.nan
+    return report
+
+
+def format_report(rep: dict) -> str:
+    """The table."""
+    lines = [f"fleet-bench: {rep['injectors']} injectors, one trace each (cold start per injection)",
+             f"  {'workers':>7} {'inj/s':>8} {'per worker':>10} {'ms/inj':>7} {'scaling':>7} {'L_h rms/max [µm]':>17} "
+             f"{'N_u rms [%]':>11} {'bad flagged':>11} {'good flagged':>12}"]
+    for r in rep["runs"]:
+        lines.append(f"  {r['workers']:>7} {r['injections_per_s']:>8.1f} {r['per_worker_per_s']:>10.1f} "
+                     f"{r['ms_per_injection_per_worker']:>7.1f} {r['scaling_efficiency']:>7.2f} "
+                     f"{r['rms_lh_um']:>8.3f}/{r['max_abs_lh_um']:<8.3f} {r['rms_nu_pct']:>11.3f} "
+                     f"{r['bad_flagged']:>5}/{r['bad_injectors']:<5} {r['good_flagged']:>12}")
+    return "\n".join(lines)
