@@ -2,7 +2,7 @@
 
 Series spread (documented here and in the README): N_u ~ 17.5 ± 0.3 N/V at the measuring temperature,
 L_h ~ 3.5 ± 0.6 µm (1 sigma), preload 28 N + up to 10 N rail share. About 2 % of the injectors are bad
-(L_h 1.5-2 µm above the spread: a worn or mis-set valve) and 10 % are measured on the hysteresis plant
+(L_h 2.5-3.5 µm above the spread: a worn or mis-set valve) and 10 % are measured on the hysteresis plant
 (model mismatch). Each injector gets ``injections`` CSV traces one second apart in ``traces/``
 (``serial``, ``time_s`` metadata: the fleet command carries its state across them); ``truth.csv``
 beside that folder holds the truth.
@@ -39,7 +39,7 @@ def make_lot(out: Path, injectors: int, injections: int = 1, seed: int = 11, win
             serial = f"INJ-{i:05d}"
             nu = float(np.clip(rng.normal(NU_MEAN, NU_SD), 15.2, 20.8))
             bad = bool(rng.random() < BAD_FRACTION)
-            lh = float(np.clip(rng.normal(LH_MEAN, LH_SD), 0.5, 7.0)) + (float(rng.uniform(1.5, 2.0)) if bad else 0.0)
+            lh = float(np.clip(rng.normal(LH_MEAN, LH_SD), 0.5, 7.0)) + (float(rng.uniform(2.5, 3.5)) if bad else 0.0)
             mismatch = bool(rng.random() < MISMATCH_FRACTION)
             w.writerow([serial, f"{nu:.4f}", f"{lh:.4f}", int(bad), int(mismatch)])
             for k in range(injections):

@@ -22,7 +22,7 @@ from estimator.service.config import DaemonConfig
 from estimator.service.estimates import FIELDS
 
 COLUMNS = FIELDS + ("injector_key",)
-OUTLIER_MADS = 5.0      # |x - lot median| beyond this many robust sigmas (1.4826 MAD) is flagged
+OUTLIER_MADS = 4.0      # |x - lot median| beyond this many robust sigmas (1.4826 MAD) is flagged
 
 
 @dataclass

@@ -6,6 +6,8 @@ import os
 from pathlib import Path
 from typing import Any
 
+_POOLS: dict = {}   # per worker process: the simulator pool of each parameter file (tables built once)
+
 WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
               "MKL_NUM_THREADS": "1"}
 
@@ -16,10 +18,14 @@ def process_group(key: str | None, paths: tuple[str, ...], cfg: Any, trace_optio
     for k, v in WORKER_ENV.items():
         os.environ.setdefault(k, v)
     from estimator.errors import EstimatorError
-    from estimator.service.daemon import build_tracker
+    from estimator.ident.tracker import Tracker
+    from estimator.service.daemon import build_pool
     from estimator.service.estimates import iter_estimates, new_pipeline
 
-    tracker = build_tracker(cfg) if key is not None else None
+    pool_key = (cfg.params, cfg.max_sample_periods, cfg.sample_periods_ns)
+    if pool_key not in _POOLS:
+        _POOLS[pool_key] = build_pool(cfg)
+    tracker = Tracker(cfg.tracker_config(), pool=_POOLS[pool_key])   # one per task: state per injector key
     pipeline = new_pipeline(cfg) if key is not None else None
     rows: list[dict] = []
     for path in paths:
