@@ -8,7 +8,7 @@ import logging
 import sys
 from pathlib import Path
 
-from estimator.cli_support import run_cli, version_line
+from estimator.cli_support import lean_service_imports, run_cli, version_line
 from estimator.errors import EstimatorError
 
 log = logging.getLogger("estimator")
@@ -423,4 +423,5 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code."""
+    lean_service_imports(sys.argv[1:] if argv is None else argv, ("run",))
     return run_cli(build_parser(), argv)

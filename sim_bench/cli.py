@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator.cli_support import run_cli, version_line
+from estimator.cli_support import lean_service_imports, run_cli, version_line
 from estimator.errors import EstimatorError
 from estimator.trace_io import read_trace, write_trace
 from sim_bench import tracking_bench
@@ -407,4 +407,5 @@ def main(argv: list[str] | None = None) -> int:
     from sim_bench.procs import install_stop_signals
 
     install_stop_signals()
+    lean_service_imports(sys.argv[1:] if argv is None else argv, ("node", "hub"))
     return run_cli(build_parser(), argv)
