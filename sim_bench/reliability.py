@@ -17,6 +17,7 @@ import sys
 import time
 from pathlib import Path
 
+import can
 import numpy as np
 
 from estimator.codec.injection_frames import injection_frames
@@ -45,6 +46,36 @@ def _hb(mon: BusMonitor) -> EstimatorStatus:
 def _handled(hb: EstimatorStatus) -> int:
     return (hb.accepted + hb.rejected_crc + hb.rejected_missing + hb.rejected_timeout + hb.rejected_invalid
             + hb.rejected_outlier)
+
+
+def marker_message(codec: Codec) -> can.Message:
+    """An EstimatorCommand with the undefined code 3: harmless, and counted in the heartbeat's
+    CommandsUnknown once the worker has taken it (and, frames being handled in order, all before it)."""
+    msg = codec.db.get_message_by_name("EstimatorCommand")
+    data = msg.encode({"InjectorId": 0, "Command": 3, "PriorNu": 0, "PriorIdleStroke": 0})
+    return can.Message(arbitration_id=msg.frame_id, data=data, is_fd=False, is_extended_id=False)
+
+
+# stall faults: a header-to-trailer timeout and a silent-bus guard far above the time our own sending
+# and the marker's round trip can take on a loaded machine, a stall well beyond the timeout, and a
+# fast heartbeat for the marker
+STALL_CONFIG = "[estimator]\nassembly_timeout_ms = 1000.0\nsilent_bus_s = 5.0\nstatus_period_s = 0.02\n"
+STALL_S = 1.5
+
+
+def stalled_injection(bus: can.BusABC, daemon: DaemonProcess, mon: BusMonitor, codec: Codec, frames: list,
+                      marks: int, stop_s: float = STALL_S) -> None:
+    """Header and blocks, then the marker; once the heartbeat shows the daemon took them (``marks``
+    markers so far), SIGSTOP, the trailer, ``stop_s`` of stall (the fault itself), SIGCONT."""
+    for fr in frames[:-1]:
+        bus.send(to_message(fr))
+    bus.send(marker_message(codec))
+    if not mon.wait_for(lambda m: m.heartbeats and _hb(m).commands_unknown >= marks, 60, daemon.alive):
+        raise RuntimeError(f"daemon never took the marker: {daemon.why()}")
+    daemon.send_signal(signal.SIGSTOP)
+    bus.send(to_message(frames[-1]))
+    time.sleep(stop_s)
+    daemon.send_signal(signal.SIGCONT)
 
 
 def _send(bus, codec: Codec, injector: int, counter: int, inj: Injection, period_s: float | None = None) -> None:
@@ -79,11 +110,11 @@ def periods(bus_spec: str, out: Path, n: int = 300) -> dict:
         mon.close()
 
 
-def stall(bus_spec: str, out: Path, n: int = 10, stop_s: float = 0.5) -> dict:
+def stall(bus_spec: str, out: Path, n: int = 10, stop_s: float = STALL_S) -> dict:
     """SIGSTOP after the blocks, trailer sent meanwhile, SIGCONT after ``stop_s``; then replay."""
     codec = Codec()
     cfg = out / "stall.toml"
-    cfg.write_text("[estimator]\nassembly_timeout_ms = 150.0\n")
+    cfg.write_text(STALL_CONFIG)
     capture = out / "stall-capture.log"
     mon = BusMonitor(bus_spec, capture=capture)
     mon.start()
@@ -93,13 +124,7 @@ def stall(bus_spec: str, out: Path, n: int = 10, stop_s: float = 0.5) -> dict:
         with open_bus(bus_spec) as bus:
             for k, inj in enumerate(_injections(n, 2)):
                 frames = injection_frames(codec, 3, k, inj.dt_s, inj.current_a, inj.voltage_v)
-                for fr in frames[:-1]:
-                    bus.send(to_message(fr))
-                time.sleep(0.02)
-                d.send_signal(signal.SIGSTOP)
-                bus.send(to_message(frames[-1]))
-                time.sleep(stop_s)
-                d.send_signal(signal.SIGCONT)
+                stalled_injection(bus, d, mon, codec, frames, k + 1, stop_s)
                 mon.wait_for(lambda m: m.heartbeats and _hb(m).accepted + _hb(m).rejected_timeout >= k + 1, 60, d.alive)
         live = _hb(mon)
         code = d.stop()
@@ -126,7 +151,6 @@ def flood(bus_spec: str, out: Path, frames: int = 5000, seed: int = 3) -> dict:
     try:
         d.wait_ready(mon)
         with open_bus(bus_spec) as bus:
-            import can
             for _ in range(frames):
                 fd = rng.random() < 0.7
                 n = rng.choice([0, 1, 2, 8, 12, 16, 20, 24, 32, 48, 64]) if fd else rng.randint(0, 8)
@@ -192,12 +216,9 @@ def commands(bus_spec: str, out: Path) -> dict:
     d = DaemonProcess(bus_spec, out / "commands-daemon.log").start()
     try:
         d.wait_ready(mon)
-        msg = codec.db.get_message_by_name("EstimatorCommand")
-        import can
         with open_bus(bus_spec) as bus:
             bus.send(to_message(codec.encode(EstimatorCommand(0, COMMAND_SET_PRIOR, 17.0, 14.9))))
-            bus.send(can.Message(arbitration_id=msg.frame_id, data=msg.encode(
-                {"InjectorId": 0, "Command": 3, "PriorNu": 0, "PriorIdleStroke": 0}), is_fd=False, is_extended_id=False))
+            bus.send(marker_message(codec))
             mon.wait_for(lambda m: m.heartbeats and _hb(m).commands_refused >= 1 and _hb(m).commands_unknown >= 1, 30,
                          d.alive)
         hb = _hb(mon)

@@ -20,6 +20,7 @@ from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import COMMAND_SET_PRIOR, Codec, EstimateState, EstimatorCommand, EstimatorStatus
 from estimator.service.bus import open_bus, to_message
 from sim_bench.procs import DaemonProcess, rss_mb
+from sim_bench.reliability import STALL_CONFIG, stalled_injection
 
 from .conftest import REPO
 from .helpers import measured
@@ -67,13 +68,13 @@ def test_300_sample_periods_keep_memory_bounded_and_heartbeats_flowing(hub, moni
 
 
 def test_a_stall_between_header_and_trailer_is_judged_as_the_replay_judges_it(hub, monitor, tmp_path):
-    """The header and blocks go out, the daemon is SIGSTOPped, the trailer follows (all within the
-    150 ms assembly timeout on the bus), 0.5 s later SIGCONT; 10 times. Live and the replay of the
-    capture reject the same injections (none, unless this machine delayed our own sending past the
-    timeout) and publish identical estimates."""
+    """The header and blocks go out, then a marker command; once the heartbeat shows the daemon took
+    them, it is SIGSTOPped, the trailer follows, 1.5 s later SIGCONT (beyond the 1 s assembly timeout);
+    10 times. Live and the replay of the capture reject the same injections (none, unless this machine
+    delayed our own sending past the timeout) and publish identical estimates."""
     codec = Codec()
     cfg = tmp_path / "e.toml"
-    cfg.write_text("[estimator]\nassembly_timeout_ms = 150.0\n")
+    cfg.write_text(STALL_CONFIG)
     injs = [measured(16.8, 2.7, 3100 + k, window_s=100e-6)[0] for k in range(10)]
     d = DaemonProcess(hub.spec, tmp_path / "daemon.log", config=cfg).start()
     try:
@@ -81,13 +82,7 @@ def test_a_stall_between_header_and_trailer_is_judged_as_the_replay_judges_it(hu
         with open_bus(hub.spec) as bus:
             for k, inj in enumerate(injs):
                 frames = injection_frames(codec, 3, k, inj.dt_s, inj.current_a, inj.voltage_v)
-                for fr in frames[:-1]:
-                    bus.send(to_message(fr))
-                time.sleep(0.02)                      # fault timing: let the blocks reach the daemon first
-                d.send_signal(signal.SIGSTOP)
-                bus.send(to_message(frames[-1]))
-                time.sleep(0.5)                       # the fault: a stalled daemon (not a readiness wait)
-                d.send_signal(signal.SIGCONT)
+                stalled_injection(bus, d, monitor, codec, frames, k + 1)
                 done = lambda m: m.heartbeats and (last_heartbeat(m).accepted + last_heartbeat(m).rejected_timeout  # noqa: E731
                                                    >= k + 1)
                 assert monitor.wait_for(done, 60, d.alive), d.why()
