@@ -11,13 +11,13 @@ import time
 import numpy as np
 
 from estimator.ident.crb import crb, crb_opening_time
-from estimator.ident.config import IdentConfig
+from estimator.ident.config import IdentConfig, TrackerConfig
 from estimator.ident.idle_stroke import identify
 from estimator.ident.measurement import Injection
-from estimator.ident.config import TrackerConfig
 from estimator.ident.tracker import Tracker
 from estimator.model.fast_sim import FastSimulator
 from sim_bench.plant import AdcConfig, Measurement, Plant, PlantConfig
+from sim_bench.table import Column, plant, render
 
 NU_RANGE = (15.0, 21.0)
 LH_RANGE_UM = (-1.0, 10.0)
@@ -128,25 +128,26 @@ def accuracy_failures(s: dict) -> list[str]:
     return fails
 
 
+def _col(title: str, unit: str, spec: str, key: str, scale: float = 1.0) -> Column:
+    return Column(title, unit, spec, (lambda s: scale * s[key]) if scale != 1.0 else (lambda s: s[key]))
+
+
+ACCURACY_COLUMNS = [
+    _col("sweep", "", "<10", "sweep"), Column("plant", "", "<8", plant), _col("noise", "[V]", ">5.2f", "noise_v"),
+    _col("n", "", ">4", "n"), _col("N_u rmse", "[%]", ">8.3f", "rmse_nu_pct"), _col("CRB", "[%]", ">6.3f", "crb_nu_pct"),
+    _col("max", "[%]", ">6.3f", "max_abs_nu_pct"), _col("L_h rmse", "[µm]", ">8.3f", "rmse_lh_um"),
+    _col("CRB", "[µm]", ">6.3f", "crb_lh_um"), _col("ratio", "", ">5.2f", "lh_rmse_over_crb"),
+    _col("max|dLh|", "[µm]", ">8.3f", "max_abs_lh_um"), _col("err/σ", "rms", ">5.2f", "rms_error_over_sigma"),
+    _col(">3σ", "", ">4", "beyond_3_sigma"), _col("ok", "[%]", ">4.0f", "ok_fraction", 100.0),
+    _col("t_open", "[µs]", ">6.2f", "rmse_t_open_us"), _col("CRB", "[µs]", ">5.2f", "crb_t_open_us"),
+    _col("robust", "[%]", ">6.0f", "robust_fraction", 100.0), _col("cold", "[ms]", ">5.1f", "median_cold_ms"),
+]
+
+
 def format_accuracy(reports: list[dict]) -> str:
     """One line per accuracy report, with the sweep's verdict."""
-    head = (f"{'sweep':<10} {'plant':<8} {'noise':>5} {'n':>4} {'N_u rmse':>8} {'CRB':>6} {'max':>6} {'L_h rmse':>8} "
-            f"{'CRB':>6} {'ratio':>5} {'max|dLh|':>8} {'err/σ':>5} {'>3σ':>4} {'ok':>4} {'t_open':>6} {'CRB':>5} "
-            f"{'robust':>6} {'cold':>5}  verdict")
-    units = (f"{'':<10} {'':<8} {'[V]':>5} {'':>4} {'[%]':>8} {'[%]':>6} {'[%]':>6} {'[µm]':>8} {'[µm]':>6} {'':>5} "
-             f"{'[µm]':>8} {'rms':>5} {'':>4} {'[%]':>4} {'[µs]':>6} {'[µs]':>5} {'[%]':>6} {'[ms]':>5}")
-    lines = [head, units]
-    for rep in reports:
-        s = rep["summary"]
-        verdict = "" if s["mismatch"] else ("PASS" if not s["failures"] else "FAIL: " + "; ".join(s["failures"]))
-        lines.append(
-            f"{s['sweep']:<10} {'mismatch' if s['mismatch'] else 'matched':<8} {s['noise_v']:>5.2f} {s['n']:>4} "
-            f"{s['rmse_nu_pct']:>8.3f} {s['crb_nu_pct']:>6.3f} {s['max_abs_nu_pct']:>6.3f} {s['rmse_lh_um']:>8.3f} "
-            f"{s['crb_lh_um']:>6.3f} {s['lh_rmse_over_crb']:>5.2f} {s['max_abs_lh_um']:>8.3f} "
-            f"{s['rms_error_over_sigma']:>5.2f} {s['beyond_3_sigma']:>4} {100 * s['ok_fraction']:>4.0f} "
-            f"{s['rmse_t_open_us']:>6.2f} {s['crb_t_open_us']:>5.2f} {100 * s['robust_fraction']:>6.0f} "
-            f"{s['median_cold_ms']:>5.1f}  {verdict}")
-    return "\n".join(lines)
+    return render(ACCURACY_COLUMNS, [rep["summary"] for rep in reports],
+                  lambda s: "" if s["mismatch"] else ("PASS" if not s["failures"] else "FAIL: " + "; ".join(s["failures"])))
 
 
 # Series-production spread of the ten simulated actuators (documented in the README): N_u normal

@@ -23,6 +23,7 @@ from estimator.ident.status import Status
 from estimator.ident.tracker import Tracker
 from estimator.model.fast_sim import FastSimulator
 from sim_bench.plant import Plant, PlantConfig
+from sim_bench.table import Column, plant, render
 
 F_OPEN_N = 28.0
 GLITCH_CURRENT_GAIN = 1.2     # a current-sensor gain error of 20 % that the CRC cannot see
@@ -244,21 +245,23 @@ def score(sc: TrackingScenario, rows: list[dict], mismatch: bool) -> dict:
     }
 
 
+def _col(title: str, unit: str, spec: str, key: str) -> Column:
+    return Column(title, unit, spec, lambda s: s[key])
+
+
+TRACKING_COLUMNS = [
+    _col("scenario", "", "<16", "scenario"), Column("plant", "", "<8", plant), _col("inj", "", ">4", "injections"),
+    _col("dLh raw", "rms[µm]", ">8.3f", "rms_raw_lh_um"), _col("filt", "[µm]", ">6.3f", "rms_lh_um"),
+    _col("dNu raw", "rms[%]", ">8.3f", "rms_raw_nu_pct"), _col("filt", "[%]", ">6.3f", "rms_nu_pct"),
+    _col("max|dLh|", ">10[µm]", ">8.3f", "max_abs_lh_after10_um"),
+    _col("max|dNu|", ">10[%]", ">8.3f", "max_abs_nu_after10_pct"), _col("rms dLh", "late", ">7.3f", "rms_lh_after_um"),
+    _col("t_open", "[µs]", ">6.2f", "rmse_t_open_us"), _col("err/σ", "", ">5.2f", "sigma_ratio_lh"),
+    _col("unc", "", ">4", "unconfirmed"), _col("out", "", ">4", "outliers"), _col("rej", "", ">4", "valid_rejected"),
+    _col("median", "[ms]", ">6.2f", "median_update_ms"), _col("p99", "[ms]", ">5.2f", "p99_update_ms"),
+]
+
+
 def format_tracking(reports: list[dict]) -> str:
     """One line per report: raw and filtered errors side by side, then the verdict."""
-    head = (f"{'scenario':<16} {'plant':<8} {'inj':>4} {'dLh raw':>8} {'filt':>6} {'dNu raw':>8} {'filt':>6} "
-            f"{'max|dLh|':>8} {'max|dNu|':>8} {'rms dLh':>7} {'t_open':>6} {'err/σ':>5} {'unc':>4} {'out':>4} "
-            f"{'rej':>4} {'median':>6} {'p99':>5}  verdict")
-    units = (f"{'':<16} {'':<8} {'':>4} {'rms[µm]':>8} {'[µm]':>6} {'rms[%]':>8} {'[%]':>6} {'>10[µm]':>8} "
-             f"{'>10[%]':>8} {'late':>7} {'[µs]':>6} {'':>5} {'':>4} {'':>4} {'':>4} {'[ms]':>6} {'[ms]':>5}")
-    lines = [head, units]
-    for rep in reports:
-        s = rep["summary"]
-        lines.append(
-            f"{s['scenario']:<16} {'mismatch' if s['mismatch'] else 'matched':<8} {s['injections']:>4} "
-            f"{s['rms_raw_lh_um']:>8.3f} {s['rms_lh_um']:>6.3f} {s['rms_raw_nu_pct']:>8.3f} {s['rms_nu_pct']:>6.3f} "
-            f"{s['max_abs_lh_after10_um']:>8.3f} {s['max_abs_nu_after10_pct']:>8.3f} {s['rms_lh_after_um']:>7.3f} "
-            f"{s['rmse_t_open_us']:>6.2f} {s['sigma_ratio_lh']:>5.2f} {s['unconfirmed']:>4} {s['outliers']:>4} "
-            f"{s['valid_rejected']:>4} {s['median_update_ms']:>6.2f} {s['p99_update_ms']:>5.2f}  "
-            f"{'PASS' if s['passed'] else 'FAIL: ' + '; '.join(s['failures'])}")
-    return "\n".join(lines)
+    return render(TRACKING_COLUMNS, [rep["summary"] for rep in reports],
+                  lambda s: "PASS" if s["passed"] else "FAIL: " + "; ".join(s["failures"]))

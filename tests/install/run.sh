@@ -6,7 +6,11 @@ REPO="$(cd "$(dirname "$0")/../.." && pwd)"
 PY="$REPO/.venv/bin/python"
 WORK="$(mktemp -d)"
 trap 'rm -rf "$WORK"' EXIT
-"$PY" -m pip wheel -q --disable-pip-version-check --no-deps -w "$WORK/dist" "$REPO"
+# build from a copy of the checkout's files (tracked and new, not ignored): setuptools would otherwise
+# leave a build/ tree in the checkout, and a stale one can put deleted modules into the next wheel
+mkdir "$WORK/src"
+git -C "$REPO" ls-files -co --exclude-standard -z | (cd "$REPO" && tar --null --ignore-failed-read -T - -cf - 2>/dev/null) | tar -xf - -C "$WORK/src"
+"$PY" -m pip wheel -q --disable-pip-version-check --no-deps -w "$WORK/dist" "$WORK/src"
 python3 -m venv "$WORK/venv"
 "$WORK/venv/bin/python" -m pip install -q --disable-pip-version-check "$WORK"/dist/*.whl
 cd "$WORK"                                   # nothing of the checkout on the path from here

@@ -1,0 +1,34 @@
+"""Fixed-width benchmark tables: a title row, a unit row, one row per report, a verdict at the end."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Any, Callable
+
+
+@dataclass(frozen=True)
+class Column:
+    """One column: its title and unit (headers), a format spec (``<16``, ``>8.3f``) and its value."""
+
+    title: str
+    unit: str
+    spec: str
+    value: Callable[[dict], Any]
+
+    def head(self, text: str) -> str:
+        align, width = re.match(r"([<>]?)(\d+)", self.spec).groups()
+        return f"{text:{align or '>'}{width}}"
+
+
+def render(columns: list[Column], rows: list[dict], verdict: Callable[[dict], str]) -> str:
+    """The table as text: titles (then ``verdict``), units, and per row the values and its verdict."""
+    lines = [" ".join(c.head(c.title) for c in columns) + "  verdict",
+             " ".join(c.head(c.unit) for c in columns)]
+    lines += [" ".join(f"{c.value(r):{c.spec}}" for c in columns) + f"  {verdict(r)}" for r in rows]
+    return "\n".join(lines)
+
+
+def plant(s: dict) -> str:
+    """The plant column of the accuracy and tracking tables."""
+    return "mismatch" if s["mismatch"] else "matched"
