@@ -12,11 +12,10 @@ from pathlib import Path
 
 from estimator.codec.records import Codec, EstimateState, MalformedFrame, SimTruth, ValvePrediction
 from estimator.errors import EstimatorError
-from estimator.ident.status import ESTIMATED
+from estimator.ident.status import ESTIMATED_CODES
 from estimator.service.bus import to_frame
-from estimator.service.replay import ReplayResult, read_capture
+from estimator.service.replay import read_capture
 
-ESTIMATED_CODES = frozenset(s.code for s in ESTIMATED)
 
 
 def series(capture: Path) -> dict:
@@ -25,8 +24,7 @@ def series(capture: Path) -> dict:
     out: dict[int, dict[str, list]] = defaultdict(lambda: defaultdict(list))
     state_t: dict[tuple[int, int], float] = {}
     t0 = None
-    bad = ReplayResult(None, 0, 0)   # type: ignore[arg-type]  # only its bad-line record is used
-    for msg in read_capture(capture, bad):
+    for msg in read_capture(capture):
         t0 = msg.timestamp if t0 is None else t0
         t = msg.timestamp - t0
         try:

@@ -32,16 +32,13 @@ def _config(args: argparse.Namespace):
 
 def _trace(path: Path, args: argparse.Namespace | None = None):
     """A trace: CSV, or MDF4 (.mf4/.mdf) with the channel options."""
-    from estimator.mdf_io import is_mdf, read_mdf_trace
-    from estimator.trace_io import read_trace
+    from estimator.mdf_io import read_any_trace
 
-    if not is_mdf(path):
-        return read_trace(path)
     meta = {k: str(v) for k, v in (("preload_force_n", getattr(args, "preload_n", None)),
                                    ("temperature_c", getattr(args, "temperature_c", None))) if v is not None}
     period = getattr(args, "sample_period_us", None)
-    return read_mdf_trace(path, getattr(args, "current_channel", None) or "", getattr(args, "voltage_channel", None)
-                          or "", getattr(args, "s3_channel", None), period * 1e-6 if period else None, meta)
+    return read_any_trace(path, getattr(args, "current_channel", None), getattr(args, "voltage_channel", None),
+                          getattr(args, "s3_channel", None), period * 1e-6 if period else None, meta)
 
 
 def _load(path: Path, args: argparse.Namespace | None = None):
@@ -52,10 +49,9 @@ def _load(path: Path, args: argparse.Namespace | None = None):
 
 def _params(args: argparse.Namespace):
     """The model parameters: ``--params FILE`` (what ``calibrate --out`` writes) or Tables 1-2."""
-    from estimator.model.parameters import InjectorParameters, load_nominal
+    from estimator.model.parameters import load_parameters
 
-    path = getattr(args, "params", None)
-    return InjectorParameters.from_toml(path) if path is not None else load_nominal()
+    return load_parameters(getattr(args, "params", None))
 
 
 def _simulator(args: argparse.Namespace, dt_s: float):

@@ -77,6 +77,17 @@ def read_mdf_trace(path: str | Path, current_channel: str, voltage_channel: str,
     return Trace(cols, {k: str(v) for k, v in info.items()})
 
 
+def read_any_trace(path: str | Path, current_channel: str | None = None, voltage_channel: str | None = None,
+                   s3_channel: str | None = None, sample_period_s: float | None = None,
+                   meta: dict[str, str] | None = None) -> Trace:
+    """A trace file: MDF4 (by suffix) with the channel options, else a CSV trace (the options unused)."""
+    from estimator.trace_io import read_trace
+
+    if not is_mdf(path):
+        return read_trace(path)
+    return read_mdf_trace(path, current_channel or "", voltage_channel or "", s3_channel, sample_period_s, meta)
+
+
 def _text(comment: str) -> str:
     """The text of an MDF comment (plain, or the <TX> of its XML form)."""
     m = re.search(r"<TX>(.*?)</TX>", comment, re.S)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator.ident.status import ESTIMATED
+from estimator.ident.status import ESTIMATED_CODES
 from estimator.codec.records import (Codec, EstimateQuality, EstimateState, EstimatorStatus, InjectionTrailer,
                                      SimTruth, ValvePrediction)
 from estimator.service.bus import BusSetupError, check_socketcan, open_bus, to_frame
@@ -34,7 +34,6 @@ TARGETS = {
     "faults": (0.2, 0.3), "multi-injector": (0.2, 0.3), "overload": (None, None),
 }
 SETTLE = 30
-ESTIMATED_CODES = frozenset(s.code for s in ESTIMATED)
 
 
 @dataclass

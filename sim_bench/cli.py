@@ -27,9 +27,9 @@ def _write_json(path: Path, report: dict) -> None:
 
 def _params(args: argparse.Namespace):
     """``--params FILE`` (what ``estimator calibrate --out`` writes) or Tables 1-2."""
-    from estimator.model.parameters import InjectorParameters, load_nominal
+    from estimator.model.parameters import load_parameters
 
-    return InjectorParameters.from_toml(args.params) if args.params is not None else load_nominal()
+    return load_parameters(args.params)
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:

@@ -242,14 +242,21 @@ class DaemonProcess:
 
 
 @contextlib.contextmanager
-def running_daemon(bus_spec: str, log_path: Path, monitor: BusMonitor, **kw: Any) -> Iterator[DaemonProcess]:
-    """A started, ready daemon; stopped (and collected) on exit."""
-    d = DaemonProcess(bus_spec, log_path, **kw).start()
+def watched_daemon(bus_spec: str, log_path: Path, capture: Path | None = None,
+                   **kw: Any) -> Iterator[tuple[DaemonProcess, BusMonitor]]:
+    """A bus monitor (writing ``capture`` if given) and a started, ready daemon (``kw``: state_dir,
+    config, extra); on exit the daemon is stopped and collected, then the monitor closed."""
+    mon = BusMonitor(bus_spec, capture=capture)
+    mon.start()
     try:
-        d.wait_ready(monitor)
-        yield d
+        d = DaemonProcess(bus_spec, log_path, **kw).start()
+        try:
+            d.wait_ready(mon)
+            yield d, mon
+        finally:
+            d.stop()
     finally:
-        d.stop()
+        mon.close()
 
 
 def wait_until(condition: Callable[[], bool], timeout: float, interval: float = 0.02) -> bool:

@@ -26,7 +26,7 @@ from estimator.ident.measurement import Injection
 from estimator.service.bus import open_bus, to_message
 from sim_bench.bench import resolve_bus
 from sim_bench.plant import Plant, PlantConfig
-from sim_bench.procs import REPO, BusMonitor, DaemonProcess, rss_mb
+from sim_bench.procs import REPO, BusMonitor, DaemonProcess, rss_mb, watched_daemon
 
 
 def _injections(n: int, seed: int) -> list[Injection]:
@@ -87,11 +87,7 @@ def periods(bus_spec: str, out: Path, n: int = 300) -> dict:
     """Injections that differ only in SamplePeriod (500..500+n-1 ns)."""
     codec = Codec()
     inj = _injections(1, 1)[0]
-    mon = BusMonitor(bus_spec)
-    mon.start()
-    d = DaemonProcess(bus_spec, out / "periods-daemon.log").start()
-    try:
-        d.wait_ready(mon)
+    with watched_daemon(bus_spec, out / "periods-daemon.log") as (d, mon):
         rss = []
         with open_bus(bus_spec) as bus:
             for k in range(n):
@@ -105,9 +101,6 @@ def periods(bus_spec: str, out: Path, n: int = 300) -> dict:
                 "published": len(mon.of_type(EstimateState)),
                 "rss_first_mb": rss[0], "rss_max_mb": max(rss), "rss_growth_mb": max(rss) - rss[0],
                 "heartbeat_max_gap_s": float(np.diff(t).max()), "daemon_exit": d.stop()}
-    finally:
-        d.stop()
-        mon.close()
 
 
 def stall(bus_spec: str, out: Path, n: int = 10, stop_s: float = STALL_S) -> dict:
@@ -116,11 +109,7 @@ def stall(bus_spec: str, out: Path, n: int = 10, stop_s: float = STALL_S) -> dic
     cfg = out / "stall.toml"
     cfg.write_text(STALL_CONFIG)
     capture = out / "stall-capture.log"
-    mon = BusMonitor(bus_spec, capture=capture)
-    mon.start()
-    d = DaemonProcess(bus_spec, out / "stall-daemon.log", config=cfg).start()
-    try:
-        d.wait_ready(mon)
+    with watched_daemon(bus_spec, out / "stall-daemon.log", capture=capture, config=cfg) as (d, mon):
         with open_bus(bus_spec) as bus:
             for k, inj in enumerate(_injections(n, 2)):
                 frames = injection_frames(codec, 3, k, inj.dt_s, inj.current_a, inj.voltage_v)
@@ -128,9 +117,6 @@ def stall(bus_spec: str, out: Path, n: int = 10, stop_s: float = STALL_S) -> dic
                 mon.wait_for(lambda m: m.heartbeats and _hb(m).accepted + _hb(m).rejected_timeout >= k + 1, 60, d.alive)
         live = _hb(mon)
         code = d.stop()
-    finally:
-        d.stop()
-        mon.close()
     jl = out / "stall-replay.jsonl"
     r = subprocess.run([sys.executable, "-m", "estimator", "replay", str(capture), "--json", str(jl), "--config",
                         str(cfg)], cwd=REPO, capture_output=True, text=True, timeout=300)
@@ -145,11 +131,7 @@ def flood(bus_spec: str, out: Path, frames: int = 5000, seed: int = 3) -> dict:
     codec = Codec()
     rng = random.Random(seed)
     ids = [0x100, 0x101, 0x102, 0x220]
-    mon = BusMonitor(bus_spec)
-    mon.start()
-    d = DaemonProcess(bus_spec, out / "flood-daemon.log").start()
-    try:
-        d.wait_ready(mon)
+    with watched_daemon(bus_spec, out / "flood-daemon.log") as (d, mon):
         with open_bus(bus_spec) as bus:
             for _ in range(frames):
                 fd = rng.random() < 0.7
@@ -167,9 +149,6 @@ def flood(bus_spec: str, out: Path, frames: int = 5000, seed: int = 3) -> dict:
         return {"fault": f"{frames} random frames on the input identifiers", "malformed": hb.frames_malformed,
                 "unknown_commands": hb.commands_unknown, "good_after": 5, "good_estimated": 5 if ok else 0,
                 "rss_mb": rss_mb(d.pid), "daemon_exit": d.stop()}
-    finally:
-        d.stop()
-        mon.close()
 
 
 def poisoned_state(bus_spec: str, out: Path) -> dict:
@@ -188,20 +167,13 @@ def poisoned_state(bus_spec: str, out: Path) -> dict:
            "injectors": {"0": good, "1": bad_type, "2": bad_range, "3": [1, 2]}}
     (state / "estimator-state.json").write_text(json.dumps(doc))
     codec = Codec()
-    mon = BusMonitor(bus_spec)
-    mon.start()
-    d = DaemonProcess(bus_spec, out / "state-daemon.log", state_dir=state).start()
-    try:
-        d.wait_ready(mon)
+    with watched_daemon(bus_spec, out / "state-daemon.log", state_dir=state) as (d, mon):
         with open_bus(bus_spec) as bus:
             for k, inj in enumerate(_injections(3, 6)):
                 for inj_id in (0, 1, 2, 3):
                     _send(bus, codec, inj_id, k, inj)
             mon.wait_for(lambda m: len(m.of_type(EstimateState)) >= 12, 120, d.alive)
         code = d.stop()
-    finally:
-        d.stop()
-        mon.close()
     saved = json.loads((state / "estimator-state.json").read_text())["injectors"]
     return {"fault": "state file: 1 good entry, 3 poisoned (type, range, shape)", "estimates": 12,
             "published": len(mon.of_type(EstimateState)), "restored_good": "0" in saved,
@@ -211,11 +183,7 @@ def poisoned_state(bus_spec: str, out: Path) -> dict:
 def commands(bus_spec: str, out: Path) -> dict:
     """Default policy (reset-only): set_prior refused, undefined code counted."""
     codec = Codec()
-    mon = BusMonitor(bus_spec)
-    mon.start()
-    d = DaemonProcess(bus_spec, out / "commands-daemon.log").start()
-    try:
-        d.wait_ready(mon)
+    with watched_daemon(bus_spec, out / "commands-daemon.log") as (d, mon):
         with open_bus(bus_spec) as bus:
             bus.send(to_message(codec.encode(EstimatorCommand(0, COMMAND_SET_PRIOR, 17.0, 14.9))))
             bus.send(marker_message(codec))
@@ -224,9 +192,6 @@ def commands(bus_spec: str, out: Path) -> dict:
         hb = _hb(mon)
         return {"fault": "set_prior L_h 14.9 µm + undefined code (commands = reset-only)",
                 "refused": hb.commands_refused, "unknown": hb.commands_unknown, "daemon_exit": d.stop()}
-    finally:
-        d.stop()
-        mon.close()
 
 
 def run_all(out: Path, bus: str | None = None) -> dict:

@@ -12,11 +12,12 @@ import glob
 from dataclasses import dataclass
 from pathlib import Path
 
+from estimator.mdf_io import MDF_SUFFIXES
 from estimator.service.estimates import source_kind
+from estimator.service.replay import CAPTURE_SUFFIXES
 
 KEY_FIELDS = ("serial", "injector_key")
-TRACE_SUFFIXES = (".csv", ".mf4", ".mdf")
-CAPTURE_SUFFIXES = (".log", ".asc", ".blf", ".trc", ".csv", ".mf4")
+TRACE_SUFFIXES = (".csv",) + MDF_SUFFIXES
 
 
 @dataclass(frozen=True)

@@ -36,3 +36,4 @@ _CODES = {Status.OK: 0, Status.AT_BOUND: 1, Status.NOT_CONVERGED: 2, Status.REJE
 
 #: statuses whose published (N_u, L_h) is an estimate of this injection (not the previous one held)
 ESTIMATED = frozenset({Status.OK, Status.AT_BOUND, Status.NOT_CONVERGED, Status.UNCERTAIN, Status.UNCONFIRMED})
+ESTIMATED_CODES = frozenset(s.code for s in ESTIMATED)   # the same, as EstimateState.Status values

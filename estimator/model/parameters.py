@@ -180,6 +180,11 @@ class InjectorParameters:
 _NOMINAL: InjectorParameters | None = None
 
 
+def load_parameters(path: str | Path | None = None) -> InjectorParameters:
+    """The parameters of ``path`` (what ``estimator calibrate --out`` writes), or the nominal ones if None."""
+    return InjectorParameters.from_toml(path) if path is not None else load_nominal()
+
+
 def load_nominal() -> InjectorParameters:
     """The paper's nominal parameters (Tables 1 and 2), read once from ``parameters.toml``."""
     global _NOMINAL

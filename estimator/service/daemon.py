@@ -120,10 +120,9 @@ RESTART_KEYS = ("bus", "bitrate", "data_bitrate", "fd", "bus_options", "dbc", "s
 
 def build_pool(cfg: DaemonConfig) -> SimulatorPool:
     """The bounded simulator pool as configured (parameters from ``cfg.params`` or Tables 1-2)."""
-    from estimator.model.parameters import InjectorParameters, load_nominal
+    from estimator.model.parameters import load_parameters
 
-    params = InjectorParameters.from_toml(cfg.params) if cfg.params is not None else load_nominal()
-    return SimulatorPool(params, cfg.max_sample_periods, cfg.sample_periods_ns)
+    return SimulatorPool(load_parameters(cfg.params), cfg.max_sample_periods, cfg.sample_periods_ns)
 
 
 def build_tracker(cfg: DaemonConfig) -> Tracker:
@@ -146,7 +145,6 @@ class Daemon:
         self.cfg = cfg
         self.loader = loader
         self.codec, self.ingest, self.processor, self.clock = build_pipeline(cfg)
-        self.tracker = self.processor.tracker
         self.stop = threading.Event()
         self.reload_requested = threading.Event()
         self._send_lock = threading.Lock()
@@ -162,6 +160,11 @@ class Daemon:
         self._listener: QueueListener | None = None
         self.state_path = cfg.state_dir / STATE_FILE if cfg.state_dir else None
         self._dirty = False
+
+    @property
+    def tracker(self) -> Tracker:
+        """The recursive estimator (the processor's: a reload swaps it there)."""
+        return self.processor.tracker
 
     # ---- state ------------------------------------------------------------------------------
     def restore(self) -> None:
@@ -289,7 +292,7 @@ class Daemon:
         new = DaemonConfig(**{**{f.name: getattr(new, f.name) for f in fields(DaemonConfig)}, **keep})
         tracker = Tracker(new.tracker_config(), pool=build_pool(new))
         tracker.states = self.tracker.states
-        self.tracker = self.processor.tracker = tracker
+        self.processor.tracker = tracker
         self.processor.commands = new.commands
         self.ingest.assembler.timeout_s = new.assembly_timeout_ms * 1e-3
         self.clock.silent_bus_s = new.silent_bus_s

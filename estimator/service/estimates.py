@@ -17,12 +17,12 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from estimator.ident.tracker import Tracker
-from estimator.mdf_io import is_mdf, read_mdf_trace
+from estimator.mdf_io import is_mdf, read_any_trace
 from estimator.service.config import DaemonConfig
 from estimator.service.daemon import build_pipeline, build_tracker
 from estimator.service.processor import ROW_FIELDS, result_row
 from estimator.service.replay import CAPTURE_SUFFIXES, iter_capture
-from estimator.trace_io import injection_from_trace, read_trace
+from estimator.trace_io import injection_from_trace
 
 FIELDS = ("source",) + ROW_FIELDS
 
@@ -37,7 +37,7 @@ def source_kind(path: Path) -> str:
                 if line and not line.startswith("#"):
                     return "capture" if line.startswith("timestamp,arbitration_id") else "trace"
         return "trace"
-    if suffix == ".mf4" or suffix == ".mdf":
+    if is_mdf(path):
         return "trace"   # MDF4 captures of bus traffic: pass kind="capture"
     return "capture" if suffix in CAPTURE_SUFFIXES else "trace"
 
@@ -54,12 +54,7 @@ def iter_estimates(source: Path, cfg: DaemonConfig | None = None, *, kind: str |
         for pub, t in iter_capture(source, cfg, pipeline=pipeline):
             yield {"source": str(source), **pub.to_row(t)}
         return
-    opts = dict(trace_options or {})
-    if is_mdf(source):
-        trace = read_mdf_trace(source, opts.get("current_channel", ""), opts.get("voltage_channel", ""),
-                               opts.get("s3_channel"), opts.get("sample_period_s"), opts.get("meta"))
-    else:
-        trace = read_trace(source)
+    trace = read_any_trace(source, **(trace_options or {}))
     inj = injection_from_trace(trace)
     tracker = tracker if tracker is not None else build_tracker(cfg)
     res = tracker.update(inj)

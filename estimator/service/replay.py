@@ -63,7 +63,7 @@ class ReplayResult:
     bad_line_count: int = 0
 
 
-def read_capture(capture: Path, bad: ReplayResult) -> Iterator[can.Message]:
+def read_capture(capture: Path, bad: ReplayResult | None = None) -> Iterator[can.Message]:
     """Messages of a capture. candump logs are read line by line (a bad line is skipped and recorded);
     other formats through :class:`can.LogReader` (an unreadable file raises ValueError/OSError)."""
     check_capture_suffix(capture, "capture")
@@ -86,6 +86,8 @@ def read_capture(capture: Path, bad: ReplayResult) -> Iterator[can.Message]:
                     continue
                 msgs = list(can.CanutilsLogReader(io.StringIO(line)))
             except (ValueError, IndexError, UnicodeDecodeError) as exc:
+                if bad is None:
+                    continue
                 bad.bad_line_count += 1
                 if len(bad.bad_lines) < 100:
                     bad.bad_lines.append((no, f"{type(exc).__name__}: {exc}"[:120]))
