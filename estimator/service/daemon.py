@@ -20,7 +20,7 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import can
@@ -223,8 +223,12 @@ class Daemon:
         next_persist = time.monotonic() + self.cfg.persist_period_s
         while not self.stop.is_set():
             if self._pending_cfg is not None:
-                self._apply(self._pending_cfg)
-                self._pending_cfg = None
+                new, self._pending_cfg = self._pending_cfg, None
+                try:
+                    self._apply(new)
+                except (EstimatorError, OSError) as exc:   # e.g. the parameter file went away since SIGHUP
+                    log.error("SIGHUP: configuration not applied, running configuration kept: %s", exc)
+                    self.notify.notify(f"READY=1\nSTATUS=reload failed: {exc}")
                 next_persist = time.monotonic()
             item = lst.get(timeout=0.01)
             mono = time.monotonic()
@@ -274,8 +278,7 @@ class Daemon:
             self.notify.notify("READY=1\nSTATUS=reload skipped: no configuration file")
             return
         try:
-            new = self.loader()
-            build_pool(new)   # the parameter file must load, too
+            new = self.loader()   # validates every key and loads the parameter file
         except (ConfigError, EstimatorError, OSError) as exc:
             log.error("SIGHUP: configuration not reloaded, running configuration kept: %s", exc)
             self.notify.notify(f"READY=1\nSTATUS=reload failed: {exc}")
@@ -288,9 +291,11 @@ class Daemon:
     def _apply(self, new: DaemonConfig) -> None:
         """Worker thread: persist, then switch to ``new`` (restart-only keys keep their running values)."""
         self.persist()
-        keep = {k: getattr(self.cfg, k) for k in RESTART_KEYS}
-        new = DaemonConfig(**{**{f.name: getattr(new, f.name) for f in fields(DaemonConfig)}, **keep})
-        tracker = Tracker(new.tracker_config(), pool=build_pool(new))
+        new = replace(new, **{k: getattr(self.cfg, k) for k in RESTART_KEYS})
+        same_pool = all(getattr(new, k) == getattr(self.cfg, k) for k in ("params", "max_sample_periods",
+                                                                          "sample_periods_ns"))
+        # the simulators' tables stay when nothing they depend on changed
+        tracker = Tracker(new.tracker_config(), pool=self.tracker.pool if same_pool else build_pool(new))
         tracker.states = self.tracker.states
         self.processor.tracker = tracker
         self.processor.commands = new.commands
