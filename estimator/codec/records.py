@@ -115,6 +115,10 @@ class EstimatorStatus(Record):
     bus_errors: int = 0
     commands_refused: int = 0
     commands_unknown: int = 0
+    queue_p99_ms: float = 0.0
+    assembly_p99_ms: float = 0.0
+    estimation_p99_ms: float = 0.0
+    send_p99_ms: float = 0.0
     MESSAGE: ClassVar[str] = "EstimatorStatus"
     SIGNALS: ClassVar[dict[str, str]] = {
         "accepted": "InjectionsAccepted", "rejected_crc": "RejectedCrc", "rejected_missing": "RejectedMissing",
@@ -122,7 +126,8 @@ class EstimatorStatus(Record):
         "rejected_outlier": "RejectedOutlier", "frames_dropped": "FramesDropped",
         "frames_malformed": "FramesMalformed", "queue_depth": "QueueDepth", "latency_p99_ms": "LatencyP99",
         "uptime_s": "Uptime", "bus_errors": "BusErrors", "commands_refused": "CommandsRefused",
-        "commands_unknown": "CommandsUnknown"}
+        "commands_unknown": "CommandsUnknown", "queue_p99_ms": "QueueP99", "assembly_p99_ms": "AssemblyP99",
+        "estimation_p99_ms": "EstimationP99", "send_p99_ms": "SendP99"}
 
 
 @dataclass(frozen=True)
@@ -185,6 +190,8 @@ class Codec:
         self._sample_prefix = self.messages.samples.get_signal_by_name("BlockIndex")
         self._prefix_signals = [self.messages.samples.get_signal_by_name(n)
                                 for n in ("InjectorId", "InjectionCounter", "BlockIndex")]
+        self._prefix_fields = [(sig.start, (1 << sig.length) - 1) for sig in self._prefix_signals]
+        self._max_block = self._sample_prefix.maximum or 255
         for sig in self._prefix_signals:   # the numpy packer/decoder assume this (checked, not hoped)
             if sig.byte_order != "little_endian" or sig.start + sig.length > 8 * self.layout.current_offset \
                     or sig.scale != 1 or sig.offset != 0:
@@ -275,12 +282,9 @@ class Codec:
     def decode_samples(self, data: bytes) -> SampleBlock:
         """An InjectionSamples payload with numpy (identification fields with cantools' start bits)."""
         head = int.from_bytes(data[:4], "little")
-        msg = self.messages.samples
-        vals = []
-        for name in ("InjectorId", "InjectionCounter", "BlockIndex"):
-            s = msg.get_signal_by_name(name)
-            vals.append((head >> s.start) & ((1 << s.length) - 1))
-        if vals[2] > (self._sample_prefix.maximum or 255):
-            raise MalformedFrame(f"InjectionSamples.BlockIndex = {vals[2]} out of range")
+        (s0, m0), (s1, m1), (s2, m2) = self._prefix_fields
+        block = (head >> s2) & m2
+        if block > self._max_block:
+            raise MalformedFrame(f"InjectionSamples.BlockIndex = {block} out of range")
         cur, vol = self.layout.raw_pairs(data)
-        return SampleBlock(vals[0], vals[1], vals[2], cur, vol)
+        return SampleBlock((head >> s0) & m0, (head >> s1) & m1, block, cur, vol)

@@ -56,12 +56,15 @@ class SampleLayout:
         return cls(len(pairs), cur[0], vol[0], stride, scales_c.pop(), scales_v.pop(), msg.length)
 
     def raw_pairs(self, data: bytes) -> tuple[np.ndarray, np.ndarray]:
-        """Raw int16 current and voltage of one frame, each (per_block,)."""
-        buf = np.frombuffer(data, dtype="<i2", count=(self.length) // 2) if self.current_offset % 2 == 0 else None
-        if buf is not None and self.stride % 2 == 0 and self.voltage_offset % 2 == 0:
-            step = self.stride // 2
-            c0, v0 = self.current_offset // 2, self.voltage_offset // 2
-            return buf[c0:c0 + step * self.per_block:step], buf[v0:v0 + step * self.per_block:step]
+        """Raw int16 current and voltage of one frame, each (per_block,): read-only views of ``data``.
+
+        An even stride is two strided int16 views (numpy reads the unaligned words of an odd offset
+        itself); an odd one gathers the bytes.
+        """
+        if self.stride % 2 == 0:
+            step, count = self.stride // 2, (self.stride // 2) * (self.per_block - 1) + 1
+            return (np.frombuffer(data, dtype="<i2", count=count, offset=self.current_offset)[::step],
+                    np.frombuffer(data, dtype="<i2", count=count, offset=self.voltage_offset)[::step])
         raw = np.frombuffer(data, dtype=np.uint8)
         idx_c = self.current_offset + self.stride * np.arange(self.per_block)
         idx_v = self.voltage_offset + self.stride * np.arange(self.per_block)

@@ -90,27 +90,44 @@ class QueueListener(can.Listener):
                 return None
 
 
+STAGES = ("queue", "assembly", "estimation", "send")   # the parts of the latency, in order
+
+
 @dataclass
 class Stats:
-    """Latency samples (last 10 s, at most 100 000) for the heartbeat's p99; the worker adds, the
-    heartbeat thread reads (hence the lock)."""
+    """Latency samples (last 10 s, at most 100 000) for the heartbeat's p99s; the worker adds, the
+    heartbeat thread reads (hence the lock).
+
+    One sample per published injection: the total (last frame arrived -> EstimateState sent) and its
+    :data:`STAGES` in seconds: waiting in the input queue, decoding and reassembly, the estimator,
+    handing the frame to the bus.
+    """
 
     window_s: float = 10.0
 
     def __post_init__(self) -> None:
-        self.samples: collections.deque[tuple[float, float]] = collections.deque(maxlen=100_000)
+        self.samples: collections.deque[tuple[float, float, tuple[float, ...]]] = collections.deque(maxlen=100_000)
         self._lock = threading.Lock()
 
-    def add(self, t: float, latency_s: float) -> None:
+    def add(self, t: float, latency_s: float, stages_s: tuple[float, ...] = ()) -> None:
         with self._lock:
-            self.samples.append((t, latency_s))
+            self.samples.append((t, latency_s, stages_s))
             while self.samples and self.samples[0][0] < t - self.window_s:
                 self.samples.popleft()
 
     def p99_ms(self) -> float:
+        """p99 of the total latency in ms (0 without samples)."""
+        return self.p99s_ms()[0]
+
+    def p99s_ms(self) -> tuple[float, dict[str, float]]:
+        """p99 of the total and of each stage (ms; 0 without samples)."""
         with self._lock:
-            values = [s for _, s in self.samples]
-        return float(np.percentile(values, 99)) * 1e3 if values else 0.0
+            rows = [(s, *st) for _, s, st in self.samples if len(st) == len(STAGES)]
+            totals = [s for _, s, _ in self.samples]
+        if not totals:
+            return 0.0, dict.fromkeys(STAGES, 0.0)
+        stage = np.percentile(np.array(rows)[:, 1:], 99, axis=0) * 1e3 if rows else np.zeros(len(STAGES))
+        return float(np.percentile(totals, 99)) * 1e3, dict(zip(STAGES, map(float, stage)))
 
 
 # keys a SIGHUP cannot change (they shape the bus connection and the memory already allocated)
@@ -237,9 +254,16 @@ class Daemon:
                 if item is not None:
                     frame, arrived = item
                     now = self.clock.on_frame(frame.timestamp, arrived)   # bus time, as in a replay
-                    for pub in self.processor.handle(self.ingest.feed(frame, now)):
+                    events = self.ingest.feed(frame, now)
+                    t_prev = time.monotonic()
+                    assembled = t_prev - mono
+                    for pub in self.processor.handle(events):
+                        t_est = time.monotonic()
                         self.send(pub.frames[:1])
-                        self.stats.add(mono, time.monotonic() - arrived)
+                        t_sent = time.monotonic()
+                        self.stats.add(mono, t_sent - arrived, (mono - arrived, assembled, t_est - t_prev,
+                                                                t_sent - t_est))
+                        assembled, t_prev = 0.0, t_sent     # a second injection of the same frame: later stages only
                         self.send(pub.frames[1:])
                         self._dirty = True
                 else:
@@ -263,8 +287,9 @@ class Daemon:
         assert self._listener is not None
         while not self.stop.is_set():
             try:
-                self.send([self.processor.status_frame(len(self._listener.queue), self.stats.p99_ms(),
-                                                       time.monotonic() - self.started)])
+                total, stages = self.stats.p99s_ms()
+                self.send([self.processor.status_frame(len(self._listener.queue), total,
+                                                       time.monotonic() - self.started, stages)])
             except Exception:   # never let the heartbeat die with a traceback per tick
                 self.rlog.log(logging.ERROR, "heartbeat", "heartbeat error (continuing)", exc_info=True)
             self.stop.wait(self.cfg.status_period_s)

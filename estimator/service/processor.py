@@ -165,8 +165,11 @@ class Processor:
             enc(ValvePrediction(injector_id, counter, res.t_contact_s * 1e6, res.t_open_s * 1e6, res.stroke_m * 1e6)),
         ]
 
-    def status_frame(self, queue_depth: int, latency_p99_ms: float, uptime_s: float):
-        """The EstimatorStatus heartbeat frame."""
+    def status_frame(self, queue_depth: int, latency_p99_ms: float, uptime_s: float,
+                     stage_p99_ms: dict[str, float] | None = None):
+        """The EstimatorStatus heartbeat frame (``stage_p99_ms``: p99 per latency stage, keys queue,
+        assembly, estimation, send, in ms)."""
         counts = {name: getattr(self.counters, name) & self._masks[name] for name in _STATUS_COUNTERS}
+        stages = {f"{k}_p99_ms": v for k, v in (stage_p99_ms or {}).items()}
         return self.codec.encode(EstimatorStatus(**counts, queue_depth=queue_depth, latency_p99_ms=latency_p99_ms,
-                                                 uptime_s=int(uptime_s)))
+                                                 uptime_s=int(uptime_s), **stages))
