@@ -47,14 +47,14 @@ def test_memo_reuses_only_within_one_sigma_and_for_the_same_drive(sim):
 
 def test_tracker_publishes_a_prediction_within_sigma_of_a_fresh_one(sim):
     tr = Tracker(TrackerConfig(), sim)
-    for k in range(12):
+    for k in range(24):
         res = tr.update(measured(17.2, 3.0, seed=100 + k)[0])
-    fresh = predict_valve(sim, measured(17.2, 3.0, seed=111)[0], res.nu_n_per_v, res.lh_m)
+    fresh = predict_valve(sim, measured(17.2, 3.0, seed=123)[0], res.nu_n_per_v, res.lh_m)
     # the published prediction was made at a point within one sigma of the published estimate: it
     # differs from a fresh one by what one sigma of L_h does to the contact time (~0.1 µs per 0.1 µm)
     assert abs(res.t_contact_s - fresh[0]) < 0.2e-6
     memo = tr.memos[0]
-    assert memo.reused + memo.simulated == 12 and memo.reused >= 6   # a steady injector mostly reuses
+    assert memo.reused + memo.simulated == 24 and memo.reused >= 8   # a steady injector often reuses
     tr.reset(0)
     assert 0 not in tr.memos
 
