@@ -47,7 +47,6 @@ from estimator.ident.idle_stroke import (check_injection, effective_window_s, fi
 from estimator.ident.local_fit import refine
 from estimator.ident.measurement import Injection
 from estimator.ident.model_selection import likelihood_ratio
-from estimator.ident.prediction import ValveMemo
 from estimator.ident.search import Box
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.status import Status
@@ -319,13 +318,9 @@ def _delta_temperature(t_from: float | None, t_to: float | None) -> float | None
     return None if t_from is None or t_to is None else t_to - t_from
 
 
-def update(state: TrackerState, inj: Injection, sim: FastSimulator, config: TrackerConfig,
-           memo: ValveMemo | None = None) -> tuple[TrackerState, TrackResult]:
-    """One injection through the recursive estimator (pure: ``state`` is not modified).
-
-    ``memo``: this injector's last valve prediction, reused while it still answers (see
-    :mod:`estimator.ident.prediction`); without one, every published prediction is simulated.
-    """
+def update(state: TrackerState, inj: Injection, sim: FastSimulator,
+           config: TrackerConfig) -> tuple[TrackerState, TrackResult]:
+    """One injection through the recursive estimator (pure: ``state`` is not modified)."""
     st = replace(state, x=list(state.x), p=[list(r) for r in state.p])
     st.updates += 1
     box = search_box(config.ident, sim, inj.f_open_n)
@@ -360,7 +355,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator, config: Trac
     if restart:
         _restart(st, z, r, now, temp, config)
         reason = "" if cold else "restarted (model-error mode changed)"
-        return _accepted(st, raw, r, sim, inj, config, memo, reason)
+        return _accepted(st, raw, r, sim, inj, config, reason)
 
     x_pred, p_pred = held
     inn = kalman.innovation(x_pred, p_pred, z, r)
@@ -372,7 +367,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator, config: Trac
         st.doubts = 0
         x, p = kalman.update(x_pred, p_pred, z, r)
         _store(st, x, p, now, temp)
-        return _accepted(st, raw, r, sim, inj, config, memo, "", outliers)
+        return _accepted(st, raw, r, sim, inj, config, "", outliers)
 
     if not st.robust and (raw.robust or (math.isfinite(raw.model_error_stat) and
                                          raw.model_error_stat > config.ident.model_error_threshold)):
@@ -380,13 +375,13 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator, config: Trac
         st.rejected += 1
         reason = (f"outlier (innovation chi2 {inn.d2:.1f} > {config.gate_chi2:.1f}, model error "
                   f"{raw.model_error_stat:.0f})")
-        return st, _publish(held, raw, Status.REJECTED, reason, sim, inj, predict=True, outliers=1, memo=memo)
+        return st, _publish(held, raw, Status.REJECTED, reason, sim, inj, predict=True, outliers=1)
 
     if st.pending is not None:
         taken = _confirm_jump(st, z, r, now, temp, config, noise)
         if taken is not None:
             comps = " and ".join({kalman.NU: "N_u", kalman.LH: "L_h"}[c] for c in taken)
-            return _accepted(st, raw, r, sim, inj, config, memo, f"change of {comps} confirmed by two injections",
+            return _accepted(st, raw, r, sim, inj, config, f"change of {comps} confirmed by two injections",
                              confirmed=1)
         st.rejected += 1          # the earlier doubt agrees with nothing: an outlier
         outliers = 1
@@ -395,7 +390,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator, config: Trac
     st.doubts += 1
     if st.doubts >= config.max_consecutive_outliers:
         _restart(st, z, r, now, temp, config)
-        return _accepted(st, raw, r, sim, inj, config, memo, f"re-acquired after {st.doubts} injections in doubt",
+        return _accepted(st, raw, r, sim, inj, config, f"re-acquired after {st.doubts} injections in doubt",
                          outliers)
     st.pending = Pending(z.tolist(), r.tolist(), now, temp, inj.counter)
     if inn.d2 > config.raw_publish_chi2:
@@ -404,7 +399,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator, config: Trac
     else:   # marginal: as likely a noise tail as a small change: the filter updated with it (not committed)
         best, whose = kalman.update(x_pred, p_pred, z, r), "the filter's estimate with it"
     reason = f"in doubt (innovation chi2 {inn.d2:.1f} > {config.gate_chi2:.1f}): {whose}"
-    return st, _publish(best, raw, Status.UNCONFIRMED, reason, sim, inj, predict=True, outliers=outliers, memo=memo)
+    return st, _publish(best, raw, Status.UNCONFIRMED, reason, sim, inj, predict=True, outliers=outliers)
 
 
 def _robust_hysteresis(st: TrackerState, raw: Estimate, config: TrackerConfig, cold: bool) -> bool:
@@ -493,7 +488,7 @@ def _embed(r: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 
 def _accepted(st: TrackerState, raw: Estimate, r: np.ndarray, sim: FastSimulator, inj: Injection,
-              config: TrackerConfig, memo: ValveMemo | None, reason: str, outliers: int = 0,
+              config: TrackerConfig, reason: str, outliers: int = 0,
               confirmed: int = 0) -> tuple[TrackerState, TrackResult]:
     st.accepted += 1 + confirmed
     _carry_search(st, raw, r, config)
@@ -506,7 +501,7 @@ def _accepted(st: TrackerState, raw: Estimate, r: np.ndarray, sim: FastSimulator
                             f"{config.ident.sigma_limit_lh_um:.2f} µm")
     else:
         status = Status.OK
-    res = _publish((x, p), raw, status, reason, sim, inj, predict=True, outliers=outliers, memo=memo)
+    res = _publish((x, p), raw, status, reason, sim, inj, predict=True, outliers=outliers)
     res.accepted = 1 + confirmed
     return st, res
 
@@ -528,8 +523,7 @@ def _carry_search(st: TrackerState, raw: Estimate, r: np.ndarray, config: Tracke
 
 
 def _publish(filt: tuple[np.ndarray, np.ndarray] | None, raw: Estimate, status: Status, reason: str,
-             sim: FastSimulator | None, inj: Injection, predict: bool, outliers: int = 0,
-             memo: ValveMemo | None = None) -> TrackResult:
+             sim: FastSimulator | None, inj: Injection, predict: bool, outliers: int = 0) -> TrackResult:
     """The published result: ``filt`` = (state, covariance) to publish, None if nothing is known."""
     nan = float("nan")
     if filt is None:
@@ -539,10 +533,7 @@ def _publish(filt: tuple[np.ndarray, np.ndarray] | None, raw: Estimate, status: 
     tc = to = stroke = nan
     if predict and math.isfinite(pt.nu_n_per_v) and math.isfinite(pt.lh_um):
         try:
-            if memo is None:
-                tc, to, stroke = predict_valve(sim, inj, pt.nu_n_per_v, pt.lh_m)
-            else:
-                tc, to, stroke = memo.predict(sim, inj, pt.nu_n_per_v, pt.lh_m, sig.nu_n_per_v, sig.lh_m)
+            tc, to, stroke = predict_valve(sim, inj, pt.nu_n_per_v, pt.lh_m)
         except EstimatorError:   # e.g. a prior outside the simulator's N_u range: no prediction
             pass
     return TrackResult(raw, pt.nu_n_per_v, pt.lh_m, sig.nu_n_per_v, sig.lh_m, status, reason,
@@ -559,7 +550,6 @@ class Tracker:
         if sim is not None:
             self.pool.add(sim)
         self.states: dict[int, TrackerState] = {}
-        self.memos: dict[int, ValveMemo] = {}   # last valve prediction per injector (not persisted)
 
     @property
     def params(self) -> InjectorParameters:
@@ -579,10 +569,7 @@ class Tracker:
         refusal = self.pool.refusal(inj.dt_s)
         if refusal is not None:
             return _publish(None, rejected(refusal), Status.REJECTED, refusal, None, inj, False)
-        memo = self.memos.get(inj.injector_id)
-        if memo is None:
-            memo = self.memos[inj.injector_id] = ValveMemo()
-        new_state, result = update(state, inj, self.simulator(inj.dt_s), self.config, memo)
+        new_state, result = update(state, inj, self.simulator(inj.dt_s), self.config)
         self.states[inj.injector_id] = new_state
         return result
 
@@ -606,11 +593,9 @@ class Tracker:
     def reset(self, injector_id: int) -> None:
         """Forget everything about one injector."""
         self.states.pop(injector_id, None)
-        self.memos.pop(injector_id, None)
 
     def set_prior(self, injector_id: int, nu_n_per_v: float, lh_um: float) -> None:
         """Start one injector from a prior (N/V, µm)."""
         c = self.config
-        self.memos.pop(injector_id, None)
         self.states[injector_id] = TrackerState().with_prior(nu_n_per_v, lh_um, slope=c.slope_n_per_v_degc,
                                                              slope_sigma=c.slope_sigma)
