@@ -124,8 +124,9 @@ class Plant:
         """One injection with truth. ``current_fn(t)`` overrides the drive (A)."""
         cfg = self.cfg
         m = cfg.oversample
-        # simulate long enough for the plateau stroke: the window's current, then held (zero current)
-        t_fine = sample_times(PLATEAU_WINDOW_S[1], self.sim.dt_s)
+        # simulate long enough for the plateau stroke and the whole window: the window's current, then
+        # held (zero current)
+        t_fine = sample_times(max(PLATEAU_WINDOW_S[1], cfg.window_s), self.sim.dt_s)
         phase = float(rng.uniform())
         cur = current_fn(t_fine) if current_fn is not None else true_current(t_fine, cfg, phase)
         cur = np.where(t_fine <= cfg.window_s + 1e-12, cur, 0.0)

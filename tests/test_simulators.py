@@ -152,3 +152,11 @@ def test_valve_hovering_at_its_threshold_does_not_chatter(sim, nu, lh_um, phase)
     assert np.max(np.abs(fast.voltage_v - ref.voltage_v)) <= 0.05
     assert np.max(np.abs(fast.s4_m - ref.s4_m)) <= 0.02e-6
     assert np.isfinite(fast.t_open_s[0]) and fast.t_open_s[0] > 100e-6     # opened after the current stopped
+
+
+def test_plant_window_longer_than_the_plateau_window():
+    """A measuring window past 490 µs (the end of Table 3's plateau window) is simulated in full."""
+    from sim_bench.plant import Plant, PlantConfig
+
+    m = Plant(PlantConfig(window_s=600e-6)).measure(17.0, 3e-6, 28.0, np.random.default_rng(1))
+    assert m.current_a.size == 1201 and np.isfinite(m.voltage_v).all() and np.isfinite(m.stroke_m)
