@@ -190,22 +190,12 @@ def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, 
     have = np.zeros(nreg, dtype=np.bool_)
     amat = np.empty((nreg, NZ, NZ))
     have_a = np.zeros(nreg, dtype=np.bool_)
-    # guard rows have at most a few non-zero entries (and none on I, dI/dt): loop over those only
-    g_idx, g_nnz = _nonzero_entries(guards)
-    out_idx = np.empty(NZ, dtype=np.int64)
-    gv0 = np.empty(3)      # guard values at z, valid when ``fresh`` (the end of the previous sub-step)
-    gv1 = np.empty(3)
     for b in range(nb):
         have[:] = False
         have_a[:] = False
         seated = False
-        fresh = False
-        n_out = 0
         for i in range(NZ):
             z[i] = z0[b, i]
-            if cout[b, i] != 0.0:
-                out_idx[n_out] = i
-                n_out += 1
         r = region0[b]
         t_contact[b] = np.nan
         t_open[b] = np.nan
@@ -213,7 +203,7 @@ def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, 
         if region_mode[r] == 2 or region_mode[r] == 3:
             t_contact[b] = 0.0
         z[ZI] = cur[0]
-        out_u[b, 0] = _output(cout, b, out_idx, n_out, z)
+        out_u[b, 0] = _dot(cout[b], z)
         out_s3[b, 0] = z[S3]
         out_s4[b, 0] = z[S4]
         out_mode[b, 0] = region_mode[r]
@@ -249,12 +239,9 @@ def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, 
                 for j in range(3):
                     if target[r, j] < 0:
                         continue
-                    g0 = gv0[j] if fresh else _guard_value(guards, r, j, g_idx, g_nnz, z)
-                    g1 = _guard_value(guards, r, j, g_idx, g_nnz, zn)
-                    gv1[j] = g1
-                    if (g0 > 0.0 or g1 <= 0.0) and not (seated and j == open_index[r]):
-                        continue       # no upward crossing in this sub-step (the common case)
                     g = guards[r, j]
+                    g0 = _dot(g, z)
+                    g1 = _dot(g, zn)
                     if seated and j == open_index[r]:
                         # lift-off from the seat needs both forces: min(ordinary, spring-only) > 0
                         gs = open_seated[r]
@@ -276,12 +263,7 @@ def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, 
                 if best < 0:
                     for i in range(NZ):
                         z[i] = zn[i]
-                    # guards do not read I or dI/dt, so their values at zn are those at the next z
-                    for j in range(3):
-                        gv0[j] = gv1[j]
-                    fresh = True
                     break
-                fresh = False
                 if nev >= MAX_EVENTS_PER_SAMPLE:
                     status[b] = STATUS_EVENT_CAP
                     for i in range(NZ):
@@ -321,52 +303,10 @@ def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, 
             z[ZI] = cur[k + 1]
             if seated and open_index[r] >= 0 and _dot(guards[r, open_index[r]], z) <= 0.0:
                 seated = False   # the full opening force fell below F_open: the ordinary guard re-arms
-            out_u[b, k + 1] = _output(cout, b, out_idx, n_out, z)
+            out_u[b, k + 1] = _dot(cout[b], z)
             out_s3[b, k + 1] = z[S3]
             out_s4[b, k + 1] = z[S4]
             out_mode[b, k + 1] = region_mode[r]
-
-
-@njit(cache=True, nogil=True)
-def _nonzero_entries(guards):
-    """Per guard row (r, j): the indices of its non-zero entries (ascending) and their number.
-
-    Skipping exact zeros leaves every dot product bit-for-bit the same. Guards must not read I or
-    dI/dt (the kernel reuses a guard's value at the end of a sample as its value at the start of
-    the next, where only those two entries of z change)."""
-    nreg, ng = guards.shape[0], guards.shape[1]
-    idx = np.zeros((nreg, ng, NZ), dtype=np.int64)
-    nnz = np.zeros((nreg, ng), dtype=np.int64)
-    for r in range(nreg):
-        for j in range(ng):
-            if guards[r, j, ZI] != 0.0 or guards[r, j, ZID] != 0.0:
-                raise ValueError("a guard reads the current: its value cannot be carried between samples")
-            for i in range(NZ):
-                if guards[r, j, i] != 0.0:
-                    idx[r, j, nnz[r, j]] = i
-                    nnz[r, j] += 1
-    return idx, nnz
-
-
-@njit(cache=True, nogil=True)
-def _guard_value(guards, r, j, idx, nnz, z):
-    """guards[r, j] @ z over the row's non-zero entries (scalar indexing: an array view in the
-    per-sample loop costs a reference-count round trip, more than the dot product itself)."""
-    s = 0.0
-    for q in range(nnz[r, j]):
-        i = idx[r, j, q]
-        s += guards[r, j, i] * z[i]
-    return s
-
-
-@njit(cache=True, nogil=True)
-def _output(cout, b, idx, n, z):
-    """cout[b] @ z over its non-zero entries ``idx[:n]``."""
-    s = 0.0
-    for q in range(n):
-        i = idx[q]
-        s += cout[b, i] * z[i]
-    return s
 
 
 @njit(cache=True, nogil=True)
