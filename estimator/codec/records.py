@@ -187,11 +187,10 @@ class Codec:
             msg = self.db.get_message_by_name(rt.MESSAGE)
             self._by_id[msg.frame_id] = (msg, rt)
         self._by_id[self.messages.samples.frame_id] = (self.messages.samples, None)
-        self._sample_prefix = self.messages.samples.get_signal_by_name("BlockIndex")
         self._prefix_signals = [self.messages.samples.get_signal_by_name(n)
                                 for n in ("InjectorId", "InjectionCounter", "BlockIndex")]
         self._prefix_fields = [(sig.start, (1 << sig.length) - 1) for sig in self._prefix_signals]
-        self._max_block = self._sample_prefix.maximum or 255
+        self._max_block = self._prefix_signals[2].maximum or 255   # BlockIndex
         for sig in self._prefix_signals:   # the numpy packer/decoder assume this (checked, not hoped)
             if sig.byte_order != "little_endian" or sig.start + sig.length > 8 * self.layout.current_offset \
                     or sig.scale != 1 or sig.offset != 0:

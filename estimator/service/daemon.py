@@ -109,7 +109,7 @@ class Stats:
         self.samples: collections.deque[tuple[float, float, tuple[float, ...]]] = collections.deque(maxlen=100_000)
         self._lock = threading.Lock()
 
-    def add(self, t: float, latency_s: float, stages_s: tuple[float, ...] = ()) -> None:
+    def add(self, t: float, latency_s: float, stages_s: tuple[float, float, float, float]) -> None:
         with self._lock:
             self.samples.append((t, latency_s, stages_s))
             while self.samples and self.samples[0][0] < t - self.window_s:
@@ -122,12 +122,11 @@ class Stats:
     def p99s_ms(self) -> tuple[float, dict[str, float]]:
         """p99 of the total and of each stage (ms; 0 without samples)."""
         with self._lock:
-            rows = [(s, *st) for _, s, st in self.samples if len(st) == len(STAGES)]
-            totals = [s for _, s, _ in self.samples]
-        if not totals:
+            rows = [(s, *st) for _, s, st in self.samples]
+        if not rows:
             return 0.0, dict.fromkeys(STAGES, 0.0)
-        stage = np.percentile(np.array(rows)[:, 1:], 99, axis=0) * 1e3 if rows else np.zeros(len(STAGES))
-        return float(np.percentile(totals, 99)) * 1e3, dict(zip(STAGES, map(float, stage)))
+        total, *stages = np.percentile(np.array(rows), 99, axis=0) * 1e3
+        return float(total), dict(zip(STAGES, map(float, stages)))
 
 
 # keys a SIGHUP cannot change (they shape the bus connection and the memory already allocated)
