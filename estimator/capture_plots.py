@@ -10,7 +10,8 @@ from __future__ import annotations
 from collections import defaultdict
 from pathlib import Path
 
-from estimator.codec.records import Codec, EstimateState, MalformedFrame, SimTruth, ValvePrediction
+from estimator.codec.errors import MalformedFrame
+from estimator.codec.records import Codec, EstimateState, SimTruth, ValvePrediction
 from estimator.errors import EstimatorError
 from estimator.ident.status import ESTIMATED_CODES
 from estimator.service.bus import to_frame

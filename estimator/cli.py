@@ -238,7 +238,8 @@ def can_errors() -> type:
 
 def cmd_check_dbc(args: argparse.Namespace) -> int:
     """Validate the DBC against the contract."""
-    from estimator.codec.database import default_dbc_path, load_database
+    from estimator.codec.database import default_dbc_path
+    from estimator.codec.records import load_database
     from estimator.codec.records import Codec
 
     path = args.dbc or default_dbc_path()

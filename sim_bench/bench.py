@@ -27,13 +27,7 @@ from sim_bench import scenarios
 from sim_bench.hub import Hub
 from sim_bench.procs import BusMonitor, DaemonProcess, rss_mb, spawn, stop_process
 
-# Targets per scenario: max |L_h error| (µm) after 30 injections of each injector, max |N_u error| (%).
-TARGETS = {
-    "nominal": (0.2, 0.3), "temperature-ramp": (0.2, 0.3), "wear": (0.2, 0.3), "warm-up": (0.2, 0.3),
-    "mismatch": (0.5, None),
-    "faults": (0.2, 0.3), "multi-injector": (0.2, 0.3), "overload": (None, None),
-}
-SETTLE = 30
+SETTLE = scenarios.SETTLE
 
 
 @dataclass
@@ -176,7 +170,8 @@ def score(rows: list[dict], status: EstimatorStatus | None, scenario: str) -> di
         s.update({k: getattr(status, k) for k in ("accepted", "rejected_crc", "rejected_missing", "rejected_timeout",
                                                   "rejected_invalid", "rejected_outlier", "frames_dropped",
                                                   "frames_malformed")})
-    lh_t, nu_t = TARGETS.get(scenario, (None, None))
+    targets = scenarios.SCENARIOS[scenario].targets
+    lh_t, nu_t = targets.lh_um, targets.nu_pct
     fails = []
     if lh_t is not None and not (s["max_abs_lh_um"] <= lh_t):
         fails.append(f"max |L_h error| {s['max_abs_lh_um']:.3f} µm > {lh_t} µm")

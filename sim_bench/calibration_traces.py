@@ -1,8 +1,7 @@
 """Calibration traces (eq. 25): an actuator without valve at several temperatures, with s3 measured.
 
-The temperature law of the simulated actuator (documented in the README): N_u(T) = 15 + 0.06 T
-(N/V, T in degC; 15 N/V at 0 degC to 21 N/V at 100 degC, the range of Table 1), and
-R = R(N_u(T)) from eq. 22 with Table 1's R0a, R0b.
+The simulated actuator follows the benches' temperature law (:func:`scenarios.nu_of_temperature`),
+and R = R(N_u(T)) from eq. 22 with Table 1's R0a, R0b.
 """
 
 from __future__ import annotations
@@ -15,14 +14,7 @@ from estimator.model.drive import SAMPLE_PERIOD_S, sample_times, standard_drive
 from estimator.model.parameters import load_nominal
 from estimator.model.psa_lti import simulate_psa
 from estimator.trace_io import write_trace
-
-NU_AT_0C = 15.0
-NU_PER_DEGC = 0.06
-
-
-def nu_of_temperature(t_c: float) -> float:
-    """The simulated actuators' coupling factor at temperature t_c (degC), N/V."""
-    return NU_AT_0C + NU_PER_DEGC * t_c
+from sim_bench.scenarios import nu_of_temperature
 
 
 def write(out_dir: Path, temperatures_c: list[float], seed: int = 5, noise_v: float = 0.02,

@@ -13,7 +13,7 @@ import numpy as np
 from estimator.cli_support import lean_service_imports, run_cli, version_line
 from estimator.errors import EstimatorError
 from estimator.trace_io import read_trace, write_trace
-from sim_bench import tracking_bench
+from sim_bench import scenarios, tracking_bench
 
 log = logging.getLogger("sim_bench")
 DEFAULT_OUT = Path("bench-results")
@@ -313,7 +313,7 @@ def build_parser() -> argparse.ArgumentParser:
     from estimator.service.bus import add_arguments as add_bus_arguments
 
     add_bus_arguments(s)
-    s.add_argument("--scenario", default="nominal")
+    s.add_argument("--scenario", default="nominal", choices=tuple(scenarios.SCENARIOS))
     s.add_argument("--injectors", type=int, default=None)
     s.add_argument("--rate", type=float, default=None, help="injections per second per injector")
     s.add_argument("--seconds", type=float, default=None, help="run time (default: the scenario's)")
@@ -322,8 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_node)
 
     s = sub.add_parser("bench", help="end-to-end bench: daemon + node on a real bus, scored")
-    s.add_argument("--scenario", default="nominal", help="nominal, temperature-ramp, wear, mismatch, faults, "
-                   "multi-injector, overload, or all")
+    s.add_argument("--scenario", default="nominal", choices=(*scenarios.SCENARIOS, "all"))
     s.add_argument("--bus", default=None, help="default: socketcan:vcan0 if it exists, else a loopback hub")
     s.add_argument("--seconds", type=float, default=None, help="node run time (default: the scenario's)")
     s.add_argument("--out", type=Path, default=DEFAULT_OUT / "bench")

@@ -21,7 +21,7 @@ import can
 import numpy as np
 
 from estimator.codec.injection_frames import injection_frames
-from estimator.codec.records import (COMMAND_SET_PRIOR, Codec, EstimateState, EstimatorCommand, EstimatorStatus)
+from estimator.codec.records import Codec, Command, EstimateState, EstimatorCommand, EstimatorStatus
 from estimator.ident.measurement import Injection
 from estimator.service.bus import open_bus, to_message
 from sim_bench.bench import resolve_bus
@@ -185,7 +185,7 @@ def commands(bus_spec: str, out: Path) -> dict:
     codec = Codec()
     with watched_daemon(bus_spec, out / "commands-daemon.log") as (d, mon):
         with open_bus(bus_spec) as bus:
-            bus.send(to_message(codec.encode(EstimatorCommand(0, COMMAND_SET_PRIOR, 17.0, 14.9))))
+            bus.send(to_message(codec.encode(EstimatorCommand(0, Command.SET_PRIOR, 17.0, 14.9))))
             bus.send(marker_message(codec))
             mon.wait_for(lambda m: m.heartbeats and _hb(m).commands_refused >= 1 and _hb(m).commands_unknown >= 1, 30,
                          d.alive)

@@ -9,10 +9,12 @@ import cantools
 import numpy as np
 import pytest
 
-from estimator.codec.database import CONTRACT, ContractError, check_contract, load_database
+from estimator.codec.database import check_contract
+from estimator.codec.errors import ContractError, MalformedFrame
 from estimator.codec.frame import Frame
-from estimator.codec.records import (Codec, EstimateQuality, EstimateState, EstimatorCommand, EstimatorStatus,
-                                     InjectionHeader, InjectionTrailer, MalformedFrame, SimTruth, ValvePrediction)
+from estimator.codec.records import (CONTRACT, Codec, EstimateQuality, EstimateState, EstimatorCommand,
+                                     EstimatorStatus, InjectionHeader, InjectionTrailer, SampleBlock, SimTruth,
+                                     ValvePrediction, load_database)
 from estimator.codec.samples import samples_crc32
 
 from .conftest import REPO
@@ -27,7 +29,7 @@ def codec() -> Codec:
 
 def test_dbc_loads_strict_and_satisfies_contract():
     db = cantools.database.load_file(str(DBC), strict=True)
-    assert check_contract(db) == []
+    assert check_contract(db, CONTRACT) == []
     assert db.dbc.attributes["BusType"].value == "CAN FD"
     for name in CONTRACT:
         assert "VFrameFormat" in db.get_message_by_name(name).dbc.attributes
@@ -80,7 +82,7 @@ def test_values_saturate_to_the_signal_range(codec):
 
 def test_numpy_and_cantools_decode_samples_identically(codec):
     rng = np.random.default_rng(5)
-    msg = codec.messages.samples
+    msg = codec.messages[SampleBlock]
     for _ in range(200):
         cur = rng.integers(-32767, 32768, codec.layout.per_block).astype("<i2")
         vol = rng.integers(-32767, 32768, codec.layout.per_block).astype("<i2")

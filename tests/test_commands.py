@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from estimator.codec.ingest import Counters
-from estimator.codec.records import COMMAND_RESET, COMMAND_SET_PRIOR, Codec, EstimatorCommand, EstimatorStatus
+from estimator.codec.records import Codec, Command, EstimatorCommand, EstimatorStatus
 from estimator.ident.config import TrackerConfig
 from estimator.ident.tracker import Tracker, TrackerState
 from estimator.service.processor import Processor
@@ -26,9 +26,9 @@ def heartbeat(p: Processor) -> EstimatorStatus:
     ("off", False, False), ("reset-only", True, False), ("all", True, True)])
 def test_policy(policy, reset_applies, prior_applies):
     p = processor(policy)
-    p.handle([EstimatorCommand(2, COMMAND_SET_PRIOR, 18.0, 4.0)])
+    p.handle([EstimatorCommand(2, Command.SET_PRIOR, 18.0, 4.0)])
     assert (2 in p.tracker.states) == prior_applies
-    p.handle([EstimatorCommand(1, COMMAND_RESET)])
+    p.handle([EstimatorCommand(1, Command.RESET)])
     assert (1 not in p.tracker.states) == reset_applies
     hb = heartbeat(p)
     assert hb.commands_refused == (not reset_applies) + (not prior_applies)
@@ -38,14 +38,14 @@ def test_policy(policy, reset_applies, prior_applies):
 @pytest.mark.parametrize("nu, lh", [(17.0, 14.9), (17.0, -2.5), (14.0, 3.0), (21.5, 3.0), (32.7, 32.7), (0.0, 0.0)])
 def test_priors_outside_the_physical_ranges_are_refused(nu, lh):
     p = processor("all")
-    p.handle([EstimatorCommand(2, COMMAND_SET_PRIOR, nu, lh)])
+    p.handle([EstimatorCommand(2, Command.SET_PRIOR, nu, lh)])
     assert 2 not in p.tracker.states
     assert heartbeat(p).commands_refused == 1
 
 
 def test_prior_at_the_range_edges_is_taken():
     p = processor("all")
-    p.handle([EstimatorCommand(2, COMMAND_SET_PRIOR, 21.0, 10.0), EstimatorCommand(3, COMMAND_SET_PRIOR, 15.0, -2.0)])
+    p.handle([EstimatorCommand(2, Command.SET_PRIOR, 21.0, 10.0), EstimatorCommand(3, Command.SET_PRIOR, 15.0, -2.0)])
     assert {2, 3} <= set(p.tracker.states)
 
 

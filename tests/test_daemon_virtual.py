@@ -10,7 +10,7 @@ import can
 import pytest
 
 from estimator.codec.injection_frames import injection_frames
-from estimator.codec.records import (COMMAND_RESET, Codec, EstimateQuality, EstimateState, EstimatorCommand,
+from estimator.codec.records import (Codec, Command, EstimateQuality, EstimateState, EstimatorCommand,
                                      EstimatorStatus, ValvePrediction)
 from estimator.ident.tracker import Tracker
 from estimator.service.bus import to_frame, to_message
@@ -106,7 +106,7 @@ def test_reset_command_and_bad_frames_do_not_stop_it(running):
         bus.send(to_message(fr))
     collect(bus, codec, lambda g: any(isinstance(r, ValvePrediction) for r in g))
     assert 2 in d.tracker.states
-    bus.send(to_message(codec.encode(EstimatorCommand(2, COMMAND_RESET))))
+    bus.send(to_message(codec.encode(EstimatorCommand(2, Command.RESET))))
     bus.send(can.Message(arbitration_id=0x101, data=b"\x01\x02", is_fd=True, is_extended_id=False))  # malformed
     bus.send(can.Message(arbitration_id=0x555, data=b"\x00" * 8, is_extended_id=False))            # unknown
     assert wait_for(bus, lambda: d.ingest.counters.frames_malformed == 1 and 2 not in d.tracker.states)

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from estimator.codec.injection_frames import injection_frames
-from estimator.codec.records import COMMAND_SET_PRIOR, Codec, EstimateState, EstimatorCommand, EstimatorStatus
+from estimator.codec.records import Codec, Command, EstimateState, EstimatorCommand, EstimatorStatus
 from estimator.service.bus import open_bus, to_message
 from sim_bench.procs import DaemonProcess, rss_mb
 from sim_bench.reliability import STALL_CONFIG, stalled_injection
@@ -114,7 +114,7 @@ def test_sighup_reloads_the_config_and_a_bad_one_is_refused(hub, monitor, tmp_pa
     try:
         d.wait_ready(monitor)
         with open_bus(hub.spec) as bus:
-            prior = to_message(codec.encode(EstimatorCommand(2, COMMAND_SET_PRIOR, 18.25, 4.5)))
+            prior = to_message(codec.encode(EstimatorCommand(2, Command.SET_PRIOR, 18.25, 4.5)))
             bus.send(prior)
             assert monitor.wait_for(lambda m: last_heartbeat(m).commands_refused == 1, 30, d.alive), d.why()
             cfg.write_text('[estimator]\ncommands = "all"\n')

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from estimator.codec.database import load_database
+from estimator.codec.records import load_database
 from estimator.ident.status import Status
 from sim_bench import tracking_bench as tb
 from sim_bench.cli import main as sim_main

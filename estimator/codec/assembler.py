@@ -24,15 +24,39 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from enum import Enum
 
 import numpy as np
 
 from estimator.codec.records import InjectionHeader, InjectionTrailer, SampleBlock
 from estimator.codec.samples import INVALID_RAW, SampleLayout, samples_crc32
 
-REASON_COUNTER = {"crc": "rejected_crc", "missing": "rejected_missing", "duplicate": "rejected_missing",
-                  "order": "rejected_missing", "counter": "rejected_missing", "timeout": "rejected_timeout",
-                  "invalid": "rejected_invalid"}
+
+
+class RejectReason(str, Enum):
+    """Why an injection is rejected (the module table); a ``str`` so logs and JSON show the word."""
+
+    CRC = "crc"
+    MISSING = "missing"
+    DUPLICATE = "duplicate"
+    ORDER = "order"
+    COUNTER = "counter"
+    TIMEOUT = "timeout"
+    INVALID = "invalid"
+
+    @property
+    def counter(self) -> str:
+        """The ``Counters``/EstimatorStatus field this reason is counted in."""
+        return _REASON_COUNTER[self]
+
+    def __str__(self) -> str:
+        return self.value
+
+
+_REASON_COUNTER = {RejectReason.CRC: "rejected_crc", RejectReason.MISSING: "rejected_missing",
+                   RejectReason.DUPLICATE: "rejected_missing", RejectReason.ORDER: "rejected_missing",
+                   RejectReason.COUNTER: "rejected_missing", RejectReason.TIMEOUT: "rejected_timeout",
+                   RejectReason.INVALID: "rejected_invalid"}
 MAX_SAMPLE_PERIOD_NS = 20_000
 
 
@@ -52,7 +76,7 @@ class Rejected:
 
     injector_id: int
     counter: int
-    reason: str
+    reason: RejectReason
     detail: str = ""
 
 
@@ -63,7 +87,7 @@ class _Pending:
     n_blocks: int
     cur: list[np.ndarray] = field(default_factory=list)
     vol: list[np.ndarray] = field(default_factory=list)
-    failed: tuple[str, str] | None = None
+    failed: tuple[RejectReason, str] | None = None
     gap: int = -1   # first block index skipped: "missing" unless it turns up later ("order")
     foreign: int = -1   # counter of the first block that did not belong to this injection
 
@@ -93,13 +117,13 @@ class Assembler:
         out = self._orphan_flush(h.injector_id, h.counter)
         old = self._pending.pop(h.injector_id, None)
         if old is not None:
-            out.append(Rejected(old.header.injector_id, old.header.counter, "missing",
+            out.append(Rejected(old.header.injector_id, old.header.counter, RejectReason.MISSING,
                                 "next header before the trailer"))
         prob = self._header_problem(h)
         n_blocks = -(-h.sample_count // self.layout.per_block)
         p = _Pending(h, now, n_blocks)
         if prob:
-            p.failed = ("invalid", prob)
+            p.failed = (RejectReason.INVALID, prob)
         self._pending[h.injector_id] = p
         return out
 
@@ -110,23 +134,23 @@ class Assembler:
             # no header: the injection is lost; count it once, when its counter changes or a header comes
             out = []
             if b.injector_id in self._orphans and self._orphans[b.injector_id] != b.counter:
-                out.append(Rejected(b.injector_id, self._orphans[b.injector_id], "missing", "no header"))
+                out.append(Rejected(b.injector_id, self._orphans[b.injector_id], RejectReason.MISSING, "no header"))
             self._orphans[b.injector_id] = b.counter
             return out
         if p.failed:
-            if p.failed[0] == "missing" and b.block_index == p.gap and b.counter == p.header.counter:
-                p.failed = ("order", f"block {b.block_index} arrived after block {b.block_index + 1} or later")
+            if p.failed[0] == RejectReason.MISSING and b.block_index == p.gap and b.counter == p.header.counter:
+                p.failed = (RejectReason.ORDER, f"block {b.block_index} arrived after block {b.block_index + 1} or later")
             return []
         if b.counter != p.header.counter:
-            p.failed = ("counter", f"block counter {b.counter} != header {p.header.counter}")
+            p.failed = (RejectReason.COUNTER, f"block counter {b.counter} != header {p.header.counter}")
             p.foreign = b.counter
         elif b.block_index < len(p.cur):
-            p.failed = ("duplicate", f"block {b.block_index} twice")
+            p.failed = (RejectReason.DUPLICATE, f"block {b.block_index} twice")
         elif b.block_index > len(p.cur):
             p.gap = len(p.cur)
-            p.failed = ("missing", f"block {p.gap} missing (got {b.block_index})")
+            p.failed = (RejectReason.MISSING, f"block {p.gap} missing (got {b.block_index})")
         elif b.block_index >= p.n_blocks:
-            p.failed = ("invalid", f"block {b.block_index} beyond the sample count")
+            p.failed = (RejectReason.INVALID, f"block {b.block_index} beyond the sample count")
         else:
             p.cur.append(b.current_raw)
             p.vol.append(b.voltage_raw)
@@ -141,24 +165,24 @@ class Assembler:
             if self._timed_out.pop(t.injector_id, None) == t.counter:
                 return out   # a late trailer of an injection already rejected by timeout
             if orphan is not None and orphan != t.counter:
-                out.append(Rejected(t.injector_id, orphan, "missing", "no header"))
-            out.append(Rejected(t.injector_id, t.counter, "missing", "trailer without header"))
+                out.append(Rejected(t.injector_id, orphan, RejectReason.MISSING, "no header"))
+            out.append(Rejected(t.injector_id, t.counter, RejectReason.MISSING, "trailer without header"))
             return out
         out = list(self._orphan_flush(t.injector_id, p.header.counter))
         h = p.header
         if t.counter != h.counter and t.counter == p.foreign:
             # this injection lost its trailer and the next one its header: two losses
-            out.append(Rejected(h.injector_id, h.counter, "missing", "trailer lost"))
-            out.append(Rejected(h.injector_id, t.counter, "missing", "header lost"))
+            out.append(Rejected(h.injector_id, h.counter, RejectReason.MISSING, "trailer lost"))
+            out.append(Rejected(h.injector_id, t.counter, RejectReason.MISSING, "header lost"))
             return out
         if p.failed:
             out.append(Rejected(h.injector_id, h.counter, *p.failed))
             return out
         if t.counter != h.counter:
-            out.append(Rejected(h.injector_id, h.counter, "counter", f"trailer counter {t.counter}"))
+            out.append(Rejected(h.injector_id, h.counter, RejectReason.COUNTER, f"trailer counter {t.counter}"))
             return out
         if len(p.cur) != p.n_blocks:
-            out.append(Rejected(h.injector_id, h.counter, "missing", f"{len(p.cur)} of {p.n_blocks} blocks"))
+            out.append(Rejected(h.injector_id, h.counter, RejectReason.MISSING, f"{len(p.cur)} of {p.n_blocks} blocks"))
             return out
         n = h.sample_count
         cur = np.concatenate(p.cur)
@@ -166,13 +190,14 @@ class Assembler:
         tail_c, tail_v = cur[n:], vol[n:]
         cur, vol = cur[:n], vol[:n]
         if samples_crc32(cur, vol) != t.crc32:
-            out.append(Rejected(h.injector_id, h.counter, "crc", "CRC-32 mismatch"))
+            out.append(Rejected(h.injector_id, h.counter, RejectReason.CRC, "CRC-32 mismatch"))
             return out
         if np.any(tail_c != 0) or np.any(tail_v != 0):
-            out.append(Rejected(h.injector_id, h.counter, "invalid", "sample count mismatch (data after the last sample)"))
+            out.append(Rejected(h.injector_id, h.counter, RejectReason.INVALID,
+                                "sample count mismatch (data after the last sample)"))
             return out
         if np.any(cur == INVALID_RAW) or np.any(vol == INVALID_RAW):
-            out.append(Rejected(h.injector_id, h.counter, "invalid", "invalid (NaN) samples"))
+            out.append(Rejected(h.injector_id, h.counter, RejectReason.INVALID, "invalid (NaN) samples"))
             return out
         out.append(Completed(h, cur * self.layout.current_scale, vol * self.layout.voltage_scale, now))
         return out
@@ -184,14 +209,15 @@ class Assembler:
             if now - p.started > self.timeout_s:
                 del self._pending[inj_id]
                 self._timed_out[inj_id] = p.header.counter
-                out.append(Rejected(inj_id, p.header.counter, "timeout", f"no trailer after {self.timeout_s * 1e3:.0f} ms"))
+                out.append(Rejected(inj_id, p.header.counter, RejectReason.TIMEOUT,
+                                    f"no trailer after {self.timeout_s * 1e3:.0f} ms"))
         return out
 
     def _orphan_flush(self, injector_id: int, counter: int | None) -> list[Rejected]:
         c = self._orphans.pop(injector_id, None)
         if c is None or c == counter:
             return []
-        return [Rejected(injector_id, c, "missing", "no header")]
+        return [Rejected(injector_id, c, RejectReason.MISSING, "no header")]
 
     def pending(self) -> int:
         """Number of injections being assembled."""

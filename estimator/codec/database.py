@@ -1,40 +1,25 @@
-"""The CAN database: loaded once with ``strict=True`` and checked against the contract at start-up."""
+"""The CAN database: loaded once with ``strict=True`` and checked against a contract at start-up.
+
+The contract itself (which messages and signals) is defined by the record classes of
+:mod:`estimator.codec.records`; this module only knows how to load and check.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Mapping
 
 import cantools
-from cantools.database.can import Database, Message
+from cantools.database.can import Database
 
-from estimator.errors import EstimatorError
+from estimator.codec.errors import ContractError
+from estimator.codec.samples import sample_pairs
 
 DBC_RESOURCE = ("estimator.dbc", "injector.dbc")   # dbc/ of the checkout, installed as package data
 SAMPLES_PER_BLOCK_MIN = 14
 MAX_CURRENT_STEP_A = 0.001
 MAX_VOLTAGE_STEP_V = 0.01
-
-# The contract: message names and the signals each must have (issue #4).
-CONTRACT: dict[str, tuple[str, ...]] = {
-    "InjectionHeader": ("InjectorId", "InjectionCounter", "SamplePeriod", "SampleCount", "PreloadForce",
-                        "FuelTemperature"),
-    "InjectionSamples": ("InjectorId", "InjectionCounter", "BlockIndex"),
-    "InjectionTrailer": ("InjectorId", "InjectionCounter", "Crc32"),
-    "EstimateState": ("InjectorId", "InjectionCounter", "CouplingNu", "IdleStroke", "Status"),
-    "EstimateQuality": ("InjectorId", "InjectionCounter", "Cost", "SigmaNu", "SigmaIdleStroke", "Evaluations"),
-    "ValvePrediction": ("InjectorId", "InjectionCounter", "ContactTime", "OpeningTime", "PlungerStroke"),
-    "EstimatorStatus": ("InjectionsAccepted", "RejectedCrc", "RejectedMissing", "RejectedTimeout", "RejectedInvalid",
-                        "RejectedOutlier", "FramesDropped", "FramesMalformed", "QueueDepth", "LatencyP99", "Uptime"),
-    "EstimatorCommand": ("InjectorId", "Command", "PriorNu", "PriorIdleStroke"),
-    "SimTruth": ("InjectorId", "InjectionCounter", "TrueNu", "TrueIdleStroke", "TrueOpeningTime", "TrueStroke",
-                 "Temperature"),
-}
-CLASSIC = ("EstimateState",)   # must fit a classic 8-byte frame
-
-
-class ContractError(EstimatorError):
-    """The DBC does not satisfy the contract (missing message/signal, wrong frame format, resolution)."""
 
 
 def default_dbc_path() -> Path:
@@ -48,25 +33,33 @@ def default_dbc_path() -> Path:
     return Path(str(res))
 
 
-def check_contract(db: Database) -> list[str]:
-    """All violations of the contract (empty when the DBC is fine)."""
+@dataclass(frozen=True)
+class MessageSpec:
+    """What the contract requires of one message: its signals, and whether it must be a classic frame."""
+
+    signals: tuple[str, ...]
+    classic: bool = False
+
+
+def check_contract(db: Database, contract: Mapping[str, MessageSpec]) -> list[str]:
+    """All violations of ``contract`` ({message name: spec}, see ``records.CONTRACT``); empty when fine."""
     problems = []
     bus_type = getattr(getattr(db, "dbc", None), "attributes", {}).get("BusType")
     if bus_type is None or bus_type.value != "CAN FD":
         problems.append('database attribute BusType is not "CAN FD"')
-    for name, signals in CONTRACT.items():
+    for name, spec in contract.items():
         try:
             msg = db.get_message_by_name(name)
         except KeyError:
             problems.append(f"message {name} missing")
             continue
         have = {s.name for s in msg.signals}
-        for s in signals:
+        for s in spec.signals:
             if s not in have:
                 problems.append(f"{name}: signal {s} missing")
         if "VFrameFormat" not in (msg.dbc.attributes if msg.dbc else {}):
             problems.append(f"{name}: no VFrameFormat attribute")
-        if name in CLASSIC and (msg.is_fd or msg.length > 8):
+        if spec.classic and (msg.is_fd or msg.length > 8):
             problems.append(f"{name}: must be a classic frame of at most 8 bytes")
         if msg.length > 8 and not msg.is_fd:
             problems.append(f"{name}: {msg.length} bytes need a CAN FD frame")
@@ -86,19 +79,11 @@ def check_contract(db: Database) -> list[str]:
     return problems
 
 
-def sample_pairs(msg: Message) -> list:
-    """The (Current_k, Voltage_k) signal pairs of the samples message, k = 0, 1, ... in order."""
-    by_name = {s.name: s for s in msg.signals}
-    pairs = []
-    k = 0
-    while f"Current_{k}" in by_name and f"Voltage_{k}" in by_name:
-        pairs.append((by_name[f"Current_{k}"], by_name[f"Voltage_{k}"]))
-        k += 1
-    return pairs
+def load_database(path: str | Path | None, contract: Mapping[str, MessageSpec]) -> Database:
+    """Load the DBC strictly and check ``contract``; raises :class:`ContractError` with every problem.
 
-
-def load_database(path: str | Path | None = None) -> Database:
-    """Load the DBC strictly and check the contract; raises :class:`ContractError` with every problem."""
+    Callers use ``records.load_database``, which passes the contract the record classes define.
+    """
     p = Path(path) if path else default_dbc_path()
     try:
         db = cantools.database.load_file(str(p), strict=True)
@@ -106,29 +91,7 @@ def load_database(path: str | Path | None = None) -> Database:
         raise ContractError(f"DBC not found: {p}") from None
     except Exception as exc:   # cantools raises several parse error types
         raise ContractError(f"cannot load DBC {p}: {exc}") from None
-    problems = check_contract(db)
+    problems = check_contract(db, contract)
     if problems:
         raise ContractError(f"{p} violates the contract: " + "; ".join(problems))
     return db
-
-
-@dataclass(frozen=True)
-class Messages:
-    """The contract's messages, resolved once at start-up."""
-
-    header: Message
-    samples: Message
-    trailer: Message
-    state: Message
-    quality: Message
-    prediction: Message
-    status: Message
-    command: Message
-    truth: Message
-
-    @classmethod
-    def from_db(cls, db: Database) -> "Messages":
-        g = db.get_message_by_name
-        return cls(g("InjectionHeader"), g("InjectionSamples"), g("InjectionTrailer"), g("EstimateState"),
-                   g("EstimateQuality"), g("ValvePrediction"), g("EstimatorStatus"), g("EstimatorCommand"),
-                   g("SimTruth"))

@@ -6,40 +6,34 @@ why the two produce identical output on identical frames.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, make_dataclass
 
-from estimator.codec.assembler import REASON_COUNTER, Assembler, Completed, Rejected
+from estimator.codec.assembler import Assembler, Completed, RejectReason, Rejected
+from estimator.codec.errors import MalformedFrame
 from estimator.codec.frame import Frame
-from estimator.codec.records import (Codec, EstimatorCommand, InjectionHeader, InjectionTrailer, MalformedFrame,
-                                     SampleBlock)
+from estimator.codec.records import (HEARTBEAT_COUNTERS, Codec, EstimatorCommand, InjectionHeader, InjectionTrailer,
+                                     Record, SampleBlock)
 
 
-@dataclass
-class Counters:
-    """Everything the EstimatorStatus heartbeat reports, plus finer detail for logs and JSON."""
+def _reject(self, reason: RejectReason | str) -> None:
+    """Count one rejected injection under its reason (and the heartbeat counter it maps to)."""
+    reason = RejectReason(reason)
+    self.reasons[reason.value] = self.reasons.get(reason.value, 0) + 1
+    setattr(self, reason.counter, getattr(self, reason.counter) + 1)
 
-    accepted: int = 0
-    rejected_crc: int = 0
-    rejected_missing: int = 0
-    rejected_timeout: int = 0
-    rejected_invalid: int = 0
-    rejected_outlier: int = 0
-    frames_dropped: int = 0
-    frames_malformed: int = 0
-    frames_unknown: int = 0
-    frames_total: int = 0
-    bus_errors: int = 0
-    commands_applied: int = 0
-    commands_refused: int = 0
-    commands_unknown: int = 0
-    worker_errors: int = 0       # unexpected exceptions in the worker (a bug; logged rate-limited)
-    reasons: dict[str, int] = field(default_factory=dict)
 
-    def reject(self, reason: str) -> None:
-        """Count one rejected injection under its reason (and the DBC counter it maps to)."""
-        self.reasons[reason] = self.reasons.get(reason, 0) + 1
-        attr = REASON_COUNTER.get(reason, "rejected_invalid")
-        setattr(self, attr, getattr(self, attr) + 1)
+#: Everything the EstimatorStatus heartbeat reports (its rolling counters, ``records.HEARTBEAT_COUNTERS``,
+#: under the same names), plus finer detail for logs and JSON: frames_unknown, frames_total,
+#: commands_applied, worker_errors (unexpected exceptions in the worker, a bug; logged rate-limited)
+#: and the rejections per reason.
+Counters = make_dataclass(
+    "Counters",
+    [(name, int, 0) for name in HEARTBEAT_COUNTERS]
+    + [(name, int, 0) for name in ("frames_unknown", "frames_total", "commands_applied", "worker_errors")]
+    + [("reasons", dict, field(default_factory=dict))],
+    namespace={"reject": _reject, "__module__": __name__},
+)
 
 
 @dataclass(frozen=True)
@@ -61,8 +55,11 @@ class Ingest:
         self.assembler = Assembler(codec.layout, timeout_s, max_injectors)
         self.counters = Counters()
         self.max_injectors = max_injectors
-        self._inputs = {codec.messages.header.frame_id, codec.messages.samples.frame_id,
-                        codec.messages.trailer.frame_id, codec.messages.command.frame_id}
+        # the records the estimator consumes and what each does; every other identifier is foreign
+        self._handlers: dict[type[Record], Callable[[Record, float], list]] = {
+            InjectionHeader: self.assembler.on_header, SampleBlock: self.assembler.on_samples,
+            InjectionTrailer: self.assembler.on_trailer, EstimatorCommand: lambda rec, now: [rec]}
+        self._inputs = {codec.frame_id(rt) for rt in self._handlers}
 
     def feed(self, frame: Frame, now: float) -> list[Event]:
         """One frame at time ``now`` (s); returns the events it completes (also timeouts up to now)."""
@@ -78,20 +75,11 @@ class Ingest:
             c.frames_malformed += 1
             out.append(Malformed(frame.arbitration_id, str(exc)))
             return out
-        if getattr(rec, "injector_id", 0) >= self.max_injectors:
+        if rec.injector_id >= self.max_injectors:
             c.frames_malformed += 1
             out.append(Malformed(frame.arbitration_id, f"injector {rec.injector_id} >= {self.max_injectors}"))
             return out
-        if isinstance(rec, InjectionHeader):
-            events = self.assembler.on_header(rec, now)
-        elif isinstance(rec, SampleBlock):
-            events = self.assembler.on_samples(rec, now)
-        elif isinstance(rec, InjectionTrailer):
-            events = self.assembler.on_trailer(rec, now)
-        elif isinstance(rec, EstimatorCommand):
-            return out + [rec]
-        else:
-            events = []
+        events = self._handlers[type(rec)](rec, now)
         for e in events:
             if isinstance(e, Rejected):
                 c.reject(e.reason)

@@ -1,5 +1,10 @@
 """Typed records of the contract's messages and their conversion to and from frames (cantools).
 
+The record classes are the codec's registry (:data:`REGISTRY`): each names its DBC message and maps
+its fields to signals, and from them come the contract the DBC is checked against
+(:data:`CONTRACT`), the message lookup and the frame-identifier dispatch of :class:`Codec`.
+Adding a message means adding it to the DBC and writing one class here (see the README).
+
 Encoding is strict (cantools ``strict=True``); values outside a signal's range are saturated to
 the range first, so a publisher never fails on an extreme value (a cost above 6553.5 µV·s is sent
 as 6553.5). NaN has no wire form: ``ValvePrediction`` carries validity bits, the others send 0 with
@@ -9,30 +14,56 @@ a status that says there is no estimate. Decoding range-checks every value again
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
-from typing import ClassVar
+from dataclasses import dataclass, field, fields
+from enum import IntEnum
+from pathlib import Path
+from typing import Any, ClassVar
 
 import numpy as np
 from cantools.database.can import Database, Message
 
-from estimator.codec.database import ContractError, Messages, load_database
+from estimator.codec import database
+from estimator.codec.database import MessageSpec
+from estimator.codec.errors import ContractError, MalformedFrame
 from estimator.codec.frame import Frame
 from estimator.codec.samples import SampleLayout
-from estimator.errors import EstimatorError
-
-COMMAND_NONE, COMMAND_RESET, COMMAND_SET_PRIOR = 0, 1, 2
 
 
-class MalformedFrame(EstimatorError):
-    """A frame with a known identifier that cannot be decoded (length, format, value range)."""
+class Command(IntEnum):
+    """``EstimatorCommand.Command`` (VAL_ table of the DBC)."""
+
+    NONE = 0
+    RESET = 1
+    SET_PRIOR = 2
 
 
 @dataclass(frozen=True)
 class Record:
-    """Base of the typed records: ``MESSAGE`` names the DBC message, ``SIGNALS`` maps field -> signal."""
+    """Base of the typed records.
+
+    ``MESSAGE`` names the DBC message, ``SIGNALS`` maps field -> signal; ``CODEC_SIGNALS`` are further
+    signals the class fills and reads itself (:meth:`extra_signals`, :meth:`from_signals`);
+    ``CLASSIC``: the message must fit a classic 8-byte frame; ``OUTPUT``: the estimator publishes it.
+    """
 
     MESSAGE: ClassVar[str] = ""
     SIGNALS: ClassVar[dict[str, str]] = {}
+    CODEC_SIGNALS: ClassVar[tuple[str, ...]] = ()
+    CLASSIC: ClassVar[bool] = False
+    OUTPUT: ClassVar[bool] = False
+
+    def extra_signals(self) -> dict[str, int]:
+        """Values of ``CODEC_SIGNALS`` for encoding."""
+        return {}
+
+    def from_signals(self, values: dict[str, Any]) -> "Record":
+        """The record after decoding, given all decoded signal values (default: itself)."""
+        return self
+
+
+def counter() -> Any:
+    """A rolling counter field of the heartbeat (0 at start; wraps at its signal's width)."""
+    return field(default=0, metadata={"counter": True})
 
 
 @dataclass(frozen=True)
@@ -66,6 +97,8 @@ class EstimateState(Record):
     lh_um: float
     status: int
     MESSAGE: ClassVar[str] = "EstimateState"
+    CLASSIC: ClassVar[bool] = True
+    OUTPUT: ClassVar[bool] = True
     SIGNALS: ClassVar[dict[str, str]] = {"injector_id": "InjectorId", "counter": "InjectionCounter",
                                          "nu_n_per_v": "CouplingNu", "lh_um": "IdleStroke", "status": "Status"}
 
@@ -80,6 +113,7 @@ class EstimateQuality(Record):
     evaluations: int
     robust: int
     MESSAGE: ClassVar[str] = "EstimateQuality"
+    OUTPUT: ClassVar[bool] = True
     SIGNALS: ClassVar[dict[str, str]] = {
         "injector_id": "InjectorId", "counter": "InjectionCounter", "cost_uvs": "Cost",
         "sigma_nu_n_per_v": "SigmaNu", "sigma_lh_um": "SigmaIdleStroke", "evaluations": "Evaluations",
@@ -97,29 +131,46 @@ class ValvePrediction(Record):
     SIGNALS: ClassVar[dict[str, str]] = {"injector_id": "InjectorId", "counter": "InjectionCounter",
                                          "contact_us": "ContactTime", "opening_us": "OpeningTime",
                                          "stroke_um": "PlungerStroke"}
+    CODEC_SIGNALS: ClassVar[tuple[str, ...]] = ("Valid",)
+    OUTPUT: ClassVar[bool] = True
+    _VALID_BITS: ClassVar[tuple[tuple[str, int], ...]] = (("contact_us", 1), ("opening_us", 2), ("stroke_um", 4))
+
+    def extra_signals(self) -> dict[str, int]:
+        """``Valid``: one bit per finite value (NaN has no wire form)."""
+        return {"Valid": sum(bit for name, bit in self._VALID_BITS if math.isfinite(getattr(self, name)))}
+
+    def from_signals(self, values: dict[str, Any]) -> "ValvePrediction":
+        """NaN for the values whose ``Valid`` bit is clear."""
+        valid = int(values["Valid"])
+        return ValvePrediction(self.injector_id, self.counter,
+                               *(getattr(self, n) if valid & b else float("nan") for n, b in self._VALID_BITS))
 
 
 @dataclass(frozen=True)
 class EstimatorStatus(Record):
-    accepted: int = 0
-    rejected_crc: int = 0
-    rejected_missing: int = 0
-    rejected_timeout: int = 0
-    rejected_invalid: int = 0
-    rejected_outlier: int = 0
-    frames_dropped: int = 0
-    frames_malformed: int = 0
+    """The heartbeat. Fields made with :func:`counter` are the rolling counters (:data:`HEARTBEAT_COUNTERS`),
+    which ``ingest.Counters`` keeps under the same names; the others are gauges."""
+
+    accepted: int = counter()
+    rejected_crc: int = counter()
+    rejected_missing: int = counter()
+    rejected_timeout: int = counter()
+    rejected_invalid: int = counter()
+    rejected_outlier: int = counter()
+    frames_dropped: int = counter()
+    frames_malformed: int = counter()
     queue_depth: int = 0
     latency_p99_ms: float = 0.0
     uptime_s: int = 0
-    bus_errors: int = 0
-    commands_refused: int = 0
-    commands_unknown: int = 0
+    bus_errors: int = counter()
+    commands_refused: int = counter()
+    commands_unknown: int = counter()
     queue_p99_ms: float = 0.0
     assembly_p99_ms: float = 0.0
     estimation_p99_ms: float = 0.0
     send_p99_ms: float = 0.0
     MESSAGE: ClassVar[str] = "EstimatorStatus"
+    OUTPUT: ClassVar[bool] = True
     SIGNALS: ClassVar[dict[str, str]] = {
         "accepted": "InjectionsAccepted", "rejected_crc": "RejectedCrc", "rejected_missing": "RejectedMissing",
         "rejected_timeout": "RejectedTimeout", "rejected_invalid": "RejectedInvalid",
@@ -130,10 +181,14 @@ class EstimatorStatus(Record):
         "estimation_p99_ms": "EstimationP99", "send_p99_ms": "SendP99"}
 
 
+#: the heartbeat's rolling counters, in DBC order: the one list of them (``ingest.Counters`` is built from it)
+HEARTBEAT_COUNTERS: tuple[str, ...] = tuple(f.name for f in fields(EstimatorStatus) if f.metadata.get("counter"))
+
+
 @dataclass(frozen=True)
 class EstimatorCommand(Record):
     injector_id: int
-    command: int
+    command: int                 # a Command code; undefined codes arrive as they are and are counted
     prior_nu_n_per_v: float = 0.0
     prior_lh_um: float = 0.0
     MESSAGE: ClassVar[str] = "EstimatorCommand"
@@ -160,35 +215,58 @@ class SimTruth(Record):
 
 
 @dataclass(frozen=True)
-class SampleBlock:
-    """One InjectionSamples frame: raw int16 current/voltage of up to ``per_block`` samples."""
+class SampleBlock(Record):
+    """One InjectionSamples frame: raw int16 current/voltage of up to ``per_block`` samples.
+
+    Only the identification prefix is listed in ``SIGNALS``: the sample pairs are the
+    ``Current_k``/``Voltage_k`` signals, read with numpy (:class:`samples.SampleLayout`).
+    """
 
     injector_id: int
     counter: int
     block_index: int
     current_raw: np.ndarray
     voltage_raw: np.ndarray
+    MESSAGE: ClassVar[str] = "InjectionSamples"
+    SIGNALS: ClassVar[dict[str, str]] = {"injector_id": "InjectorId", "counter": "InjectionCounter",
+                                         "block_index": "BlockIndex"}
 
 
-RECORD_TYPES: tuple[type[Record], ...] = (InjectionHeader, InjectionTrailer, EstimateState, EstimateQuality,
-                                          ValvePrediction, EstimatorStatus, EstimatorCommand, SimTruth)
-_VALID_BITS = (("contact_us", 1), ("opening_us", 2), ("stroke_um", 4))
+#: every message of the contract, by record class
+REGISTRY: tuple[type[Record], ...] = (InjectionHeader, SampleBlock, InjectionTrailer, EstimateState, EstimateQuality,
+                                      ValvePrediction, EstimatorStatus, EstimatorCommand, SimTruth)
+
+
+def contract_of(registry: tuple[type[Record], ...]) -> dict[str, MessageSpec]:
+    """What a DBC must provide for the record classes of ``registry``: {message name: spec}."""
+    return {rt.MESSAGE: MessageSpec(tuple(rt.SIGNALS.values()) + rt.CODEC_SIGNALS, rt.CLASSIC) for rt in registry}
+
+
+#: what the DBC must provide, derived from the registry
+CONTRACT: dict[str, MessageSpec] = contract_of(REGISTRY)
+
+
+def load_database(path: str | Path | None = None) -> Database:
+    """The DBC (default: the packaged one), loaded strictly and checked against :data:`CONTRACT`."""
+    return database.load_database(path, CONTRACT)
 
 
 class Codec:
     """Typed records <-> frames for the contract's messages, resolved once from the DBC."""
 
-    def __init__(self, db: Database | None = None) -> None:
+    def __init__(self, db: Database | None = None, registry: tuple[type[Record], ...] = REGISTRY) -> None:
         self.db = db or load_database()
-        self.messages = Messages.from_db(self.db)
-        self.layout = SampleLayout.from_message(self.messages.samples)
-        self._by_id: dict[int, tuple[Message, type[Record] | None]] = {}
-        for rt in RECORD_TYPES:
-            msg = self.db.get_message_by_name(rt.MESSAGE)
-            self._by_id[msg.frame_id] = (msg, rt)
-        self._by_id[self.messages.samples.frame_id] = (self.messages.samples, None)
-        self._prefix_signals = [self.messages.samples.get_signal_by_name(n)
-                                for n in ("InjectorId", "InjectionCounter", "BlockIndex")]
+        if registry is not REGISTRY:   # the default contract was checked when the DBC was loaded
+            problems = database.check_contract(self.db, contract_of(registry))
+            if problems:
+                raise ContractError("the DBC violates the contract: " + "; ".join(problems))
+        #: the DBC message of every record class
+        self.messages: dict[type[Record], Message] = {rt: self.db.get_message_by_name(rt.MESSAGE) for rt in registry}
+        samples = self.messages[SampleBlock]
+        self.layout = SampleLayout.from_message(samples)
+        self._by_id: dict[int, tuple[Message, type[Record]]] = {m.frame_id: (m, rt) for rt, m in self.messages.items()}
+        self._prefix_signals = [samples.get_signal_by_name(SampleBlock.SIGNALS[n])
+                                for n in ("injector_id", "counter", "block_index")]
         self._prefix_fields = [(sig.start, (1 << sig.length) - 1) for sig in self._prefix_signals]
         self._max_block = self._prefix_signals[2].maximum or 255   # BlockIndex
         for sig in self._prefix_signals:   # the numpy packer/decoder assume this (checked, not hoped)
@@ -197,19 +275,22 @@ class Codec:
                 raise ContractError(f"InjectionSamples.{sig.name}: must be a little-endian integer in the "
                                     f"first {self.layout.current_offset} bytes")
 
+    def frame_id(self, record_type: type[Record]) -> int:
+        """The arbitration id of a record class's message."""
+        return self.messages[record_type].frame_id
+
+    def output_ids(self) -> set[int]:
+        """Arbitration ids of the messages the estimator publishes."""
+        return {m.frame_id for rt, m in self.messages.items() if rt.OUTPUT}
+
     # ---- encode ---------------------------------------------------------------------------
     def encode(self, rec: Record) -> Frame:
         """The frame of a record (saturating values to the signal ranges)."""
-        msg = self.db.get_message_by_name(rec.MESSAGE)
+        msg = self.messages[type(rec)]
         values: dict[str, float | int] = {}
         for fname, sname in rec.SIGNALS.items():
             values[sname] = self._wire_value(msg, sname, getattr(rec, fname))
-        if isinstance(rec, ValvePrediction):
-            valid = 0
-            for fname, bit in _VALID_BITS:
-                if math.isfinite(getattr(rec, fname)):
-                    valid |= bit
-            values["Valid"] = valid
+        values.update(rec.extra_signals())
         for s in msg.signals:   # signals the record does not carry (none today) go out as their minimum
             values.setdefault(s.name, s.minimum if s.minimum is not None else 0)
         data = msg.encode(values, strict=True)
@@ -232,7 +313,7 @@ class Codec:
     def encode_samples(self, injector_id: int, counter: int, block_index: int, current_raw: np.ndarray,
                        voltage_raw: np.ndarray) -> Frame:
         """One InjectionSamples frame from raw int16 pairs (numpy packing; layout from the DBC)."""
-        msg = self.messages.samples
+        msg = self.messages[SampleBlock]
         word = 0
         for sig, v in zip(self._prefix_signals, (injector_id, counter, block_index)):
             if not (sig.minimum <= v <= sig.maximum):
@@ -256,7 +337,7 @@ class Codec:
             raise MalformedFrame(f"{msg.name}: {len(frame.data)} bytes, expected {msg.length}")
         if msg.is_fd and not frame.is_fd:
             raise MalformedFrame(f"{msg.name}: expected a CAN FD frame")
-        if rt is None:
+        if rt is SampleBlock:
             return self.decode_samples(frame.data)
         try:
             values = msg.decode(frame.data, decode_choices=False, scaling=True)
@@ -271,12 +352,7 @@ class Codec:
             sname = rt.SIGNALS[f.name]
             v = values[sname]
             kw[f.name] = int(v) if f.type in ("int", int) else float(v)
-        rec = rt(**kw)
-        if isinstance(rec, ValvePrediction):
-            valid = int(values["Valid"])
-            rec = ValvePrediction(rec.injector_id, rec.counter,
-                                  *(getattr(rec, n) if valid & b else float("nan") for n, b in _VALID_BITS))
-        return rec
+        return rt(**kw).from_signals(values)
 
     def decode_samples(self, data: bytes) -> SampleBlock:
         """An InjectionSamples payload with numpy (identification fields with cantools' start bits)."""

@@ -14,9 +14,20 @@ from dataclasses import dataclass
 import numpy as np
 from cantools.database.can import Message
 
-from estimator.codec.database import ContractError, sample_pairs
+from estimator.codec.errors import ContractError
 
 INVALID_RAW = -32768   # raw int16 reserved for "no valid sample" (ADC overflow, NaN at the source)
+
+
+def sample_pairs(msg: Message) -> list:
+    """The (Current_k, Voltage_k) signal pairs of the samples message, k = 0, 1, ... in order."""
+    by_name = {s.name: s for s in msg.signals}
+    pairs = []
+    k = 0
+    while f"Current_{k}" in by_name and f"Voltage_{k}" in by_name:
+        pairs.append((by_name[f"Current_{k}"], by_name[f"Voltage_{k}"]))
+        k += 1
+    return pairs
 
 
 @dataclass(frozen=True)

@@ -50,7 +50,8 @@ from estimator.ident.model_selection import likelihood_ratio
 from estimator.ident.search import Box
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.status import Status
-from estimator.model.fast_sim import NU_EXTRAPOLATION_N_PER_V, FastSimulator
+from estimator.model.fast_sim import FastSimulator
+from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V
 from estimator.model.parameters import InjectorParameters
 
 STATE_VERSION = 2

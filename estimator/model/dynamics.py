@@ -53,6 +53,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from estimator.errors import InfeasibleError
 from estimator.model.parameters import InjectorParameters
@@ -64,8 +65,14 @@ NZ = 14  # augmented states
 N_REGIONS = 6
 MAX_GUARDS = 3
 
-REGION_MODE = np.array([1, 2, 2, 3, 3, 4], dtype=np.int8)
+# automaton modes (Figs. 10-12) and the mode of each region
+MODE_FREE, MODE_CONTACT, MODE_OPEN, MODE_FLIGHT = 1, 2, 3, 4
+REGION_MODE = np.array([MODE_FREE, MODE_CONTACT, MODE_CONTACT, MODE_OPEN, MODE_OPEN, MODE_FLIGHT], dtype=np.int8)
 RESET_NONE, RESET_OPEN, RESET_CLOSE = 0, 1, 2
+# outcome of a simulated candidate
+STATUS_OK, STATUS_INFEASIBLE, STATUS_EVENT_CAP = 0, 1, 2
+STATUS_TEXT = {STATUS_OK: "ok", STATUS_INFEASIBLE: "infeasible initial state",
+               STATUS_EVENT_CAP: "too many mode switches in one sample (chattering)"}
 REGION_NAMES = ("free", "contact-soft", "contact-stiff", "open-soft", "open-stiff", "flight")
 
 # Scaling used inside the numerical kernels only: µm, m/s (= µm/µs), µC, A, A/µs, N; time in µs.
@@ -183,8 +190,8 @@ def build_structure(p: InjectorParameters) -> HybridStructure:
 def region_matrices(structure: HybridStructure, p: InjectorParameters, nu: np.ndarray) -> np.ndarray:
     """Region matrices A_r(N_u) in SI, shape (len(nu), 6, 14, 14)."""
     nu = np.atleast_1d(np.asarray(nu, dtype=float))
-    c = (p.psa.ks_n_per_m / nu)[:, None, None, None]
-    d = (p.psa.rb_v2s_per_mn * nu ** 2)[:, None, None, None]
+    c = coupling(p.psa.ks_n_per_m, nu)[:, None, None, None]
+    d = damping(p.psa.rb_v2s_per_mn, nu)[:, None, None, None]
     return structure.a_const[None] + c * structure.a_coupling[None] + d * structure.a_damping[None]
 
 
@@ -192,11 +199,37 @@ def output_rows(p: InjectorParameters, nu: np.ndarray) -> np.ndarray:
     """Rows c with U = c @ z (eq. 20, H[Q] replaced by R(N_u) I, eq. 22), shape (len(nu), 14), V per SI unit."""
     nu = np.atleast_1d(np.asarray(nu, dtype=float))
     c = np.zeros((nu.size, NZ))
-    ks_nu = p.psa.ks_n_per_m / nu
-    c[:, S3], c[:, S2] = -ks_nu, ks_nu
-    c[:, Q] = ks_nu / nu                     # 1/C = k_s / N_u^2 (eq. 21)
-    c[:, ZI] = p.psa.r0a_ohm * np.exp(-p.psa.r0b_v_per_n * nu)
+    for b in range(nu.size):
+        output_row_into(p.psa.ks_n_per_m, p.psa.r0a_ohm, p.psa.r0b_v_per_n, float(nu[b]), c[b])
     return c
+
+
+def coupling(ks_n_per_m: float, nu: float | np.ndarray) -> float | np.ndarray:
+    """The factor k_s / N_u of ``HybridStructure.a_coupling`` (N/(V m) per N/V; scalar or array)."""
+    return ks_n_per_m / nu
+
+
+def damping(rb_v2s_per_mn: float, nu: float | np.ndarray) -> float | np.ndarray:
+    """Material damping b_p = R_b N_u^2 (N s/m), the factor of ``HybridStructure.a_damping``."""
+    return rb_v2s_per_mn * (nu * nu)
+
+
+coupling_jit = njit(cache=True, nogil=True)(coupling)
+damping_jit = njit(cache=True, nogil=True)(damping)
+
+
+@njit(cache=True, nogil=True)
+def output_row_into(ks_n_per_m: float, r0a_ohm: float, r0b_v_per_n: float, nu: float, out: np.ndarray) -> None:
+    """Write the output row c (U = c @ z, SI) for one N_u into ``out`` (14 entries, S2/S3/Q/ZI set).
+
+    Eq. 20 with H[Q] replaced by R(N_u) I (eq. 22): U = (k_s/N_u)(s2 - s3) + Q/C + R(N_u) I with
+    1/C = k_s / N_u^2 (eq. 21). The kernel divides by :data:`Z_SCALE` for the scaled state.
+    """
+    ks_nu = ks_n_per_m / nu
+    out[S3] = -ks_nu
+    out[S2] = ks_nu
+    out[Q] = ks_nu / nu
+    out[ZI] = r0a_ohm * np.exp(-r0b_v_per_n * nu)
 
 
 def output_row(p: InjectorParameters, nu: float) -> np.ndarray:

@@ -16,21 +16,12 @@ from scipy.linalg import expm
 from estimator.errors import InfeasibleError, ParameterError
 from estimator.model import dynamics as dyn
 from estimator.model import kernel
+from estimator.model.automaton import build_automaton
 from estimator.model.drive import SAMPLE_PERIOD_S
-from estimator.model.parameters import InjectorParameters, load_nominal
+from estimator.model.dynamics import STATUS_INFEASIBLE, STATUS_TEXT
+from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters, check_nu_in, load_nominal
 
 PLATEAU_WINDOW_S = (215e-6, 490e-6)  # Table 3: mean plunger stroke s_4,s over 215-490 µs
-
-# The estimator searches a little past Table 1's N_u range (15..21 N/V): an injector at 20.99 N/V
-# must not read as "at a bound" because noise put its estimate at 21.01. The laws of eqs. 21-22 are
-# smooth there; 0.1 N/V is 0.5 % of N_u.
-NU_EXTRAPOLATION_N_PER_V = 0.1
-
-STATUS_OK = 0
-STATUS_INFEASIBLE = 1
-STATUS_EVENT_CAP = 2
-STATUS_TEXT = {STATUS_OK: "ok", STATUS_INFEASIBLE: "infeasible initial state",
-               STATUS_EVENT_CAP: "too many mode switches in one sample (chattering)"}
 
 
 @dataclass(frozen=True)
@@ -98,16 +89,7 @@ class FastSimulator:
         self.dt_s = float(dt_s)
         self.structure = dyn.build_structure(self.params)
         self._d = dyn.Z_SCALE
-        g = self.structure.guards / self._d  # rows act on scaled z
-        norm = np.max(np.abs(g), axis=-1, keepdims=True)
-        self._guards = np.ascontiguousarray(g / np.where(norm > 0, norm, 1.0))
-        seated = self.structure.open_seated / self._d
-        snorm = np.max(np.abs(seated), axis=-1, keepdims=True)
-        self._open_seated = np.ascontiguousarray(seated / np.where(snorm > 0, snorm, 1.0))
-        self._open_index = np.ascontiguousarray(self.structure.open_index)
-        self._target = np.ascontiguousarray(self.structure.guard_target)
-        self._reset = np.ascontiguousarray(self.structure.guard_reset)
-        self._mode = dyn.REGION_MODE.astype(np.int8)
+        self.automaton = build_automaton(self.structure, self._d)
         psa = self.params.psa
         margin = 2 * nu_step + NU_EXTRAPOLATION_N_PER_V
         self._nu0 = psa.nu_min_n_per_v - margin
@@ -119,10 +101,14 @@ class FastSimulator:
         self._no_z0 = np.full((1, dyn.NZ), np.nan)
         self._no_z0.setflags(write=False)
         self._t_cache: dict[int, np.ndarray] = {}
-        self._a_const = np.ascontiguousarray(self._scaled(self.structure.a_const))
         per_region = (dyn.N_REGIONS, dyn.NZ, dyn.NZ)
-        self._a_coup = np.ascontiguousarray(np.broadcast_to(self._scaled(self.structure.a_coupling), per_region))
-        self._a_damp = np.ascontiguousarray(np.broadcast_to(self._scaled(self.structure.a_damping), per_region))
+        self._model = kernel.KernelModel(
+            nu0=float(self._nu0), dnu=float(self._dnu),
+            a_const=np.ascontiguousarray(self._scaled(self.structure.a_const)),
+            a_coup=np.ascontiguousarray(np.broadcast_to(self._scaled(self.structure.a_coupling), per_region)),
+            a_damp=np.ascontiguousarray(np.broadcast_to(self._scaled(self.structure.a_damping), per_region)),
+            ks=float(psa.ks_n_per_m), rb=float(psa.rb_v2s_per_mn), r0a=float(psa.r0a_ohm),
+            r0b=float(psa.r0b_v_per_n), z_scale=np.ascontiguousarray(self._d))
         # a plain dict, not functools.lru_cache on a bound method: that makes a reference cycle, and
         # a simulator dropped from a pool would then stay in memory until the cyclic GC runs
         self._exact: dict[float, np.ndarray] = {}
@@ -184,19 +170,11 @@ class FastSimulator:
     @property
     def nu_range(self) -> tuple[float, float]:
         """N_u values (N/V) the simulator accepts: Table 1's range widened by ``NU_EXTRAPOLATION_N_PER_V``."""
-        psa = self.params.psa
-        return psa.nu_min_n_per_v - NU_EXTRAPOLATION_N_PER_V, psa.nu_max_n_per_v + NU_EXTRAPOLATION_N_PER_V
+        return self.params.psa.simulation_nu_range
 
     def check_nu(self, nu: np.ndarray | float) -> np.ndarray:
         """Validate N_u values (N/V) against :attr:`nu_range`; returns a 1-D float array."""
-        nu = np.atleast_1d(np.asarray(nu, dtype=float))
-        lo, hi = self.nu_range
-        if np.isfinite(nu.sum()) and nu.min() >= lo and nu.max() <= hi:
-            return nu
-        bad = ~np.isfinite(nu) | (nu < lo) | (nu > hi)
-        if np.any(bad):
-            raise ParameterError(f"N_u = {float(nu[bad][0])!r} N/V is outside [{lo:g}, {hi:g}] N/V")
-        return nu
+        return check_nu_in(np.atleast_1d(np.asarray(nu, dtype=float)), *self.nu_range)
 
     # ---- simulation -----------------------------------------------------------------------
     def simulate(self, current_a: np.ndarray, nu_n_per_v: np.ndarray | float, lh_m: np.ndarray | float,
@@ -222,13 +200,12 @@ class FastSimulator:
             except ValueError:
                 raise ParameterError(f"candidate arrays of sizes {nu.size}, {lh.size}, {fo.size} "
                                      "do not broadcast") from None
-        psa = self.params.psa
         code, n_neg = kernel.check_inputs(cur, nu, lh, fo, *self.nu_range)
-        if code == 1:
+        if code == kernel.BAD_CURRENT:
             raise ParameterError("current must be a 1-D array of at least 2 finite samples (A)")
-        if code == 2:
+        if code == kernel.BAD_NU:
             self.check_nu(nu)   # raises with the offending value
-        if code == 3:
+        if code == kernel.BAD_LH_FOPEN:
             raise ParameterError("L_h (m) and F_open (N >= 0) must be finite")
         n = cur.size
         d = self._d
@@ -249,10 +226,8 @@ class FastSimulator:
         else:
             src, idx, w = self._table(), self._no_idx, self._no_w
         u, s3, s4, mode, tc, to, status, success = kernel.run_batch(
-            src, not exact, idx, w, self._nu0, self._dnu, self._a_const, self._a_coup, self._a_damp,
-            self._guards, self._target, self._reset, self._open_index, self._open_seated, self._mode,
-            nu, lh, fo, z0_given, region0, cur, self.dt_s * dyn.TIME_SCALE, psa.ks_n_per_m, psa.rb_v2s_per_mn,
-            psa.r0a_ohm, psa.r0b_v_per_n, d)
+            self._model, self.automaton, src, not exact, idx, w, nu, lh, fo, z0_given, region0, cur,
+            self.dt_s * dyn.TIME_SCALE)
         if feasible is not None and not feasible.all():
             status[~feasible] = STATUS_INFEASIBLE
             success[~feasible] = False

@@ -9,15 +9,35 @@ integrated in the new region. Everything here works on plain arrays: no Python o
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
-NZ = 14
-NX = 9
-S3, Q, S4, V3, V4, ZI, ZID = 4, 6, 7, 5, 8, 9, 10
-RESET_OPEN, RESET_CLOSE = 1, 2
+from estimator.model.automaton import apply_reset, dot, guard_value, in_contact, rearmed
+from estimator.model.dynamics import (MODE_OPEN, NX, NZ, S3, S4, STATUS_EVENT_CAP, STATUS_OK, Z1, ZF, ZI, ZID,
+                                      ZL, coupling_jit, damping_jit, output_row_into)
+
 MAX_EVENTS_PER_SAMPLE = 12
-STATUS_OK, STATUS_EVENT_CAP = 0, 2
+INPUTS_OK, BAD_CURRENT, BAD_NU, BAD_LH_FOPEN = 0, 1, 2, 3   # codes of check_inputs
+
+
+class KernelModel(NamedTuple):
+    """The N_u-independent numbers of one parameter set, in the kernel's scaled units (per µs).
+
+    The table of transition matrices is passed beside it: the exact mode replaces it per call.
+    """
+
+    nu0: float              # N/V, first N_u of the interpolation table
+    dnu: float              # N/V, its step
+    a_const: np.ndarray     # (6, NZ, NZ) region matrices without the N_u terms
+    a_coup: np.ndarray      # (6, NZ, NZ) multiplies k_s / N_u
+    a_damp: np.ndarray      # (6, NZ, NZ) multiplies R_b N_u^2
+    ks: float               # k_s in N/m
+    rb: float               # R_b in V^2 s/(m N)
+    r0a: float              # R_0a in Ohm
+    r0b: float              # R_0b in V/N
+    z_scale: np.ndarray     # (NZ,) dynamics.Z_SCALE
 
 
 @njit(cache=True, nogil=True)
@@ -58,14 +78,6 @@ def _flow(a, z, sigma, out):
             out[i] += tmp[i]
             big = max(big, abs(tmp[i]))
         k += 1
-
-
-@njit(cache=True, nogil=True)
-def _dot(g, z):
-    s = 0.0
-    for i in range(NZ):
-        s += g[i] * z[i]
-    return s
 
 
 @njit(cache=True, nogil=True)
@@ -113,7 +125,7 @@ def _locate(a, g, z, zn, rem, g0, g1, out, smooth):
     tol = 1e-7 * rem
     for _ in range(60):
         _flow(a, z, s, out)
-        fs = _dot(g, out)
+        fs = dot(g, out)
         if fs > 0.0:
             hi = s
             if smooth:
@@ -136,22 +148,14 @@ def _locate(a, g, z, zn, rem, g0, g1, out, smooth):
 
 
 @njit(cache=True, nogil=True)
-def _apply_reset(z, code):
-    if code == RESET_OPEN:
-        z[V4] = max(z[V3], 0.0)   # the plunger lifts with the piston, never into its seat
-    elif code == RESET_CLOSE:
-        z[S4] = 0.0
-        z[V4] = 0.0
-
-
-@njit(cache=True, nogil=True)
-def _region_phi(phi_src, idx, w, b, r, z, out, const):
+def _region_phi(src, cand, b, r, z, out, const):
     """Rows 0..NX-1 of the transition matrix of region r for candidate b (weighted table rows),
     and ``const[r]``: the contribution of the constant inputs L_h, F_open, 1 (columns 11..13)."""
+    idx, w = cand.idx, cand.w
     for i in range(NX):
         for j in range(NZ):
-            out[r, i, j] = (w[b, 0] * phi_src[idx[b, 0], r, i, j] + w[b, 1] * phi_src[idx[b, 1], r, i, j]
-                            + w[b, 2] * phi_src[idx[b, 2], r, i, j] + w[b, 3] * phi_src[idx[b, 3], r, i, j])
+            out[r, i, j] = (w[b, 0] * src[idx[b, 0], r, i, j] + w[b, 1] * src[idx[b, 1], r, i, j]
+                            + w[b, 2] * src[idx[b, 2], r, i, j] + w[b, 3] * src[idx[b, 3], r, i, j])
         c = 0.0
         for j in range(ZID + 1, NZ):
             c += out[r, i, j] * z[j]
@@ -159,28 +163,152 @@ def _region_phi(phi_src, idx, w, b, r, z, out, const):
 
 
 @njit(cache=True, nogil=True)
-def _region_a(a_const, a_coup, a_damp, cpl, dmp, r, out):
+def _region_a(model, cpl, dmp, r, out):
+    """The continuous matrix of region r: a_const + cpl a_coup + dmp a_damp (scaled, per µs)."""
     for i in range(NZ):
         for j in range(NZ):
-            out[i, j] = a_const[r, i, j] + cpl * a_coup[r, i, j] + dmp * a_damp[r, i, j]
+            out[i, j] = model.a_const[r, i, j] + cpl * model.a_coup[r, i, j] + dmp * model.a_damp[r, i, j]
 
 
 @njit(cache=True, nogil=True)
-def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, target, reset,
-                    open_index, open_seated, region_mode, z0, region0, cur, h, cout,
-                    out_u, out_s3, out_s4, out_mode, t_contact, t_open, status):
+def _continuous(model, cand, b, r, amat, have_a):
+    """The continuous matrix of region r for candidate b (formed at its first event in the region)."""
+    if not have_a[r]:
+        _region_a(model, cand.cpl[b], cand.dmp[b], r, amat[r])
+        have_a[r] = True
+    return amat[r]
+
+
+class Candidates(NamedTuple):
+    """Per-candidate inputs of :func:`simulate_kernel` (B candidates, scaled units)."""
+
+    idx: np.ndarray       # (B, 4) int64: table rows of the N_u interpolation
+    w: np.ndarray         # (B, 4): their weights (one exact matrix: weight 1 on row idx[b, 0])
+    cpl: np.ndarray       # (B,) k_s / N_u, the coupling factor of the continuous matrix
+    dmp: np.ndarray       # (B,) R_b N_u^2, its damping factor
+    z0: np.ndarray        # (B, NZ) initial augmented state
+    region0: np.ndarray   # (B,) int64 initial region
+    cout: np.ndarray      # (B, NZ) output rows, U = cout[b] @ z
+
+
+class Trajectories(NamedTuple):
+    """Outputs of :func:`simulate_kernel`, written in place (scaled units, times in µs)."""
+
+    u: np.ndarray          # (B, N) voltage in V
+    s3: np.ndarray         # (B, N) bottom plate in µm
+    s4: np.ndarray         # (B, N) plunger in µm
+    mode: np.ndarray       # (B, N) int8 automaton mode
+    t_contact: np.ndarray  # (B,) first contact (NaN: none)
+    t_open: np.ndarray     # (B,) first opening (NaN: none)
+    status: np.ndarray     # (B,) int64 STATUS_*
+
+
+# The per-sample code takes plain arrays: a call, or an array taken out of a named tuple, costs
+# ~30 ns per sample, as much as the step itself; _step is inlined by numba (inline="always").
+
+@njit(cache=True, nogil=True, inline="always")
+def _step(phi, const, r, z, zn, nx, h):
+    """zn = the state one full sample (h µs) after z in region r, with its transition rows phi[r]
+    and constant part const[r]; states nx.. (the plunger while the valve is closed) are held."""
+    zi = z[ZI]
+    zd = z[ZID]
+    for i in range(nx):
+        s = const[r, i] + phi[r, i, ZI] * zi + phi[r, i, ZID] * zd
+        for j in range(nx):
+            s += phi[r, i, j] * z[j]
+        zn[i] = s
+    for i in range(nx, NZ):
+        zn[i] = z[i]
+    zn[ZI] = zi + h * zd
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _guard_ends(guards, open_seated, open_index, r, j, z, zn, seated):
+    """Guard j of region r at z and at zn: (g0, g1, spring_only). After a re-seat the opening
+    guard is min(ordinary, spring-only); ``spring_only`` says that the spring-only row is the lower
+    one at zn, the row to locate the crossing with."""
+    g = guards[r, j]
+    g0 = dot(g, z)
+    g1 = dot(g, zn)
+    spring_only = False
+    if seated and j == open_index[r]:
+        # lift-off from the seat needs both forces: min(ordinary, spring-only) > 0
+        g0 = min(g0, dot(open_seated[r], z))
+        gs1 = dot(open_seated[r], zn)
+        if gs1 < g1:
+            g1 = gs1
+            spring_only = True
+    return g0, g1, spring_only
+
+
+@njit(cache=True, nogil=True)
+def _locate_first(guards, open_seated, open_index, target, reset, region_mode, amat, r, z, zn, rem, seated,
+                  zt, zb):
+    """The guard of region r that fires first between z and zn (``rem`` µs later; ``amat`` the
+    region's continuous matrix). Returns (j, s): the guard (-1: none) and the time after z at which
+    it is positive; the state there is left in zb. Called only when some guard crosses.
+    """
+    best = -1
+    best_s = rem
+    for j in range(3):
+        if target[r, j] < 0:
+            continue
+        g0, g1, spring_only = _guard_ends(guards, open_seated, open_index, r, j, z, zn, seated)
+        if g0 <= 0.0 and g1 > 0.0:
+            g = open_seated[r] if spring_only else guards[r, j]
+            smooth = reset[r, j] == 0 and region_mode[target[r, j]] == region_mode[r]
+            s = _locate(amat, g, z, zn, rem, g0, g1, zt, smooth)
+            if s < best_s or best < 0:
+                best_s = s
+                best = j
+                for i in range(NZ):
+                    zb[i] = zt[i]
+    return best, best_s
+
+
+@njit(cache=True, nogil=True)
+def _transition(aut, r, j, z, seated, nev, t_ev, b, out):
+    """Take transition j of region r at z (time t_ev µs), then any already enabled at the new state.
+
+    Records the first contact and opening times of candidate b; returns (region, seated, events).
+    """
+    while j >= 0 and nev < MAX_EVENTS_PER_SAMPLE:
+        seated = apply_reset(z, aut.reset[r, j], seated)
+        r = aut.target[r, j]
+        nev += 1
+        md = aut.region_mode[r]
+        if in_contact(md) and np.isnan(out.t_contact[b]):
+            out.t_contact[b] = t_ev
+        if md == MODE_OPEN and np.isnan(out.t_open[b]):
+            out.t_open[b] = t_ev
+        j = -1
+        for jj in range(3):
+            if aut.target[r, jj] < 0:
+                continue
+            if guard_value(aut.guards, aut.open_seated, aut.open_index, r, jj, z, seated) > 0.0:
+                j = jj
+                break
+    return r, seated, nev
+
+
+@njit(cache=True, nogil=True)
+def simulate_kernel(src, model, aut, cand, cur, h, out):
     """Advance B candidates over the samples of ``cur`` (all arrays in scaled units, time in µs).
 
-    The transition matrix of region r for candidate b is ``sum_q w[b,q] phi_src[idx[b,q], r]``
+    The transition matrix of region r for candidate b is ``sum_q w[b,q] src[idx[b,q], r]``
     (a 4-point interpolation in N_u, or one exact matrix with weight 1); it is formed the first
     time the candidate enters the region. The continuous matrix, needed only to locate events, is
-    ``a_const[r] + cpl[b] a_coup[r] + dmp[b] a_damp[r]``. guards (6, 3, NZ), target/reset (6, 3)
-    are the automaton; z0 (B, NZ), region0 (B,) the initial state; cur (N,) the current in A;
-    cout (B, NZ) the output rows. Outputs are written in place; t_contact/t_open in µs (NaN: none).
+    ``a_const[r] + cpl[b] a_coup[r] + dmp[b] a_damp[r]``. ``aut`` is the automaton
+    (:class:`automaton.Automaton`), ``cand`` the candidates, ``cur`` (N,) the current in A. Per
+    sample: :func:`_step`, then, if a guard crosses, :func:`_locate_first` and :func:`_transition`
+    and the rest of the sample from there. The :class:`Trajectories` ``out`` are written in place;
+    t_contact/t_open in µs (NaN: none).
     """
-    nb = z0.shape[0]
+    nb = cand.z0.shape[0]
     n = cur.shape[0]
-    nreg = a_const.shape[0]
+    nreg = model.a_const.shape[0]
+    guards, target, reset, open_index, open_seated, region_mode = aut
+    cout, out_u, out_s3, out_s4, out_mode = cand.cout, out.u, out.s3, out.s4, out.mode
     z = np.empty(NZ)
     zn = np.empty(NZ)
     zt = np.empty(NZ)
@@ -195,18 +323,15 @@ def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, 
         have_a[:] = False
         seated = False
         for i in range(NZ):
-            z[i] = z0[b, i]
-        r = region0[b]
-        t_contact[b] = np.nan
-        t_open[b] = np.nan
-        status[b] = STATUS_OK
-        if region_mode[r] == 2 or region_mode[r] == 3:
-            t_contact[b] = 0.0
+            z[i] = cand.z0[b, i]
+        r = cand.region0[b]
+        out.t_contact[b] = np.nan
+        out.t_open[b] = np.nan
+        out.status[b] = STATUS_OK
+        if in_contact(region_mode[r]):
+            out.t_contact[b] = 0.0
         z[ZI] = cur[0]
-        out_u[b, 0] = _dot(cout[b], z)
-        out_s3[b, 0] = z[S3]
-        out_s4[b, 0] = z[S4]
-        out_mode[b, 0] = region_mode[r]
+        _record(cout, z, region_mode[r], out_u, out_s3, out_s4, out_mode, b, 0)
         for k in range(n - 1):
             z[ZI] = cur[k]
             z[ZID] = (cur[k + 1] - cur[k]) / h
@@ -215,98 +340,61 @@ def simulate_kernel(phi_src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, 
             while True:
                 if rem == h:
                     if not have[r]:
-                        _region_phi(phi_src, idx, w, b, r, z, phi, const)
+                        _region_phi(src, cand, b, r, z, phi, const)
                         have[r] = True
                     # the valve plunger states are held at rest while the valve is closed
-                    nx = NX if region_mode[r] >= 3 else S4
-                    zi = z[ZI]
-                    zd = z[ZID]
-                    for i in range(nx):
-                        s = const[r, i] + phi[r, i, ZI] * zi + phi[r, i, ZID] * zd
-                        for j in range(nx):
-                            s += phi[r, i, j] * z[j]
-                        zn[i] = s
-                    for i in range(nx, NZ):
-                        zn[i] = z[i]
-                    zn[ZI] = zi + h * zd
-                else:
-                    if not have_a[r]:
-                        _region_a(a_const, a_coup, a_damp, cpl[b], dmp[b], r, amat[r])
-                        have_a[r] = True
-                    _flow(amat[r], z, rem, zn)
-                best = -1
-                best_s = rem
+                    _step(phi, const, r, z, zn, NX if region_mode[r] >= MODE_OPEN else S4, h)
+                else:   # the rest of a sample after an event
+                    _flow(_continuous(model, cand, b, r, amat, have_a), z, rem, zn)
+                # does a guard cross? automaton.guard_value at both ends, written out: as an inlined
+                # call it made the whole simulation 35 % slower (speed-sim)
+                crosses = False
                 for j in range(3):
                     if target[r, j] < 0:
                         continue
                     g = guards[r, j]
-                    g0 = _dot(g, z)
-                    g1 = _dot(g, zn)
+                    g0 = dot(g, z)
+                    g1 = dot(g, zn)
                     if seated and j == open_index[r]:
-                        # lift-off from the seat needs both forces: min(ordinary, spring-only) > 0
-                        gs = open_seated[r]
-                        gs0, gs1 = _dot(gs, z), _dot(gs, zn)
-                        g0 = min(g0, gs0)
-                        if gs1 < g1:
-                            g, g1 = gs, gs1
+                        g0 = min(g0, dot(open_seated[r], z))
+                        g1 = min(g1, dot(open_seated[r], zn))
                     if g0 <= 0.0 and g1 > 0.0:
-                        if not have_a[r]:
-                            _region_a(a_const, a_coup, a_damp, cpl[b], dmp[b], r, amat[r])
-                            have_a[r] = True
-                        s = _locate(amat[r], g, z, zn, rem, g0, g1, zt,
-                                    reset[r, j] == 0 and region_mode[target[r, j]] == region_mode[r])
-                        if s < best_s or best < 0:
-                            best_s = s
-                            best = j
-                            for i in range(NZ):
-                                zb[i] = zt[i]
-                if best < 0:
+                        crosses = True
+                if not crosses:
                     for i in range(NZ):
                         z[i] = zn[i]
                     break
                 if nev >= MAX_EVENTS_PER_SAMPLE:
-                    status[b] = STATUS_EVENT_CAP
+                    out.status[b] = STATUS_EVENT_CAP
                     for i in range(NZ):
                         z[i] = zn[i]
                     break
+                best, best_s = _locate_first(guards, open_seated, open_index, target, reset, region_mode,
+                                             _continuous(model, cand, b, r, amat, have_a), r, z, zn, rem, seated,
+                                             zt, zb)
                 for i in range(NZ):
                     z[i] = zb[i]
                 t_ev = k * h + (h - rem) + best_s
-                # take the transition, then any that are already enabled at the new state
-                j = best
-                while j >= 0 and nev < MAX_EVENTS_PER_SAMPLE:
-                    _apply_reset(z, reset[r, j])
-                    if reset[r, j] == RESET_CLOSE:
-                        seated = True
-                    elif reset[r, j] == RESET_OPEN:
-                        seated = False
-                    r = target[r, j]
-                    nev += 1
-                    md = region_mode[r]
-                    if (md == 2 or md == 3) and np.isnan(t_contact[b]):
-                        t_contact[b] = t_ev
-                    if md == 3 and np.isnan(t_open[b]):
-                        t_open[b] = t_ev
-                    j = -1
-                    for jj in range(3):
-                        if target[r, jj] < 0:
-                            continue
-                        gv = _dot(guards[r, jj], z)
-                        if seated and jj == open_index[r]:
-                            gv = min(gv, _dot(open_seated[r], z))
-                        if gv > 0.0:
-                            j = jj
-                            break
+                r, seated, nev = _transition(aut, r, best, z, seated, nev, t_ev, b, out)
                 rem = rem - best_s
                 if rem <= 1e-12 * h:
                     break
             z[ZI] = cur[k + 1]
-            if seated and open_index[r] >= 0 and _dot(guards[r, open_index[r]], z) <= 0.0:
-                seated = False   # the full opening force fell below F_open: the ordinary guard re-arms
-            out_u[b, k + 1] = _dot(cout[b], z)
+            if seated:
+                seated = rearmed(guards, open_index, r, z, seated)
+            out_u[b, k + 1] = dot(cout[b], z)   # _record, written out: an inlined call costs ~5 %
             out_s3[b, k + 1] = z[S3]
             out_s4[b, k + 1] = z[S4]
             out_mode[b, k + 1] = region_mode[r]
+
+
+@njit(cache=True, nogil=True)
+def _record(cout, z, mode, out_u, out_s3, out_s4, out_mode, b, k):
+    """Outputs of candidate b at sample k: U = cout[b] @ z, s3, s4 (µm) and the mode."""
+    out_u[b, k] = dot(cout[b], z)
+    out_s3[b, k] = z[S3]
+    out_s4[b, k] = z[S4]
+    out_mode[b, k] = mode
 
 
 @njit(cache=True, nogil=True)
@@ -354,21 +442,10 @@ def lti_foh_kernel(phi, g0, g1, c, d, cur, h, out_y, out_x):
 
 
 @njit(cache=True, nogil=True)
-def run_batch(src, stencil, idx_in, w_in, nu0, dnu, a_const, a_coup, a_damp, guards, target, reset, open_index,
-              open_seated, region_mode, nu, lh, fo, z0_given, region0, cur, h, ks, rb, r0a, r0b, d):
-    """One call for a whole batch: set up each candidate, interpolate its matrices, simulate.
-
-    ``stencil``: interpolate the table ``src`` at ``nu`` (else ``idx_in``/``w_in`` select exact
-    matrices). Rows of ``z0_given`` with a finite first entry are initial states given in scaled
-    units (pre-compressed starts); the others start at rest. ``d`` is the scaling vector. Returns
-    (u, s3, s4, mode, t_contact, t_open, status, success) with s3, s4 in m and times in s.
-    """
+def _candidates(model, idx, w, nu, lh, fo, z0_given, region0):
+    """The :class:`Candidates` of a batch: initial states, output rows and the N_u factors."""
     nb = nu.shape[0]
-    n = cur.shape[0]
-    if stencil:
-        idx, w = lagrange_stencil(nu, nu0, dnu)
-    else:
-        idx, w = idx_in, w_in
+    d = model.z_scale
     z0 = np.zeros((nb, NZ))
     cout = np.zeros((nb, NZ))
     cpl = np.empty(nb)
@@ -378,25 +455,37 @@ def run_batch(src, stencil, idx_in, w_in, nu0, dnu, a_const, a_coup, a_damp, gua
             for i in range(NZ):
                 z0[b, i] = z0_given[b, i]
         else:
-            z0[b, ZID + 1] = lh[b] * d[ZID + 1]
-            z0[b, ZID + 2] = fo[b]
-            z0[b, ZID + 3] = 1.0
-        ks_nu = ks / nu[b]
-        cout[b, S3] = -ks_nu / d[S3]
-        cout[b, S3 - 2] = ks_nu / d[S3 - 2]
-        cout[b, Q] = ks_nu / nu[b] / d[Q]
-        cout[b, ZI] = r0a * np.exp(-r0b * nu[b])
-        cpl[b] = ks_nu
-        dmp[b] = rb * nu[b] * nu[b]
-    u = np.empty((nb, n))
-    s3 = np.empty((nb, n))
-    s4 = np.empty((nb, n))
-    mode = np.empty((nb, n), dtype=np.int8)
-    tc = np.empty(nb)
-    to = np.empty(nb)
-    status = np.empty(nb, dtype=np.int64)
-    simulate_kernel(src, idx, w, a_const, a_coup, a_damp, cpl, dmp, guards, target, reset, open_index, open_seated,
-                    region_mode, z0, region0, cur, h, cout, u, s3, s4, mode, tc, to, status)
+            z0[b, ZL] = lh[b] * d[ZL]
+            z0[b, ZF] = fo[b]
+            z0[b, Z1] = 1.0
+        output_row_into(model.ks, model.r0a, model.r0b, nu[b], cout[b])
+        for i in range(NZ):
+            cout[b, i] /= d[i]
+        cpl[b] = coupling_jit(model.ks, nu[b])
+        dmp[b] = damping_jit(model.rb, nu[b])
+    return Candidates(idx, w, cpl, dmp, z0, region0, cout)
+
+
+@njit(cache=True, nogil=True)
+def run_batch(model, aut, src, stencil, idx_in, w_in, nu, lh, fo, z0_given, region0, cur, h):
+    """One call for a whole batch: set up each candidate, interpolate its matrices, simulate.
+
+    ``stencil``: interpolate the table ``src`` at ``nu`` (else ``idx_in``/``w_in`` select exact
+    matrices). Rows of ``z0_given`` with a finite first entry are initial states given in scaled
+    units (pre-compressed starts); the others start at rest. Returns
+    (u, s3, s4, mode, t_contact, t_open, status, success) with s3, s4 in m and times in s.
+    """
+    nb = nu.shape[0]
+    n = cur.shape[0]
+    if stencil:
+        idx, w = lagrange_stencil(nu, model.nu0, model.dnu)
+    else:
+        idx, w = idx_in, w_in
+    cand = _candidates(model, idx, w, nu, lh, fo, z0_given, region0)
+    out = Trajectories(np.empty((nb, n)), np.empty((nb, n)), np.empty((nb, n)), np.empty((nb, n), dtype=np.int8),
+                       np.empty(nb), np.empty(nb), np.empty(nb, dtype=np.int64))
+    simulate_kernel(src, model, aut, cand, cur, h, out)
+    u, s3, s4, mode, tc, to, status = out
     success = np.empty(nb, dtype=np.bool_)
     for b in range(nb):
         for k in range(n):
@@ -410,18 +499,18 @@ def run_batch(src, stencil, idx_in, w_in, nu0, dnu, a_const, a_coup, a_damp, gua
 
 @njit(cache=True, nogil=True)
 def check_inputs(cur, nu, lh, fo, nu_min, nu_max):
-    """0 if all inputs are usable, else 1 (current), 2 (N_u), 3 (L_h or F_open); and the number of
-    candidates with L_h <= 0 (which need their pre-compressed initial state)."""
+    """``INPUTS_OK`` if all inputs are usable, else ``BAD_CURRENT``, ``BAD_NU`` or ``BAD_LH_FOPEN``;
+    and the number of candidates with L_h <= 0 (which need their pre-compressed initial state)."""
     for k in range(cur.shape[0]):
         if not np.isfinite(cur[k]):
-            return 1, 0
+            return BAD_CURRENT, 0
     for b in range(nu.shape[0]):
         if not (np.isfinite(nu[b]) and nu_min <= nu[b] <= nu_max):
-            return 2, 0
+            return BAD_NU, 0
     n_neg = 0
     for b in range(lh.shape[0]):
         if not (np.isfinite(lh[b]) and np.isfinite(fo[b]) and fo[b] >= 0.0):
-            return 3, 0
+            return BAD_LH_FOPEN, 0
         if lh[b] <= 0.0:
             n_neg += 1
-    return 0, n_neg
+    return INPUTS_OK, n_neg

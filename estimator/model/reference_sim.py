@@ -14,9 +14,11 @@ from scipy.integrate import solve_ivp
 
 from estimator.errors import InfeasibleError, ParameterError
 from estimator.model import dynamics as dyn
+from estimator.model.automaton import apply_reset, build_automaton, guard_value, in_contact, rearmed
 from estimator.model.drive import SAMPLE_PERIOD_S
-from estimator.model.fast_sim import STATUS_EVENT_CAP, STATUS_INFEASIBLE, STATUS_OK, BatchResult
-from estimator.model.parameters import InjectorParameters, load_nominal
+from estimator.model.dynamics import MODE_OPEN, STATUS_EVENT_CAP, STATUS_INFEASIBLE, STATUS_OK
+from estimator.model.fast_sim import BatchResult
+from estimator.model.parameters import InjectorParameters, check_nu_in, load_nominal
 
 _INSTANT_TOL = 1e-9      # guard value (scaled, normalised) above which a new region's guard fires at once
 _MAX_EVENTS = 10_000
@@ -38,7 +40,7 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
     ``atol`` is in the scaled units of :data:`dynamics.Z_SCALE` (µm, m/s, µC).
     """
     p = params or load_nominal()
-    p.psa.check_nu(nu_n_per_v)
+    check_nu_in(np.array([nu_n_per_v], dtype=float), *p.psa.simulation_nu_range)
     cur = np.asarray(current_a, dtype=float)
     if cur.ndim != 1 or cur.size < 2 or not np.all(np.isfinite(cur)):
         raise ParameterError("current must be a 1-D array of at least 2 finite samples (A)")
@@ -49,18 +51,9 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
     st = dyn.build_structure(p)
     d = dyn.Z_SCALE
     a_all = dyn.region_matrices(st, p, np.array([nu_n_per_v]))[0] * (d[:, None] / d[None, :]) / dyn.TIME_SCALE
-    guards = st.guards / d
-    guards /= np.maximum(np.max(np.abs(guards), axis=-1, keepdims=True), 1e-300)
-    seated_rows = st.open_seated / d
-    seated_rows /= np.maximum(np.max(np.abs(seated_rows), axis=-1, keepdims=True), 1e-300)
+    aut = build_automaton(st, d)
     seated = False   # after a close, reopening needs the spring force alone (see dynamics)
 
-    def guard_value(r: int, j: int, z: np.ndarray, seated_now: bool) -> float:
-        """Guard j of region r; after a re-seat the opening needs min(ordinary, spring-only) > 0."""
-        v = float(guards[r, j] @ z)
-        if seated_now and j == st.open_index[r]:
-            v = min(v, float(seated_rows[r] @ z))
-        return v
     cout = dyn.output_row(p, nu_n_per_v) / d
 
     out = {k: np.full(n, np.nan) for k in ("u", "s3", "s4")}
@@ -93,9 +86,9 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
     def record(k: int, xv: np.ndarray, r: int) -> None:
         z = augmented(t_us[k], xv)
         out["u"][k], out["s3"][k], out["s4"][k] = cout @ z, xv[dyn.S3], xv[dyn.S4]
-        mode[k] = dyn.REGION_MODE[r]
+        mode[k] = aut.region_mode[r]
 
-    if dyn.REGION_MODE[region] in (2, 3):
+    if in_contact(aut.region_mode[region]):
         t_contact = 0.0
     record(0, x, region)
     kinks = _kinks(cur)
@@ -106,7 +99,7 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
         while True:
             a = a_all[region]
             ax, au = a[: dyn.NX, : dyn.NX], a[: dyn.NX, dyn.NX:]
-            active = [j for j in range(dyn.MAX_GUARDS) if st.guard_target[region, j] >= 0]
+            active = [j for j in range(dyn.MAX_GUARDS) if aut.target[region, j] >= 0]
 
             def rhs(tt: float, xv: np.ndarray, ax=ax, au=au) -> np.ndarray:
                 u = consts.copy()
@@ -116,7 +109,7 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
             events = []
             for j in active:
                 def ev(tt: float, xv: np.ndarray, r=region, j=j, sn=seated) -> float:
-                    return guard_value(r, j, augmented(tt, xv), sn)
+                    return guard_value(aut.guards, aut.open_seated, aut.open_index, r, j, augmented(tt, xv), sn)
                 ev.terminal, ev.direction = True, 1.0
                 events.append(ev)
             t_eval = t_us[(t_us > t + 1e-12) & (t_us <= t_us[k1] + 1e-12)]
@@ -126,9 +119,8 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
                             max_step=h / 4, events=events, t_eval=t_eval)
             for tk, xk in zip(sol.t, np.asarray(sol.y).reshape(dyn.NX, -1).T):
                 record(int(round(tk / h)), xk, region)
-                oi = st.open_index[region]
-                if seated and oi >= 0 and guards[region, oi] @ augmented(tk, xk) <= 0.0:
-                    seated = False   # re-armed; takes effect when the integration restarts
+                # re-armed: takes effect when the integration restarts
+                seated = rearmed(aut.guards, aut.open_index, region, augmented(tk, xk), seated)
             if sol.status != 1:  # reached the knot
                 if sol.t.size:
                     x = sol.y[:, -1]
@@ -141,23 +133,17 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
             t = t_ev
             while j is not None:
                 z = augmented(t, x)
-                code = st.guard_reset[region, j]
-                if code == dyn.RESET_OPEN:
-                    z[dyn.V4] = max(z[dyn.V3], 0.0)
-                    seated = False
-                elif code == dyn.RESET_CLOSE:
-                    z[dyn.S4] = z[dyn.V4] = 0.0
-                    seated = True
+                seated = apply_reset(z, aut.reset[region, j], seated)
                 x = z[: dyn.NX]
-                region = int(st.guard_target[region, j])
+                region = int(aut.target[region, j])
                 n_events += 1
-                if dyn.REGION_MODE[region] in (2, 3) and np.isnan(t_contact):
+                if in_contact(aut.region_mode[region]) and np.isnan(t_contact):
                     t_contact = t
-                if dyn.REGION_MODE[region] == 3 and np.isnan(t_open):
+                if aut.region_mode[region] == MODE_OPEN and np.isnan(t_open):
                     t_open = t
                 z = augmented(t, x)
-                j = next((jj for jj in range(dyn.MAX_GUARDS) if st.guard_target[region, jj] >= 0
-                          and guard_value(region, jj, z, seated) > _INSTANT_TOL), None)
+                j = next((jj for jj in range(dyn.MAX_GUARDS) if aut.target[region, jj] >= 0
+                          and guard_value(aut.guards, aut.open_seated, aut.open_index, region, jj, z, seated) > _INSTANT_TOL), None)
             if n_events > _MAX_EVENTS:
                 return result(STATUS_EVENT_CAP)
             if t >= t_us[k1] - 1e-12:

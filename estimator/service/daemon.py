@@ -27,7 +27,7 @@ import can
 import numpy as np
 
 from estimator.codec.bus_clock import BusClock
-from estimator.codec.database import load_database
+from estimator.codec.records import load_database
 from estimator.codec.frame import Frame
 from estimator.codec.ingest import Ingest
 from estimator.codec.records import Codec

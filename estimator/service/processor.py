@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
-from estimator.codec.assembler import Completed, Rejected
+from estimator.codec.assembler import Completed, RejectReason, Rejected
 from estimator.codec.ingest import Counters, Event, Malformed
-from estimator.codec.records import (COMMAND_NONE, COMMAND_RESET, COMMAND_SET_PRIOR, Codec, EstimateQuality,
-                                     EstimateState, EstimatorCommand, EstimatorStatus, ValvePrediction)
+from estimator.codec.records import (HEARTBEAT_COUNTERS, Codec, Command, EstimateQuality, EstimateState,
+                                     EstimatorCommand, EstimatorStatus, ValvePrediction)
 from estimator.ident.measurement import Injection
 from estimator.ident.status import Status
 from estimator.ident.tracker import Tracker, TrackResult
@@ -21,8 +21,6 @@ from estimator.service.ratelimit import RateLimitedLog
 
 log = logging.getLogger(__name__)
 COMMAND_POLICIES = ("off", "reset-only", "all")   # who may steer the estimator over the bus (config key commands)
-# the heartbeat's counters are the Counters fields of the same name
-_STATUS_COUNTERS = tuple(f.name for f in fields(EstimatorStatus) if f.name in {g.name for g in fields(Counters)})
 
 
 ROW_FIELDS = ("time_s", "injector_id", "counter", "status", "nu_n_per_v", "lh_um", "sigma_nu_n_per_v", "sigma_lh_um",
@@ -74,26 +72,30 @@ class Processor:
         self.counters = counters
         self.commands = commands
         self.rlog = RateLimitedLog(log)
-        status = codec.db.get_message_by_name(EstimatorStatus.MESSAGE)
+        status = codec.messages[EstimatorStatus]
         # rolling counters: each wraps at its signal's width (32 or 16 bits)
         self._masks = {name: (1 << status.get_signal_by_name(EstimatorStatus.SIGNALS[name]).length) - 1
-                       for name in _STATUS_COUNTERS}
+                       for name in HEARTBEAT_COUNTERS}
+        self._handlers = {Completed: self._estimate, Rejected: self._log_reject, Malformed: self._log_malformed,
+                          EstimatorCommand: self._command}
 
     def handle(self, events: list[Event]) -> list[Published]:
-        """Process events in order; returns one Published per injection that reached the estimator."""
+        """Process events in order (a handler per event type); returns one Published per injection that
+        reached the estimator."""
         out = []
         for e in events:
-            if isinstance(e, Completed):
-                out.append(self._estimate(e))
-            elif isinstance(e, Rejected):
-                self.rlog.log(logging.WARNING, f"reject-{e.reason}", "injector %d counter %d rejected: %s (%s)",
-                              e.injector_id, e.counter, e.reason, e.detail)
-            elif isinstance(e, Malformed):
-                self.rlog.log(logging.WARNING, f"malformed-{e.arbitration_id}", "malformed frame 0x%03X: %s",
-                              e.arbitration_id, e.detail)
-            elif isinstance(e, EstimatorCommand):
-                self._command(e)
+            pub = self._handlers[type(e)](e)
+            if pub is not None:
+                out.append(pub)
         return out
+
+    def _log_reject(self, e: Rejected) -> None:
+        self.rlog.log(logging.WARNING, f"reject-{e.reason}", "injector %d counter %d rejected: %s (%s)",
+                      e.injector_id, e.counter, e.reason, e.detail)
+
+    def _log_malformed(self, e: Malformed) -> None:
+        self.rlog.log(logging.WARNING, f"malformed-{e.arbitration_id}", "malformed frame 0x%03X: %s",
+                      e.arbitration_id, e.detail)
 
     def prior_problem(self, nu_n_per_v: float, lh_um: float) -> str | None:
         """Why a prior (N/V, µm) is outside the physical ranges (Table 1's N_u, the model's L_h), or None."""
@@ -108,21 +110,21 @@ class Processor:
     def _command(self, c: EstimatorCommand) -> None:
         """Apply a command as the policy allows: ``off`` none, ``reset-only`` resets, ``all`` resets and priors."""
         cnt = self.counters
-        if c.command == COMMAND_NONE:
+        if c.command == Command.NONE:
             return
-        if c.command not in (COMMAND_RESET, COMMAND_SET_PRIOR):
+        if c.command not in (Command.RESET, Command.SET_PRIOR):
             cnt.commands_unknown += 1
             self.rlog.log(logging.WARNING, "command-unknown", "injector %d: undefined command code %d ignored",
                           c.injector_id, c.command)
             return
-        name = "reset" if c.command == COMMAND_RESET else "set_prior"
-        allowed = self.commands == "all" or (self.commands == "reset-only" and c.command == COMMAND_RESET)
+        name = Command(c.command).name.lower()
+        allowed = self.commands == "all" or (self.commands == "reset-only" and c.command == Command.RESET)
         if not allowed:
             cnt.commands_refused += 1
             self.rlog.log(logging.WARNING, f"command-policy-{name}", "injector %d: command %s refused (commands = %s)",
                           c.injector_id, name, self.commands)
             return
-        if c.command == COMMAND_RESET:
+        if c.command == Command.RESET:
             self.tracker.reset(c.injector_id)
             cnt.commands_applied += 1
             log.info("injector %d: reset by command", c.injector_id)
@@ -148,7 +150,7 @@ class Processor:
         self.counters.rejected_outlier += res.outliers
         self.counters.accepted += res.accepted
         if res.status == Status.REJECTED and not res.outliers:
-            self.counters.reject("invalid")
+            self.counters.reject(RejectReason.INVALID)
             self.rlog.log(logging.WARNING, "reject-estimator", "injector %d counter %d rejected: %s",
                           h.injector_id, h.counter, res.reason)
         return Published(h.injector_id, h.counter, e.t_last, res, self.frames_for(h.injector_id, h.counter, res))
@@ -169,7 +171,7 @@ class Processor:
                      stage_p99_ms: dict[str, float] | None = None):
         """The EstimatorStatus heartbeat frame (``stage_p99_ms``: p99 per latency stage, keys queue,
         assembly, estimation, send, in ms)."""
-        counts = {name: getattr(self.counters, name) & self._masks[name] for name in _STATUS_COUNTERS}
+        counts = {name: getattr(self.counters, name) & self._masks[name] for name in HEARTBEAT_COUNTERS}
         stages = {f"{k}_p99_ms": v for k, v in (stage_p99_ms or {}).items()}
         return self.codec.encode(EstimatorStatus(**counts, queue_depth=queue_depth, latency_p99_ms=latency_p99_ms,
                                                  uptime_s=int(uptime_s), **stages))

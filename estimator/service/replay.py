@@ -106,9 +106,8 @@ def iter_capture(capture: Path, cfg: DaemonConfig, result: ReplayResult | None =
     codec, ingest, processor, clock = pipeline or build_pipeline(cfg)
     if result is None:
         result = ReplayResult(ingest.counters, 0, 0)
-    m = codec.messages
     # live, the daemon does not receive its own frames: a capture's copies must not move the clock
-    own = {m.state.frame_id, m.quality.frame_id, m.prediction.frame_id, m.status.frame_id}
+    own = codec.output_ids()
     for msg in read_capture(capture, result):
         if msg.is_error_frame or msg.is_remote_frame or (msg.arbitration_id in own and not msg.is_extended_id):
             continue
