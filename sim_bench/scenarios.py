@@ -110,19 +110,19 @@ def register(sc: Scenario) -> Scenario:
     return sc
 
 
-TRACK = BenchTargets(lh_um=0.2, nu_pct=0.3)
-register(Scenario("nominal", TRACK, description="4 injectors at 25 Hz, 40 degC, matched plant"))
-register(Scenario("temperature-ramp", TRACK, temperature_c=(20.0, 100.0), seconds=40.0,
+_TRACK = BenchTargets(lh_um=0.2, nu_pct=0.3)   # the matched-plant scenarios
+register(Scenario("nominal", _TRACK, description="4 injectors at 25 Hz, 40 degC, matched plant"))
+register(Scenario("temperature-ramp", _TRACK, temperature_c=(20.0, 100.0), seconds=40.0,
                   description="20 -> 100 degC over the run (N_u 16.2 -> 21 N/V)"))
-register(Scenario("wear", TRACK, wear_um=1.0, seconds=40.0, description="L_h grows by 1 µm over the run"))
-register(Scenario("warm-up", TRACK, temperature_c=(0.0, 100.0), seconds=60.0, rate_hz=5.0,
+register(Scenario("wear", _TRACK, wear_um=1.0, seconds=40.0, description="L_h grows by 1 µm over the run"))
+register(Scenario("warm-up", _TRACK, temperature_c=(0.0, 100.0), seconds=60.0, rate_hz=5.0,
                   description="cold engine to 100 degC in 60 s, FuelTemperature in the headers, 5 Hz"))
 register(Scenario("mismatch", BenchTargets(lh_um=0.5, nu_pct=None), mismatch=True, window_s=150e-6,
                   description="hysteresis plant (±2 V model error), 150 µs sent"))
-register(Scenario("faults", TRACK, faults=FaultRates(drop=0.01, duplicate=0.01, reorder=0.01, corrupt=0.01,
+register(Scenario("faults", _TRACK, faults=FaultRates(drop=0.01, duplicate=0.01, reorder=0.01, corrupt=0.01,
                                                      stall_every_s=5.0, stall_s=0.2),
                   description="1 % each of dropped, duplicated, reordered, corrupted frames; 0.2 s stall every 5 s"))
-register(Scenario("multi-injector", TRACK, injectors=6, rate_hz=16.0, description="6 injectors at 16 Hz"))
+register(Scenario("multi-injector", _TRACK, injectors=6, rate_hz=16.0, description="6 injectors at 16 Hz"))
 register(Scenario("overload", BenchTargets(lh_um=None, nu_pct=None), injectors=4,
                   rate_hz=2 * BUS_INJECTIONS_PER_S / 4, pool=64,
                   description=f"2 x the bus budget ({2 * BUS_INJECTIONS_PER_S:.0f} injections/s): latency and "

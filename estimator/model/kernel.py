@@ -331,8 +331,13 @@ def simulate_kernel(src, model, aut, cand, cur, h, out):
         if in_contact(region_mode[r]):
             out.t_contact[b] = 0.0
         z[ZI] = cur[0]
-        _record(cout, z, region_mode[r], out_u, out_s3, out_s4, out_mode, b, 0)
-        for k in range(n - 1):
+        for k in range(n):
+            out_u[b, k] = dot(cout[b], z)
+            out_s3[b, k] = z[S3]
+            out_s4[b, k] = z[S4]
+            out_mode[b, k] = region_mode[r]
+            if k == n - 1:
+                break
             z[ZI] = cur[k]
             z[ZID] = (cur[k + 1] - cur[k]) / h
             rem = h
@@ -382,19 +387,6 @@ def simulate_kernel(src, model, aut, cand, cur, h, out):
             z[ZI] = cur[k + 1]
             if seated:
                 seated = rearmed(guards, open_index, r, z, seated)
-            out_u[b, k + 1] = dot(cout[b], z)   # _record, written out: an inlined call costs ~5 %
-            out_s3[b, k + 1] = z[S3]
-            out_s4[b, k + 1] = z[S4]
-            out_mode[b, k + 1] = region_mode[r]
-
-
-@njit(cache=True, nogil=True)
-def _record(cout, z, mode, out_u, out_s3, out_s4, out_mode, b, k):
-    """Outputs of candidate b at sample k: U = cout[b] @ z, s3, s4 (µm) and the mode."""
-    out_u[b, k] = dot(cout[b], z)
-    out_s3[b, k] = z[S3]
-    out_s4[b, k] = z[S4]
-    out_mode[b, k] = mode
 
 
 @njit(cache=True, nogil=True)

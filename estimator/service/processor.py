@@ -14,6 +14,7 @@ from estimator.codec.assembler import Completed, RejectReason, Rejected
 from estimator.codec.ingest import Counters, Event, Malformed
 from estimator.codec.records import (HEARTBEAT_COUNTERS, Codec, Command, EstimateQuality, EstimateState,
                                      EstimatorCommand, EstimatorStatus, ValvePrediction)
+from estimator.errors import ParameterError
 from estimator.ident.measurement import Injection
 from estimator.ident.status import Status
 from estimator.ident.tracker import Tracker, TrackResult
@@ -99,10 +100,11 @@ class Processor:
 
     def prior_problem(self, nu_n_per_v: float, lh_um: float) -> str | None:
         """Why a prior (N/V, µm) is outside the physical ranges (Table 1's N_u, the model's L_h), or None."""
-        psa = self.tracker.params.psa
         lo, hi = self.tracker.config.ident.lh_bounds_um
-        if not (math.isfinite(nu_n_per_v) and psa.nu_min_n_per_v <= nu_n_per_v <= psa.nu_max_n_per_v):
-            return f"N_u = {nu_n_per_v:.4f} N/V outside [{psa.nu_min_n_per_v:g}, {psa.nu_max_n_per_v:g}] N/V"
+        try:
+            self.tracker.params.psa.check_nu(nu_n_per_v)
+        except ParameterError as exc:
+            return str(exc)
         if not (math.isfinite(lh_um) and lo <= lh_um <= hi):
             return f"L_h = {lh_um:.3f} µm outside [{lo:g}, {hi:g}] µm"
         return None
