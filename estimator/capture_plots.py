@@ -54,12 +54,12 @@ def series(capture: Path) -> dict:
 def plot_capture(capture: Path, out: Path, band_lh_um: float = 0.2, band_nu_pct: float = 0.3,
                  band_open_us: float = 1.0) -> Path:
     """Write the figure (PNG) and return its path; bands: ± around the truth (the bench's targets)."""
-    from estimator.plots import _pyplot
+    from estimator.figures import pyplot, save
 
     data = series(capture)
     if not data:
         raise EstimatorError(f"{capture}: no estimates in the capture")
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(3, 1, figsize=(10, 9), sharex=True)
     for inj in sorted(data):
         s = data[inj]
@@ -82,7 +82,4 @@ def plot_capture(capture: Path, out: Path, band_lh_um: float = 0.2, band_nu_pct:
     ax[0].legend(loc="best", fontsize=8)
     ax[0].set_title(f"{capture.name}: estimates (dots), truth ± band (lines) where known")
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    return save(fig, out)

@@ -8,7 +8,7 @@ import logging
 import sys
 from pathlib import Path
 
-from estimator.cli_support import lean_service_imports, run_cli, version_line
+from estimator.cli_support import base_parser, lean_service_imports, run_cli
 from estimator.errors import EstimatorError
 
 log = logging.getLogger("estimator")
@@ -306,14 +306,7 @@ def cmd_dbc_path(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with all subcommands."""
-    p = argparse.ArgumentParser(prog="python -m estimator", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
-    p.add_argument("--version", action="version", version=version_line())
-    p.add_argument("--log-format", choices=("auto", "text", "journal", "json"), default="auto",
-                   help="log lines on stderr: auto (journal priorities <N> under systemd, else text), text, "
-                        "journal or json (one object per line)")
-    sub = p.add_subparsers(dest="command", required=True)
+    p, sub = base_parser("python -m estimator", __doc__)
 
     def params_opt(s: argparse.ArgumentParser) -> None:
         s.add_argument("--params", type=Path, default=None,

@@ -49,6 +49,18 @@ def version_line() -> str:
     return ", ".join(parts) + f" (Python {sys.version.split()[0]})"
 
 
+def base_parser(prog: str, description: str | None):
+    """The parser every command line starts from (--debug, --version, --log-format) and its subparsers."""
+    p = argparse.ArgumentParser(prog=prog, description=description,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
+    p.add_argument("--version", action="version", version=version_line())
+    p.add_argument("--log-format", choices=("auto", "text", "journal", "json"), default="auto",
+                   help="log lines on stderr: auto (journal priorities <N> under systemd, else text), text, "
+                        "journal or json (one object per line)")
+    return p, p.add_subparsers(dest="command", required=True)
+
+
 def run_cli(parser: argparse.ArgumentParser, argv: list[str] | None) -> int:
     """Parse, configure logging (``--debug`` for tracebacks), run ``args.func``; exit code 2 on errors."""
     args = parser.parse_args(argv)

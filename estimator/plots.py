@@ -7,21 +7,12 @@ from pathlib import Path
 import numpy as np
 
 from estimator.errors import EstimatorError
+from estimator.figures import pyplot, save
 from estimator.ident.cost import CostModel
 from estimator.ident.config import IdentConfig
 from estimator.ident.idle_stroke import effective_window_s, identify, search_box
 from estimator.ident.measurement import Injection
 from estimator.model.fast_sim import FastSimulator
-
-
-def _pyplot():
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        raise EstimatorError("plotting needs matplotlib: pip install '.[plot]'") from None
-    return plt
 
 
 def plot_identification(inj: Injection, out_dir: Path, config: IdentConfig | None = None, grid: int = 41,
@@ -32,7 +23,7 @@ def plot_identification(inj: Injection, out_dir: Path, config: IdentConfig | Non
     """
     if not 3 <= grid <= 201:
         raise EstimatorError(f"contour grid {grid} must have 3..201 points per axis")
-    plt = _pyplot()
+    plt = pyplot()
     config = config or IdentConfig()
     sim = sim or FastSimulator(dt_s=inj.dt_s)
     est = identify(inj, sim, config)
@@ -60,10 +51,7 @@ def plot_identification(inj: Injection, out_dir: Path, config: IdentConfig | Non
         a.axvline(window_us, color="k", lw=0.6, ls="--")
         a.grid(alpha=0.3)
     fig.suptitle(f"identification ({est.status}{', robust' if est.robust else ''}), window 0-{window_us:.0f} µs")
-    fig.tight_layout()
-    p1 = out_dir / "voltage_fit.png"
-    fig.savefig(p1, dpi=110)
-    plt.close(fig)
+    p1 = save(fig, out_dir / "voltage_fit.png")
 
     model = CostModel(sim, inj, window_us * 1e-6, "l1", est.robust)
     box = search_box(config, sim, inj.f_open_n)
@@ -83,8 +71,5 @@ def plot_identification(inj: Injection, out_dir: Path, config: IdentConfig | Non
     ax.set_ylabel("L_h [µm]")
     ax.legend()
     ax.set_title("cost function J(N_u, L_h) (Fig. 14)")
-    fig.tight_layout()
-    p2 = out_dir / "cost_contour.png"
-    fig.savefig(p2, dpi=110)
-    plt.close(fig)
+    p2 = save(fig, out_dir / "cost_contour.png")
     return [p1, p2]

@@ -22,7 +22,7 @@ import numpy as np
 from estimator.ident.status import ESTIMATED_CODES
 from estimator.codec.records import (Codec, EstimateQuality, EstimateState, EstimatorStatus, InjectionTrailer,
                                      SimTruth, ValvePrediction)
-from estimator.service.bus import BusSetupError, check_socketcan, open_bus, to_frame
+from estimator.service.bus import BusSetupError, check_socketcan
 from sim_bench import scenarios
 from sim_bench.hub import Hub
 from sim_bench.procs import BusMonitor, DaemonProcess, rss_mb, spawn, stop_process
@@ -215,8 +215,10 @@ def format_score(s: dict) -> str:
 
 
 def run_bench(scenario_name: str, bus: str | None, seconds: float | None, out_dir: Path, seed: int = 0,
-              progress: bool = True, plots: bool = True, capture_format: str = "log") -> dict:
-    """Run one scenario end to end; returns the score dict (also written to out_dir)."""
+              progress: bool = True, plots: bool = True, capture_format: str = "log",
+              drive: str | None = None) -> dict:
+    """Run one scenario end to end (its node on the named ``drive`` if given, see
+    :data:`estimator.model.drive.DRIVES`); returns the score dict (also written to out_dir)."""
     sc = scenarios.get(scenario_name, seconds=seconds)
     out_dir.mkdir(parents=True, exist_ok=True)
     bus, hub = resolve_bus(bus, out_dir)
@@ -239,7 +241,8 @@ def run_bench(scenario_name: str, bus: str | None, seconds: float | None, out_di
             if not listener.heartbeat.wait_for(lambda: listener.cap.status is not None, 60):
                 raise RuntimeError(f"estimator daemon sent no heartbeat: {daemon.why()}")
         node = spawn(["-m", "sim_bench", "node", "--bus", bus, "--scenario", sc.name, "--seconds", str(sc.seconds),
-                      "--seed", str(seed)], out_dir / "node.log", stdout=subprocess.PIPE)
+                      "--seed", str(seed), *(["--drive", drive] if drive else [])], out_dir / "node.log",
+                     stdout=subprocess.PIPE)
         t0 = time.monotonic()
         peak_rss = 0.0
         while node.poll() is None:

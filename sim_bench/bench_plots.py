@@ -10,14 +10,12 @@ from sim_bench.scenarios import Scenario
 
 def plot_bench(rows: list[dict], sc: Scenario, out_dir: Path, seed: int) -> list[Path]:
     """Write estimates.png (+ voltage_fit.png, cost_contour.png from one simulated injection)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    from estimator.figures import pyplot, save
     from estimator.plots import plot_identification
     from estimator.ident.measurement import Injection
     from sim_bench.node import InjectionSource
 
+    plt = pyplot()
     fig, ax = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
     for inj in sorted({r["injector"] for r in rows}):
         rs = [r for r in rows if r["injector"] == inj]
@@ -33,10 +31,7 @@ def plot_bench(rows: list[dict], sc: Scenario, out_dir: Path, seed: int) -> list
     for a in ax:
         a.grid(alpha=0.3)
     fig.suptitle(f"bench {sc.name}: filtered estimates vs SimTruth")
-    fig.tight_layout()
-    p = out_dir / "estimates.png"
-    fig.savefig(p, dpi=110)
-    plt.close(fig)
+    p = save(fig, out_dir / "estimates.png")
     src = InjectionSource(sc, seed + 99)
     m, _ = src.measure(0, 0, sc.seconds / 2)
     paths = plot_identification(Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n), out_dir, grid=31)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator.model.drive import SAMPLE_PERIOD_S, sample_times, standard_drive
+from estimator.model.drive import SAMPLE_PERIOD_S, Drive, StandardDrive, sample_times
 from estimator.model.parameters import load_nominal
 from estimator.model.psa_lti import simulate_psa
 from estimator.trace_io import write_trace
@@ -18,13 +18,14 @@ from sim_bench.scenarios import nu_of_temperature
 
 
 def write(out_dir: Path, temperatures_c: list[float], seed: int = 5, noise_v: float = 0.02,
-          t_end_s: float = 200e-6) -> list[Path]:
-    """Write one trace CSV per temperature into ``out_dir``; returns the paths."""
+          t_end_s: float = 200e-6, drive: Drive | None = None) -> list[Path]:
+    """Write one trace CSV per temperature into ``out_dir`` (driven with ``drive``, default the standard
+    drive); returns the paths."""
     p = load_nominal()
     out_dir.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     t = sample_times(t_end_s)
-    cur = standard_drive(t)
+    cur = (drive or StandardDrive()).samples(t_end_s)
     paths = []
     for temp in temperatures_c:
         nu = nu_of_temperature(temp)

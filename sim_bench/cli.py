@@ -10,8 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator.cli_support import lean_service_imports, run_cli, version_line
+from estimator.cli_support import base_parser, lean_service_imports, run_cli
 from estimator.errors import EstimatorError
+from estimator.model.drive import DRIVES, Drive, named_drive
 from estimator.trace_io import read_trace, write_trace
 from sim_bench import scenarios, tracking_bench
 
@@ -25,6 +26,16 @@ def _write_json(path: Path, report: dict) -> None:
     print(f"wrote {path}")
 
 
+def _drive(args: argparse.Namespace) -> Drive | None:
+    """``--drive NAME``: a registered drive shape, or None (the scenario's or the standard drive)."""
+    return named_drive(args.drive) if args.drive else None
+
+
+def _add_drive_argument(s: argparse.ArgumentParser, default_text: str) -> None:
+    s.add_argument("--drive", choices=tuple(DRIVES), default=None,
+                   help=f"amplifier current shape (estimator.model.drive; default: {default_text})")
+
+
 def _params(args: argparse.Namespace):
     """``--params FILE`` (what ``estimator calibrate --out`` writes) or Tables 1-2."""
     from estimator.model.parameters import load_parameters
@@ -34,7 +45,7 @@ def _params(args: argparse.Namespace):
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     """Simulate one injection with the fast simulator and write the trace CSV."""
-    from estimator.model.drive import resample_current, sample_times, standard_drive
+    from estimator.model.drive import StandardDrive, TableDrive, sample_times
     from estimator.model.fast_sim import FastSimulator
 
     t_end = args.t_end_us * 1e-6
@@ -45,11 +56,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if not (0.0 <= args.preload_n <= 1000.0):
         raise EstimatorError(f"--preload-n {args.preload_n} must be within 0..1000 N")
     t = sample_times(t_end)
+    if args.current and args.drive:
+        raise EstimatorError("give either --current FILE or --drive NAME, not both")
     if args.current:
         tr = read_trace(args.current)
-        current = resample_current(tr.column("t_s"), tr.column("current_A"), t_end)
+        drive: Drive = TableDrive.from_table(tr.column("t_s"), tr.column("current_A"))
     else:
-        current = standard_drive(t)
+        drive = _drive(args) or StandardDrive()
+    current = drive.samples(t_end)
     sim = FastSimulator(_params(args))
     res = sim.simulate(current, args.nu, args.lh_um * 1e-6, args.preload_n, exact=True)
     if not (res.success[0] and np.all(np.isfinite(res.voltage_v[0]))):
@@ -69,7 +83,7 @@ def cmd_speed_sim(args: argparse.Namespace) -> int:
     """Benchmark the fast simulator (candidates per second, batch 1/16/256)."""
     from sim_bench import speed
 
-    report = speed.measure(tuple(args.batch), seconds=args.seconds)
+    report = speed.measure(tuple(args.batch), seconds=args.seconds, drive=_drive(args))
     print(speed.format_table(report))
     _write_json(args.json_out, report)
     return 0
@@ -128,7 +142,7 @@ def cmd_tracking(args: argparse.Namespace) -> int:
         runs += [(n, True) for n in names]
     elif args.plant == "default":
         runs += [(n, True) for n in names if n in tracking_bench.DEFAULT_MISMATCH]
-    reports = [tracking_bench.tracking(n, args.seed, m, args.injections) for n, m in runs]
+    reports = [tracking_bench.tracking(n, args.seed, m, args.injections, drive=_drive(args)) for n, m in runs]
     print(tracking_bench.format_tracking(reports))
     _write_json(args.json_out, {"benchmark": "tracking", "reports": reports})
     return 0 if all(r["summary"]["passed"] for r in reports) else 1
@@ -138,7 +152,7 @@ def cmd_speed(args: argparse.Namespace) -> int:
     """Timing of the recursive estimator (warm update, cold start)."""
     from sim_bench import ident_bench
 
-    rep = ident_bench.speed(args.seed, args.injections)
+    rep = ident_bench.speed(args.seed, args.injections, drive=_drive(args))
     print(ident_bench.format_speed(rep))
     _write_json(args.json_out, rep)
     return 0
@@ -148,7 +162,7 @@ def cmd_calibration_traces(args: argparse.Namespace) -> int:
     """Write traces of an actuator without valve at several temperatures, with s3, for eq. 25."""
     from sim_bench import calibration_traces
 
-    paths = calibration_traces.write(args.out, args.temps, args.seed, args.noise_v)
+    paths = calibration_traces.write(args.out, args.temps, args.seed, args.noise_v, drive=_drive(args))
     for p in paths:
         print(f"wrote {p}")
     return 0
@@ -167,7 +181,8 @@ def cmd_node(args: argparse.Namespace) -> int:
     from sim_bench.node import InjectorNode
 
     try:
-        sc = scenarios.get(args.scenario, injectors=args.injectors, rate_hz=args.rate, seconds=args.seconds)
+        sc = scenarios.get(args.scenario, injectors=args.injectors, rate_hz=args.rate, seconds=args.seconds,
+                           drive=_drive(args))
     except KeyError as exc:
         raise EstimatorError(str(exc.args[0])) from None
     if not (1 <= sc.injectors <= 8) or not (0 < sc.rate_hz <= 5000):
@@ -205,7 +220,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     for n in names:
         s = bench.run_bench(n, args.bus, args.seconds, args.out / n if len(names) > 1 else args.out, args.seed,
                             progress=not args.quiet and sys.stderr.isatty(), plots=not args.no_plots,
-                            capture_format=args.capture_format)
+                            capture_format=args.capture_format, drive=args.drive)
         print(bench.format_score(s))
         summary.append(s)
         failed |= bool(s["failures"])
@@ -256,7 +271,7 @@ def cmd_lot(args: argparse.Namespace) -> int:
     from sim_bench.lot import make_lot
 
     try:
-        truth = make_lot(args.out, args.injectors, args.injections, args.seed)
+        truth = make_lot(args.out, args.injectors, args.injections, args.seed, drive=_drive(args))
     except ValueError as exc:
         raise EstimatorError(str(exc)) from None
     print(f"wrote {args.injectors * args.injections} traces of {args.injectors} injectors and {truth}")
@@ -276,17 +291,11 @@ def cmd_hub(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with all subcommands."""
-    p = argparse.ArgumentParser(prog="python -m sim_bench", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
-    p.add_argument("--version", action="version", version=version_line())
-    p.add_argument("--log-format", choices=("auto", "text", "journal", "json"), default="auto",
-                   help="log lines on stderr: auto (journal priorities <N> under systemd, else text), text, "
-                        "journal or json (one object per line)")
-    sub = p.add_subparsers(dest="command", required=True)
+    p, sub = base_parser("python -m sim_bench", __doc__)
 
     s = sub.add_parser("simulate", help="simulate one injection and write a trace CSV")
     s.add_argument("--current", type=Path, help="CSV with columns t_s,current_A (resampled to 0.5 µs)")
+    _add_drive_argument(s, "standard")
     s.add_argument("--nu", type=float, default=16.39, help="coupling factor N_u in N/V (default 16.39)")
     s.add_argument("--lh-um", type=float, default=2.5, help="idle stroke L_h in µm (default 2.5)")
     s.add_argument("--preload-n", type=float, default=28.0, help="valve preload F_open in N (default 28)")
@@ -298,6 +307,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("speed-sim", help="benchmark the fast simulator")
     s.add_argument("--batch", type=int, nargs="+", default=[1, 16, 256])
     s.add_argument("--seconds", type=float, default=2.0, help="time per batch size (s)")
+    _add_drive_argument(s, "standard")
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "speed-sim.json")
     s.set_defaults(func=cmd_speed_sim)
 
@@ -318,6 +328,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--rate", type=float, default=None, help="injections per second per injector")
     s.add_argument("--seconds", type=float, default=None, help="run time (default: the scenario's)")
     s.add_argument("--count", type=int, default=None, help="stop after this many injections per injector")
+    _add_drive_argument(s, "the scenario's")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_node)
 
@@ -331,6 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-plots", action="store_true")
     s.add_argument("--capture-format", choices=("log", "asc", "blf", "csv", "mf4"), default="log",
                    help="format of the bus capture (default log: candump -L)")
+    _add_drive_argument(s, "the scenario's")
     s.set_defaults(func=cmd_bench)
 
     s = sub.add_parser("daemon-bench", help="daemon: ingest rate, latency at 200 injections/s, 2x overload")
@@ -352,6 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("lot", help="a seeded synthetic production lot (traces with serial numbers + truth)")
     s.add_argument("--injectors", type=int, default=100)
     s.add_argument("--injections", type=int, default=1, help="traces per injector (1 s apart)")
+    _add_drive_argument(s, "standard")
     s.add_argument("--seed", type=int, default=11)
     s.add_argument("--out", type=Path, required=True)
     s.set_defaults(func=cmd_lot)
@@ -382,12 +395,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="default: every scenario matched, and " + ", ".join(tracking_bench.DEFAULT_MISMATCH)
                         + " on the hysteresis plant too")
     s.add_argument("--injections", type=int, default=None, help="override the scenario's length")
+    _add_drive_argument(s, "the scenario's")
     s.add_argument("--seed", type=int, default=2)
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "tracking.json")
     s.set_defaults(func=cmd_tracking)
 
     s = sub.add_parser("speed", help="update time of the recursive estimator")
     s.add_argument("--injections", type=int, default=300)
+    _add_drive_argument(s, "standard")
     s.add_argument("--seed", type=int, default=4)
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "speed.json")
     s.set_defaults(func=cmd_speed)
@@ -397,6 +412,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--temps", type=float, nargs="+", default=[0.0, 25.0, 50.0, 75.0, 100.0], help="degC")
     s.add_argument("--noise-v", type=float, default=0.02, help="voltage noise (V, 1 sigma)")
     s.add_argument("--seed", type=int, default=5)
+    _add_drive_argument(s, "standard")
     s.set_defaults(func=cmd_calibration_traces)
     return p
 

@@ -180,11 +180,12 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
 
 def latency_histogram(rep: dict, path: Path) -> str | None:
     """A PNG of the external latencies of each phase (log counts); the path, or None without matplotlib."""
+    from estimator.errors import EstimatorError
+    from estimator.figures import pyplot, save
+
     try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
+        plt = pyplot()
+    except EstimatorError:
         return None
     fig, ax = plt.subplots(figsize=(7, 3.5))
     for phase in ("nominal", "overload"):
@@ -199,10 +200,7 @@ def latency_histogram(rep: dict, path: Path) -> str | None:
     ax.set_ylabel("injections")
     ax.legend()
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return str(path)
+    return str(save(fig, path))
 
 
 def format_report(ing: dict, rep: dict) -> str:

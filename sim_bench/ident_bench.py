@@ -15,6 +15,7 @@ from estimator.ident.config import IdentConfig, TrackerConfig
 from estimator.ident.idle_stroke import identify
 from estimator.ident.measurement import Injection
 from estimator.ident.tracker import Tracker
+from estimator.model.drive import Drive
 from estimator.model.fast_sim import FastSimulator
 from sim_bench.plant import AdcConfig, Measurement, Plant, PlantConfig
 from sim_bench.table import Column, plant, render
@@ -197,9 +198,10 @@ def format_table3(rep: dict) -> str:
     return "\n".join(lines)
 
 
-def speed(seed: int = 4, injections: int = 300) -> dict:
-    """Warm update time (median, p99), cold start time and injections/s of the recursive estimator."""
-    plant = Plant(PlantConfig())
+def speed(seed: int = 4, injections: int = 300, drive: Drive | None = None) -> dict:
+    """Warm update time (median, p99), cold start time and injections/s of the recursive estimator
+    (injections driven with ``drive``, default the standard drive)."""
+    plant = Plant(PlantConfig() if drive is None else PlantConfig(drive=drive))
     sim = FastSimulator()
     rng = np.random.default_rng(seed)
     meas = [plant.measure(17.0 + 0.5 * math.sin(k / 40), 4e-6, F_OPEN_N, rng) for k in range(injections)]

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from estimator.model.drive import Drive, StandardDrive
 from estimator.trace_io import write_trace
 from sim_bench.plant import Plant, PlantConfig
 
@@ -23,14 +24,17 @@ LH_MEAN, LH_SD = 3.5, 0.6
 BAD_FRACTION, MISMATCH_FRACTION = 0.02, 0.10
 
 
-def make_lot(out: Path, injectors: int, injections: int = 1, seed: int = 11, window_s: float = 100e-6) -> Path:
-    """Write the lot's traces into ``out`` (one file per injection) and ``truth.csv``; returns the truth path."""
+def make_lot(out: Path, injectors: int, injections: int = 1, seed: int = 11, window_s: float = 100e-6,
+             drive: Drive | None = None) -> Path:
+    """Write the lot's traces into ``out`` (one file per injection) and ``truth.csv``; returns the truth path.
+    Every injector is driven with ``drive`` (default the standard drive)."""
     if not (1 <= injectors <= 100_000 and 1 <= injections <= 1000):
         raise ValueError(f"--injectors {injectors} must be 1..100000 and --injections {injections} 1..1000")
     rng = np.random.default_rng(seed)
     traces = out / "traces"
     traces.mkdir(parents=True, exist_ok=True)
-    plants = {m: Plant(PlantConfig(window_s=window_s, mismatch=m)) for m in (False, True)}
+    drive = drive or StandardDrive()
+    plants = {m: Plant(PlantConfig(drive=drive, window_s=window_s, mismatch=m)) for m in (False, True)}
     truth_path = out / "truth.csv"
     with open(truth_path, "w", newline="") as tf:
         w = csv.writer(tf)

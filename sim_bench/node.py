@@ -50,7 +50,7 @@ class InjectionSource:
     def __init__(self, scenario: Scenario, seed: int) -> None:
         self.scenario = scenario
         self.rng = np.random.default_rng(seed)
-        self.plant = Plant(PlantConfig(mismatch=scenario.mismatch, window_s=scenario.window_s))
+        self.plant = Plant(PlantConfig(drive=scenario.drive, mismatch=scenario.mismatch, window_s=scenario.window_s))
         self._pool: dict[int, list[tuple[Measurement, float]]] = {}
 
     def measure(self, injector: int, n: int, t: float) -> tuple[Measurement, float]:
@@ -59,13 +59,13 @@ class InjectionSource:
         if sc.pool:
             pool = self._pool.setdefault(injector, [])
             if len(pool) < sc.pool:
-                pool.append(self._fresh(injector, t))
+                pool.append(self._fresh(injector, n, t))
             return pool[n % sc.pool]
-        return self._fresh(injector, t)
+        return self._fresh(injector, n, t)
 
-    def _fresh(self, injector: int, t: float) -> tuple[Measurement, float]:
-        nu, lh, f_open, temp = self.scenario.truth(injector, t, self.rng)
-        return self.plant.measure(nu, lh, f_open, self.rng), temp
+    def _fresh(self, injector: int, n: int, t: float) -> tuple[Measurement, float]:
+        tr = self.scenario.truth(injector, n, t, self.rng)
+        return self.plant.measure(tr.nu_n_per_v, tr.lh_m, tr.f_open_n, self.rng), tr.temperature_c
 
 
 def apply_faults(frames: list[Frame], sc: Scenario, rng: np.random.Generator, stats: NodeStats) -> list[Frame]:

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from estimator.model.drive import SAMPLE_PERIOD_S, sample_times, standard_drive
+from estimator.model.drive import SAMPLE_PERIOD_S, ChopperRipple, Drive, StandardDrive, sample_times
 from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
 
 # Prandtl–Ishlinskii operator of the mismatch plant: thresholds in C, weights in V/C. The paper
@@ -76,10 +76,14 @@ class PlantConfig:
     window_s: float = 100e-6             # sent/measured window from the start of charging
     dt_s: float = SAMPLE_PERIOD_S        # measurement sample period
     oversample: int = 4                  # plant grid = dt / oversample
+    drive: Drive = field(default_factory=StandardDrive)   # the commanded current (a scenario's drive)
     ripple_a: float = 0.15               # chopper ripple amplitude (triangle, peak) while charging
     ripple_period_s: float = 8e-6        # chopper period
-    amplitude_a: float = 4.2870333       # standard drive plateau current
     mismatch: bool = False               # hysteresis H[Q] + series resistance instead of R(N_u) I
+
+    def amplifier(self, drive: Drive, phase: float) -> Drive:
+        """What the amplifier delivers for the commanded ``drive``: it plus the chopper ripple at ``phase``."""
+        return ChopperRipple(drive, self.ripple_a, self.ripple_period_s, phase)
 
 
 @dataclass(frozen=True)
@@ -99,13 +103,8 @@ class Measurement:
 
 
 def true_current(t_s: np.ndarray, cfg: PlantConfig, phase: float = 0.0) -> np.ndarray:
-    """Commanded standard drive plus a triangular chopper ripple while the current flows (A)."""
-    base = standard_drive(t_s, cfg.amplitude_a)
-    if cfg.ripple_a <= 0:
-        return base
-    saw = ((t_s / cfg.ripple_period_s + phase) % 1.0)
-    tri = 4.0 * np.abs(saw - 0.5) - 1.0
-    return base + cfg.ripple_a * tri * (np.abs(base) > 0.5)
+    """What the amplifier delivers at ``t_s`` (s): the configured drive plus the chopper ripple (A)."""
+    return cfg.amplifier(cfg.drive, phase).current(t_s)
 
 
 class Plant:
@@ -120,15 +119,16 @@ class Plant:
         self.measure(17.0, 3e-6, 28.0, np.random.default_rng(0))
 
     def measure(self, nu_n_per_v: float, lh_m: float, f_open_n: float, rng: np.random.Generator,
-                current_fn=None) -> Measurement:
-        """One injection with truth. ``current_fn(t)`` overrides the drive (A)."""
+                drive: Drive | None = None) -> Measurement:
+        """One injection with truth; ``drive`` replaces the configured drive for this injection (the
+        amplifier's ripple is added to either)."""
         cfg = self.cfg
         m = cfg.oversample
         # simulate long enough for the plateau stroke and the whole window: the window's current, then
         # held (zero current)
         t_fine = sample_times(max(PLATEAU_WINDOW_S[1], cfg.window_s), self.sim.dt_s)
         phase = float(rng.uniform())
-        cur = current_fn(t_fine) if current_fn is not None else true_current(t_fine, cfg, phase)
+        cur = cfg.amplifier(cfg.drive if drive is None else drive, phase).current(t_fine)
         cur = np.where(t_fine <= cfg.window_s + 1e-12, cur, 0.0)
         res = self.sim.simulate(cur, nu_n_per_v, lh_m, f_open_n, exact=True)
         if not res.success[0]:

@@ -1,5 +1,11 @@
 """Bench scenarios: what the simulated injectors do over time, and what goes wrong on the bus.
 
+The vocabulary shared by every bench (this end-to-end bench and :mod:`sim_bench.tracking_bench`): a
+scenario has a ``name``, its ``targets`` (required: a scenario without targets cannot be built), the
+``drive`` its amplifier follows (:mod:`estimator.model.drive`), a ``description``, and
+``truth(injector, k, t, rng) -> Truth`` for injection ``k`` of an injector at time ``t``; each bench
+keeps its scenarios in a :class:`Registry`, from which the command lines take their choices.
+
 Temperature law of the simulated actuators (documented in the README): N_u(T) = 15 + 0.06 T
 (N/V, T in degC, so 15 N/V at 0 degC and 21 N/V at 100 degC, Table 1's range), plus a
 per-injector series-production offset. L_h per injector, drifting with wear. The preload is the
@@ -10,8 +16,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import Generic, Iterator, NamedTuple, TypeVar
 
 import numpy as np
+
+from estimator.model.drive import Drive, StandardDrive
 
 NU_AT_0C = 15.0
 NU_PER_DEGC = 0.06
@@ -20,6 +29,57 @@ NU_PER_DEGC = 0.06
 def nu_of_temperature(t_c: float) -> float:
     """Coupling factor of a nominal actuator at temperature t_c (degC), N/V."""
     return NU_AT_0C + NU_PER_DEGC * t_c
+
+
+class Truth(NamedTuple):
+    """What a simulated injection really is: N_u (N/V), L_h (m), valve preload F_open (N) and the fuel
+    temperature its header reports (degC, NaN: none reported)."""
+
+    nu_n_per_v: float
+    lh_m: float
+    f_open_n: float
+    temperature_c: float
+
+
+S = TypeVar("S")
+
+
+class Registry(Generic[S]):
+    """The scenarios of one bench by name: unique names, each with targets of the bench's type."""
+
+    def __init__(self, bench: str, targets_type: type) -> None:
+        self.bench = bench
+        self.targets_type = targets_type
+        self._by_name: dict[str, S] = {}
+
+    def register(self, sc: S) -> S:
+        """Add a scenario; ValueError for a scenario without targets or a name given twice."""
+        name = getattr(sc, "name")
+        if not isinstance(getattr(sc, "targets", None), self.targets_type):
+            raise ValueError(f"{self.bench} scenario {name!r} has no targets")
+        if name in self._by_name:
+            raise ValueError(f"{self.bench} scenario {name!r} registered twice")
+        self._by_name[name] = sc
+        return sc
+
+    def __getitem__(self, name: str) -> S:
+        try:
+            return self._by_name[name]
+        except KeyError:
+            raise KeyError(f"unknown {self.bench} scenario {name!r}; one of {', '.join(self)}") from None
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._by_name
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._by_name)
+
+    def __len__(self) -> int:
+        return len(self._by_name)
+
+    def values(self) -> Iterator[S]:
+        """The scenarios in registration order."""
+        return iter(self._by_name.values())
 
 
 @dataclass(frozen=True)
@@ -59,6 +119,7 @@ class Scenario:
 
     name: str
     targets: BenchTargets
+    drive: Drive = field(default_factory=StandardDrive)   # what the amplifier is commanded to deliver
     injectors: int = 4
     rate_hz: float = 25.0                    # injections per second per injector
     seconds: float = 20.0
@@ -79,15 +140,19 @@ class Scenario:
         a, b = self.temperature_c
         return a + (b - a) * min(max(t / self.seconds, 0.0), 1.0)
 
-    def truth(self, injector: int, t: float, rng: np.random.Generator) -> tuple[float, float, float, float]:
-        """(N_u N/V, L_h m, F_open N, temperature degC) of an injection at time t."""
+    def __post_init__(self) -> None:
+        if not isinstance(self.targets, BenchTargets):
+            raise ValueError(f"bench scenario {self.name!r} has no targets")
+
+    def truth(self, injector: int, k: int, t: float, rng: np.random.Generator) -> Truth:
+        """Truth of injection ``k`` of ``injector`` at time t (s since start); the same for any k."""
         temp = self.temperature(t)
         nu = nu_of_temperature(temp) + self.nu_offset[injector % len(self.nu_offset)]
         nu = float(np.clip(nu, 15.0, 21.0))
         lh = self.lh_um[injector % len(self.lh_um)] + self.wear_um * min(t / self.seconds, 1.0)
         mean, std = self.rail_force_n
         f_open = 28.0 + max(0.0, mean + std * float(rng.standard_normal())) if (mean or std) else 28.0
-        return nu, lh * 1e-6, f_open, temp
+        return Truth(nu, lh * 1e-6, f_open, temp)
 
 
 # Bus budget assumed by the overload scenario: 500 kbit/s arbitration, 2 Mbit/s data phase.
@@ -96,18 +161,8 @@ class Scenario:
 # 6.4 ms of bus time, i.e. about 155 injections/s for the whole bus. Overload sends twice that.
 BUS_INJECTIONS_PER_S = 155.0
 
-SCENARIOS: dict[str, Scenario] = {}
-
-
-def register(sc: Scenario) -> Scenario:
-    """Add a scenario to the registry: unique name, and its targets given (a scenario without targets
-    would pass with no checks at all)."""
-    if not isinstance(sc.targets, BenchTargets):
-        raise ValueError(f"bench scenario {sc.name!r} has no targets")
-    if sc.name in SCENARIOS:
-        raise ValueError(f"bench scenario {sc.name!r} registered twice")
-    SCENARIOS[sc.name] = sc
-    return sc
+SCENARIOS: Registry[Scenario] = Registry("bench", BenchTargets)
+register = SCENARIOS.register
 
 
 _TRACK = BenchTargets(lh_um=0.2, nu_pct=0.3)   # the matched-plant scenarios
@@ -130,10 +185,9 @@ register(Scenario("overload", BenchTargets(lh_um=None, nu_pct=None), injectors=4
 
 
 def get(name: str, **overrides) -> Scenario:
-    """A scenario by name with optional field overrides (e.g. seconds)."""
-    if name not in SCENARIOS:
-        raise KeyError(f"unknown scenario {name!r}; one of {', '.join(SCENARIOS)}")
+    """A scenario by name with optional field overrides (e.g. seconds, drive); KeyError if unknown."""
+    base = SCENARIOS[name]
     seconds = overrides.get("seconds")
     if seconds is not None and not (math.isfinite(seconds) and 0 < seconds <= 86_400):
         raise KeyError(f"seconds = {seconds} must be within (0, 86400] s")
-    return replace(SCENARIOS[name], **{k: v for k, v in overrides.items() if v is not None})
+    return replace(base, **{k: v for k, v in overrides.items() if v is not None})

@@ -8,20 +8,19 @@ import time
 
 import numpy as np
 
-from estimator.model.drive import sample_times, standard_drive
+from estimator.model.drive import Drive, StandardDrive
 from estimator.model.fast_sim import FastSimulator
 
 
 def measure(batch_sizes: tuple[int, ...] = (1, 16, 256), window_s: float = 100e-6, seconds: float = 2.0,
-            seed: int = 0) -> dict:
+            seed: int = 0, drive: Drive | None = None) -> dict:
     """Time ``FastSimulator.simulate`` on random candidates (N_u in [15, 21], L_h in [-1, 10] µm).
 
     Returns a JSON-ready dict with one entry per batch size: calls, candidates per second and
     microseconds per candidate, and the machine it ran on.
     """
     sim = FastSimulator()
-    t = sample_times(window_s)
-    cur = standard_drive(t)
+    cur = (drive or StandardDrive()).samples(window_s)
     rng = np.random.default_rng(seed)
     rows = []
     for b in batch_sizes:
@@ -39,7 +38,7 @@ def measure(batch_sizes: tuple[int, ...] = (1, 16, 256), window_s: float = 100e-
         rate = calls * b / elapsed
         rows.append({"batch": b, "calls": calls, "seconds": elapsed, "candidates_per_s": rate,
                      "us_per_candidate": 1e6 / rate})
-    return {"benchmark": "speed-sim", "window_us": window_s * 1e6, "samples": int(t.size),
+    return {"benchmark": "speed-sim", "window_us": window_s * 1e6, "samples": int(cur.size),
             "numba_threads": os.environ.get("NUMBA_NUM_THREADS", "default"), "cpu": platform.processor()
             or platform.machine(), "python": platform.python_version(), "results": rows}
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import brentq
 
-from estimator.model.drive import STANDARD_AMPLITUDE_A, sample_times, standard_drive
+from estimator.model.drive import STANDARD_AMPLITUDE_A, StandardDrive
 from estimator.model.fast_sim import FastSimulator
 
 # Table 3, PSA No. 1: (measurement, N_u [N/V], L_h [µm], s_4,s meas [µm], s_4,s sim [µm], cost [µVs])
@@ -47,10 +47,9 @@ class Table3Row:
 def reproduce(sim: FastSimulator | None = None, amplitude_a: float = STANDARD_AMPLITUDE_A) -> list[Table3Row]:
     """Simulate the four PSA No. 1 rows with the standard drive of the given amplitude (A)."""
     sim = sim or FastSimulator()
-    t = sample_times(T_END_S)
     nu = np.array([r[1] for r in PAPER_PSA1])
     lh = np.array([r[2] for r in PAPER_PSA1]) * 1e-6
-    res = sim.simulate(standard_drive(t, amplitude_a), nu, lh, exact=True)
+    res = sim.simulate(StandardDrive(amplitude_a).samples(T_END_S), nu, lh, exact=True)
     stroke = res.plateau_stroke_m() * 1e6
     return [Table3Row(r[0], r[1], r[2], r[3], r[4], float(stroke[i]), float(res.t_contact_s[i] * 1e6),
                       float(res.t_open_s[i] * 1e6)) for i, r in enumerate(PAPER_PSA1)]
@@ -59,11 +58,10 @@ def reproduce(sim: FastSimulator | None = None, amplitude_a: float = STANDARD_AM
 def fit_drive_amplitude(sim: FastSimulator | None = None) -> float:
     """The standard-drive amplitude (A) at which row 1 gives the paper's 24.50 µm."""
     sim = sim or FastSimulator()
-    t = sample_times(T_END_S)
     _, nu, lh, _, target, _ = PAPER_PSA1[0]
 
     def excess(a: float) -> float:
-        res = sim.simulate(standard_drive(t, a), nu, lh * 1e-6, exact=True)
+        res = sim.simulate(StandardDrive(a).samples(T_END_S), nu, lh * 1e-6, exact=True)
         return float(res.plateau_stroke_m()[0] * 1e6 - target)
 
     return brentq(excess, 2.0, 8.0, xtol=1e-9)

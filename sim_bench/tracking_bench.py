@@ -21,8 +21,10 @@ from estimator.ident.config import TrackerConfig
 from estimator.ident.measurement import Injection
 from estimator.ident.status import Status
 from estimator.ident.tracker import Tracker
+from estimator.model.drive import Drive, StandardDrive
 from estimator.model.fast_sim import FastSimulator
 from sim_bench.plant import Plant, PlantConfig
+from sim_bench.scenarios import Registry, Truth
 from sim_bench.table import Column, plant, render
 
 F_OPEN_N = 28.0
@@ -61,6 +63,7 @@ class TrackingScenario:
     nu: Callable[[int, float], float]
     lh_um: Callable[[int, float], float]
     targets: Targets
+    drive: Drive = field(default_factory=StandardDrive)   # what the amplifier is commanded to deliver
     interval_s: float = 0.04                     # time between injections (25 Hz)
     temperature_c: Callable[[int, float], float] | None = None   # reported FuelTemperature, None: not sent
     glitch_every: int = 0                        # every n-th injection has a current-gain glitch
@@ -70,16 +73,14 @@ class TrackingScenario:
         if not isinstance(self.targets, Targets) or not self.targets.windows:
             raise ValueError(f"tracking scenario {self.name!r} has no targets")
 
+    def truth(self, injector: int, k: int, t: float, rng: np.random.Generator | None = None) -> Truth:
+        """Truth of injection ``k`` at time t (s); one injector, the valve spring's preload."""
+        temp = self.temperature_c(k, t) if self.temperature_c else float("nan")
+        return Truth(self.nu(k, t), self.lh_um(k, t) * 1e-6, F_OPEN_N, temp)
 
-TRACKING: dict[str, TrackingScenario] = {}
 
-
-def register(sc: TrackingScenario) -> TrackingScenario:
-    """Add a scenario to the registry (names are unique)."""
-    if sc.name in TRACKING:
-        raise ValueError(f"tracking scenario {sc.name!r} registered twice")
-    TRACKING[sc.name] = sc
-    return sc
+TRACKING: Registry[TrackingScenario] = Registry("tracking", Targets)
+register = TRACKING.register
 
 
 def _ramp(k: int, k0: int, n: int, a: float, b: float) -> float:
@@ -158,24 +159,25 @@ def _max_abs(x) -> float:
 
 
 def tracking(name: str, seed: int = 2, mismatch: bool = False, injections: int | None = None,
-             config: TrackerConfig | None = None) -> dict:
-    """Run one scenario and score it; returns a JSON-ready report."""
+             config: TrackerConfig | None = None, drive: Drive | None = None) -> dict:
+    """Run one scenario (with another ``drive`` than its own if given) and score it; a JSON-ready report."""
     sc = TRACKING[name]
     n = injections or sc.injections
-    cfg = PlantConfig(mismatch=mismatch, window_s=150e-6 if mismatch else 100e-6)
+    cfg = PlantConfig(drive=sc.drive if drive is None else drive, mismatch=mismatch,
+                      window_s=150e-6 if mismatch else 100e-6)
     plant = Plant(cfg)
     tracker = Tracker(config or TrackerConfig(), FastSimulator())
     rng = np.random.default_rng(seed)
     rows = []
     for k in range(n):
         t = k * sc.interval_s
-        nu, lh = sc.nu(k, t), sc.lh_um(k, t)
-        m = plant.measure(nu, lh * 1e-6, F_OPEN_N, rng)
+        tr = sc.truth(0, k, t)
+        nu, lh = tr.nu_n_per_v, tr.lh_m * 1e6
+        m = plant.measure(nu, tr.lh_m, tr.f_open_n, rng)
         glitch = bool(sc.glitch_every) and k % sc.glitch_every == sc.glitch_every // 2
         cur = m.current_a * GLITCH_CURRENT_GAIN if glitch else m.current_a
-        temp = sc.temperature_c(k, t) if sc.temperature_c else float("nan")
         t0 = time.perf_counter()
-        r = tracker.update(Injection(cur, m.voltage_v, m.dt_s, m.f_open_n, 0, k % 256, temp, t))
+        r = tracker.update(Injection(cur, m.voltage_v, m.dt_s, m.f_open_n, 0, k % 256, tr.temperature_c, t))
         dt = time.perf_counter() - t0
         rows.append({"k": k, "t_s": t, "nu_true": nu, "lh_true_um": lh, "glitch": glitch,
                      "nu": r.nu_n_per_v, "lh_um": r.lh_m * 1e6, "sigma_lh_um": r.sigma_lh_m * 1e6,

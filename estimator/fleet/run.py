@@ -190,9 +190,9 @@ def format_report(res: FleetResult) -> str:
 
 def plot_lot(res: FleetResult, path: Path) -> Path:
     """Histograms of the lot's L_h and N_u, outliers marked."""
-    from estimator.plots import _pyplot
+    from estimator.figures import pyplot, save
 
-    plt = _pyplot()
+    plt = pyplot()
     est = [s for s in res.summary if s["lh_um"] is not None]
     fig, ax = plt.subplots(1, 2, figsize=(10, 4))
     for a, key, unit in ((ax[0], "lh_um", "L_h [µm]"), (ax[1], "nu_n_per_v", "N_u [N/V]")):
@@ -203,7 +203,4 @@ def plot_lot(res: FleetResult, path: Path) -> Path:
         a.set_xlabel(unit)
         a.set_ylabel("injectors")
     ax[0].set_title(f"{len(est)} injectors; outliers in red")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save(fig, path, dpi=100)

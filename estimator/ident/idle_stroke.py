@@ -28,6 +28,7 @@ from estimator.ident.model_selection import likelihood_ratio, prefers_robust
 from estimator.ident.search import Box
 from estimator.ident.status import Status
 from estimator.model import dynamics as dyn
+from estimator.model.drive import SAMPLE_PERIOD_REL_TOL
 from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
 
 
@@ -57,7 +58,7 @@ def check_injection(injection: Injection, sim: FastSimulator, config: IdentConfi
     problem = injection.problem()
     if problem:
         return problem
-    if abs(sim.dt_s - injection.dt_s) > 1e-6 * injection.dt_s:
+    if abs(sim.dt_s - injection.dt_s) > SAMPLE_PERIOD_REL_TOL * injection.dt_s:
         return (f"sample period {injection.dt_s * 1e6:.3f} µs does not match the simulator's "
                 f"{sim.dt_s * 1e6:.3f} µs")
     if injection.duration_s < config.window_s - 1e-12:
@@ -72,9 +73,7 @@ def predict_valve(sim: FastSimulator, injection: Injection, nu: float, lh_m: flo
     charge) until the end of the plateau window (490 µs); the stroke is the mean plunger stroke over
     215–490 µs as in Table 3. NaN when the valve does not open with that charge.
     """
-    n_total = int(round(PLATEAU_WINDOW_S[1] / injection.dt_s)) + 1
-    cur = np.zeros(max(n_total, injection.n))
-    cur[: injection.n] = injection.current_a
+    cur = injection.drive().samples(max(PLATEAU_WINDOW_S[1], injection.duration_s), sim.dt_s)
     res = sim.simulate(cur, nu, lh_m, injection.f_open_n)
     return float(res.t_contact_s[0]), float(res.t_open_s[0]), float(res.plateau_stroke_m()[0])
 

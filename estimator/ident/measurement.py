@@ -11,12 +11,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimator.errors import TraceError
+from estimator.model.drive import SAMPLE_PERIOD_REL_TOL, TableDrive
 
 MIN_WINDOW_S = 40e-6          # shorter windows hold too little of the charging phase to identify anything
 MAX_ABS_CURRENT_A = 100.0     # beyond any injector amplifier
 MAX_ABS_VOLTAGE_V = 1000.0
 MIN_PEAK_CURRENT_A = 0.2      # a "flat" current does not excite the actuator
-SAMPLE_PERIOD_REL_TOL = 1e-6  # relative jitter accepted in the sample times
 
 
 @dataclass(frozen=True)
@@ -48,6 +48,10 @@ class Injection:
     def n(self) -> int:
         """Number of samples."""
         return int(self.current_a.size)
+
+    def drive(self) -> TableDrive:
+        """The measured current as a drive: these samples, then zero (the amplifier holding the charge)."""
+        return TableDrive.sampled(self.current_a, self.dt_s)
 
     @property
     def t_s(self) -> np.ndarray:

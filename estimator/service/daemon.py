@@ -347,10 +347,10 @@ class Daemon:
 
     def warm_up(self) -> None:
         """Load the compiled kernels and the N_u table before READY, so the first injection is not late."""
-        from estimator.model.drive import sample_times, standard_drive
+        from estimator.model.drive import SAMPLE_PERIOD_S, StandardDrive
 
-        sim = self.tracker.simulator(0.5e-6)
-        cur = standard_drive(sample_times(100e-6))
+        sim = self.tracker.simulator(SAMPLE_PERIOD_S)
+        cur = StandardDrive().samples(100e-6)
         sim.simulate(cur, [16.0, 17.0, 18.0], [-0.5e-6, 2e-6, 6e-6])
 
     def run(self) -> int:
