@@ -108,3 +108,35 @@ def test_l1_norm_option(sim):
     inj, _ = measured(17.0, 3.0, 32)
     est = identify(inj, sim, IdentConfig(norm="l1", robust="off"))
     assert est.status == "ok" and abs(est.lh_m * 1e6 - 3.0) < 0.3
+
+
+@pytest.mark.parametrize("mismatch,window_s", [(False, 100e-6), (True, 150e-6)])
+def test_the_plain_and_robust_searches_share_their_grids_without_changing_either(sim, mismatch, window_s):
+    """Issue #14: an automatic cold start simulates each grid both costs ask for once (over the longer
+    window when the robust one reaches further); each search ends where it ends alone."""
+    from estimator.ident.cold_start import SharedGrid, cold_fit
+    from estimator.ident.idle_stroke import effective_window_s, search_box
+
+    inj, _ = measured(17.6, 3.3, 21, mismatch=mismatch, window_s=window_s)
+    config = IdentConfig()
+    box = search_box(config, sim, inj.f_open_n)
+
+    def model(robust: bool):
+        from estimator.ident.cost import CostModel
+        return CostModel(sim, inj, effective_window_s(config, inj, robust), config.norm, robust)
+
+    alone = [model(r) for r in (False, True)]
+    fits_alone = [cold_fit(m, box, config) for m in alone]
+    together = [model(r) for r in (False, True)]
+    shared = SharedGrid(together)
+    fits_together = [cold_fit(m, box, config, shared) for m in together]
+    assert together[0].n < together[1].n if window_s > 100e-6 else together[0].n == together[1].n
+    for (fa, ca), (ft, ct) in zip(fits_alone, fits_together):
+        np.testing.assert_array_equal(fa.x, ft.x)
+        assert (fa.criterion, ca) == (ft.criterion, ct)
+    spent_alone = sum(m.evaluations for m in alone)
+    spent_together = sum(m.evaluations for m in together)
+    assert spent_together <= spent_alone - 13 * 25      # at least the first grid is simulated once
+    est = identify(inj, sim)              # the automatic cold start shares them the same way
+    assert est.evaluations < spent_alone - 13 * 25
+    assert (est.nu_n_per_v, est.lh_m * 1e6) in [tuple(f.x) for f, _ in fits_together]

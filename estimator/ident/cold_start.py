@@ -10,6 +10,12 @@ is a smooth, unimodal function of N_u. So the search is
 2. ``zooms`` times: ``zoom_points`` columns between the neighbours of the best column (the span
    shrinks by ``(zoom_points - 1) / 2`` per zoom);
 3. conjugate-direction refinement (:func:`estimator.ident.local_fit.refine`) from the best point.
+
+A :class:`SharedGrid` simulates each grid point once per injection: the plain and the robust cost
+of an automatic cold start search the same first grid (and the same zooms where their valleys share
+a column), and a zoom's outer columns are columns of the grid before. Points are simulated over the
+longest window asked for: the first ``n`` samples of a simulation do not depend on later ones, so each
+model's cost is the one it would have computed alone.
 """
 
 from __future__ import annotations
@@ -17,9 +23,36 @@ from __future__ import annotations
 import numpy as np
 
 from estimator.ident.config import IdentConfig
+from estimator.ident.coords import UM_PER_M
 from estimator.ident.cost import CostModel
 from estimator.ident.local_fit import LocalFit, cost_fn, refine
 from estimator.ident.search import Box, CostFn
+
+
+class SharedGrid:
+    """Grid simulations shared by the cost models of one injection: a candidate (N_u, L_h) simulated
+    for one grid is reused by any later grid that holds it (the other model's, and a zoom's outer
+    columns, which are columns of the grid before). Kept until this object goes (a few MB)."""
+
+    def __init__(self, models: list[CostModel]) -> None:
+        self.longest = max(models, key=lambda m: m.n)
+        self._voltage: dict[tuple[float, float], np.ndarray] = {}   # over the longest window; NaN: failed
+
+    def cost_fn(self, model: CostModel) -> CostFn:
+        """``model``'s cost of (B, 2) points in (N/V, µm), each point simulated once over the longest window."""
+        def f(x: np.ndarray) -> np.ndarray:
+            keys = [tuple(p) for p in x.tolist()]
+            todo = [i for i, k in enumerate(keys) if k not in self._voltage]
+            if todo:
+                pts = x[todo]
+                src = self.longest
+                res = src.sim.simulate(src.current, pts[:, 0], pts[:, 1] / UM_PER_M, src.injection.f_open_n)
+                model.evaluations += len(todo)   # counted where simulated: evaluations are simulations run
+                u = np.where(res.success[:, None], res.voltage_v, np.nan)
+                for i, row in zip(todo, u):
+                    self._voltage[keys[i]] = row
+            return model.cost_of(np.stack([self._voltage[k] for k in keys]))
+        return f
 
 
 def _column_minima(j: np.ndarray, lh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -55,8 +88,10 @@ def profile_start(f: CostFn, box: Box, config: IdentConfig) -> tuple[np.ndarray,
     return x, steps
 
 
-def cold_fit(model: CostModel, box: Box, config: IdentConfig) -> tuple[LocalFit, bool]:
-    """The optimiser behind a cold start: profile search then refinement; (fit, converged)."""
-    x, steps = profile_start(cost_fn(model), box, config)
+def cold_fit(model: CostModel, box: Box, config: IdentConfig,
+             shared: SharedGrid | None = None) -> tuple[LocalFit, bool]:
+    """The optimiser behind a cold start: profile search (its grids from ``shared`` where given) then
+    refinement; (fit, converged)."""
+    x, steps = profile_start(shared.cost_fn(model) if shared else cost_fn(model), box, config)
     fit, converged, _ = refine(model, x, np.eye(2), steps, box, config)
     return fit, converged

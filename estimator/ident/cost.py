@@ -132,17 +132,29 @@ class CostModel:
         return self.sim.simulate(self.current, nu, lh, self.injection.f_open_n)
 
     def residuals(self, res: BatchResult, robust: bool | None = None) -> np.ndarray:
-        """U_m − U_sim (V), (B, N); projected when robust. NaN rows for failed candidates."""
-        r = self.measured[None, :] - res.voltage_v
+        """U_m − U_sim (V), (B, N) over this window (a longer simulation is cut to it); projected when
+        robust. NaN rows for failed candidates."""
+        return self.residuals_of(res.voltage_v, robust)
+
+    def residuals_of(self, voltage_v: np.ndarray, robust: bool | None = None) -> np.ndarray:
+        """:meth:`residuals` of simulated voltages (B, >= N) in V."""
+        r = self.measured[None, :] - voltage_v[:, : self.n]
         if self.robust if robust is None else robust:
             r = r - (r @ self.basis) @ self.basis.T
         return r
 
     def from_result(self, res: BatchResult) -> np.ndarray:
         """The cost of simulated candidates: V^2*s (l2) or V*s (l1); +inf where infeasible."""
-        r = self.residuals(res)
+        return self.cost_of(res.voltage_v, res.success)
+
+    def cost_of(self, voltage_v: np.ndarray, success: np.ndarray | None = None) -> np.ndarray:
+        """The cost of simulated voltages (B, >= N) in V; +inf where not ``success`` or not finite."""
+        r = self.residuals_of(voltage_v)
         j = (r * r if self.norm == "l2" else np.abs(r)) @ self.weights
-        j[~res.success | ~np.isfinite(j)] = np.inf
+        bad = ~np.isfinite(j)
+        if success is not None:
+            bad |= ~success
+        j[bad] = np.inf
         return j
 
     def __call__(self, nu: np.ndarray, lh: np.ndarray) -> np.ndarray:
@@ -150,4 +162,4 @@ class CostModel:
 
     def paper_cost_vs(self, res: BatchResult) -> np.ndarray:
         """The paper's J = ∫|U_m − U_sim| dt in V*s, unprojected (eq. 28)."""
-        return np.abs(self.measured[None, :] - res.voltage_v) @ self.weights
+        return np.abs(self.measured[None, :] - res.voltage_v[:, : self.n]) @ self.weights

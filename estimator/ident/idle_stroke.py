@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimator.ident.cold_start import cold_fit
+from estimator.ident.cold_start import SharedGrid, cold_fit
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M, cov_to_si
 from estimator.ident.cost import CostModel
@@ -78,11 +78,8 @@ def predict_valve(sim: FastSimulator, injection: Injection, nu: float, lh_m: flo
     return float(res.t_contact_s[0]), float(res.t_open_s[0]), float(res.plateau_stroke_m()[0])
 
 
-def _fit_mode(sim: FastSimulator, inj: Injection, config: IdentConfig, robust: bool,
-              box: Box) -> tuple[CostModel, LocalFit, bool]:
-    model = CostModel(sim, inj, effective_window_s(config, inj, robust), config.norm, robust)
-    fit, converged = cold_fit(model, box, config)
-    return model, fit, converged
+def _cost_model(sim: FastSimulator, inj: Injection, config: IdentConfig, robust: bool) -> CostModel:
+    return CostModel(sim, inj, effective_window_s(config, inj, robust), config.norm, robust)
 
 
 def identify(injection: Injection, sim: FastSimulator | None = None, config: IdentConfig | None = None) -> Estimate:
@@ -98,10 +95,14 @@ def identify(injection: Injection, sim: FastSimulator | None = None, config: Ide
     box = search_box(config, sim, injection.f_open_n)
     if config.robust != "auto":
         robust = config.robust == "on"
-        model, fit, converged = _fit_mode(sim, injection, config, robust, box)
+        model = _cost_model(sim, injection, config, robust)
+        fit, converged = cold_fit(model, box, config, SharedGrid([model]))
         return finish(sim, injection, fit, converged, model.evaluations, box, robust, float("nan"), config)
-    m_plain, f_plain, c_plain = _fit_mode(sim, injection, config, False, box)
-    m_rob, f_rob, c_rob = _fit_mode(sim, injection, config, True, box)
+    # both costs search the same first grid (and the same zooms where their valleys share a column)
+    m_plain, m_rob = _cost_model(sim, injection, config, False), _cost_model(sim, injection, config, True)
+    shared = SharedGrid([m_plain, m_rob])
+    f_plain, c_plain = cold_fit(m_plain, box, config, shared)
+    f_rob, c_rob = cold_fit(m_rob, box, config, shared)
     evaluations = m_plain.evaluations + m_rob.evaluations
     stat = likelihood_ratio(m_plain, f_plain, m_rob, f_rob)
     if prefers_robust(stat, config.model_error_threshold):
