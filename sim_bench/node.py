@@ -65,7 +65,7 @@ class InjectionSource:
 
     def _fresh(self, injector: int, n: int, t: float) -> tuple[Measurement, float]:
         tr = self.scenario.truth(injector, n, t, self.rng)
-        return self.plant.measure(tr.nu_n_per_v, tr.lh_m, tr.f_open_n, self.rng), tr.temperature_c
+        return self.plant.measure(tr.nu_n_per_v, tr.lh_um * 1e-6, tr.f_open_n, self.rng), tr.temperature_c
 
 
 def apply_faults(frames: list[Frame], sc: Scenario, rng: np.random.Generator, stats: NodeStats) -> list[Frame]:

@@ -32,11 +32,11 @@ def nu_of_temperature(t_c: float) -> float:
 
 
 class Truth(NamedTuple):
-    """What a simulated injection really is: N_u (N/V), L_h (m), valve preload F_open (N) and the fuel
-    temperature its header reports (degC, NaN: none reported)."""
+    """What a simulated injection really is: N_u (N/V), L_h (µm, as scenarios state it), valve preload
+    F_open (N) and the fuel temperature its header reports (degC, NaN: none reported)."""
 
     nu_n_per_v: float
-    lh_m: float
+    lh_um: float
     f_open_n: float
     temperature_c: float
 
@@ -152,7 +152,7 @@ class Scenario:
         lh = self.lh_um[injector % len(self.lh_um)] + self.wear_um * min(t / self.seconds, 1.0)
         mean, std = self.rail_force_n
         f_open = 28.0 + max(0.0, mean + std * float(rng.standard_normal())) if (mean or std) else 28.0
-        return Truth(nu, lh * 1e-6, f_open, temp)
+        return Truth(nu, lh, f_open, temp)
 
 
 # Bus budget assumed by the overload scenario: 500 kbit/s arbitration, 2 Mbit/s data phase.

@@ -76,7 +76,7 @@ class TrackingScenario:
     def truth(self, injector: int, k: int, t: float, rng: np.random.Generator | None = None) -> Truth:
         """Truth of injection ``k`` at time t (s); one injector, the valve spring's preload."""
         temp = self.temperature_c(k, t) if self.temperature_c else float("nan")
-        return Truth(self.nu(k, t), self.lh_um(k, t) * 1e-6, F_OPEN_N, temp)
+        return Truth(self.nu(k, t), self.lh_um(k, t), F_OPEN_N, temp)
 
 
 TRACKING: Registry[TrackingScenario] = Registry("tracking", Targets)
@@ -172,8 +172,8 @@ def tracking(name: str, seed: int = 2, mismatch: bool = False, injections: int |
     for k in range(n):
         t = k * sc.interval_s
         tr = sc.truth(0, k, t)
-        nu, lh = tr.nu_n_per_v, tr.lh_m * 1e6
-        m = plant.measure(nu, tr.lh_m, tr.f_open_n, rng)
+        nu, lh = tr.nu_n_per_v, tr.lh_um
+        m = plant.measure(nu, lh * 1e-6, tr.f_open_n, rng)
         glitch = bool(sc.glitch_every) and k % sc.glitch_every == sc.glitch_every // 2
         cur = m.current_a * GLITCH_CURRENT_GAIN if glitch else m.current_a
         t0 = time.perf_counter()

@@ -118,7 +118,7 @@ def test_both_benches_speak_one_scenario_vocabulary():
     rng = np.random.default_rng(0)
     for sc, truth in ((bench, bench.truth(1, 7, 30.0, rng)), (track, track.truth(0, 30, 30.0))):
         assert isinstance(truth, scenarios.Truth) and isinstance(sc.drive, Drive) and sc.description
-        assert 15.0 <= truth.nu_n_per_v <= 21.0 and 0 < truth.lh_m < 1e-5 and truth.f_open_n >= 28.0
+        assert 15.0 <= truth.nu_n_per_v <= 21.0 and 0 < truth.lh_um < 10.0 and truth.f_open_n >= 28.0
         assert np.isfinite(truth.temperature_c)      # both warm-ups report the fuel temperature
     assert np.isnan(tb.TRACKING["steady"].truth(0, 0, 0.0).temperature_c)
     with pytest.raises(KeyError, match="unknown tracking scenario 'no-such'"):
