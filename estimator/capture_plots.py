@@ -18,7 +18,6 @@ from estimator.service.bus import to_frame
 from estimator.service.replay import read_capture
 
 
-
 def series(capture: Path) -> dict:
     """{injector: {"t", "nu", "lh", "t_open", "truth_t", "truth_nu", "truth_lh", "truth_open"}} lists."""
     codec = Codec()

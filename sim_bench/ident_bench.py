@@ -18,7 +18,7 @@ from estimator.ident.tracker import Tracker
 from estimator.model.drive import Drive
 from estimator.model.fast_sim import FastSimulator
 from sim_bench.plant import AdcConfig, Measurement, Plant, PlantConfig
-from sim_bench.table import Column, plant, render
+from sim_bench.table import Column, keyed, plant, render
 
 NU_RANGE = (15.0, 21.0)
 LH_RANGE_UM = (-1.0, 10.0)
@@ -129,19 +129,15 @@ def accuracy_failures(s: dict) -> list[str]:
     return fails
 
 
-def _col(title: str, unit: str, spec: str, key: str, scale: float = 1.0) -> Column:
-    return Column(title, unit, spec, (lambda s: scale * s[key]) if scale != 1.0 else (lambda s: s[key]))
-
-
 ACCURACY_COLUMNS = [
-    _col("sweep", "", "<10", "sweep"), Column("plant", "", "<8", plant), _col("noise", "[V]", ">5.2f", "noise_v"),
-    _col("n", "", ">4", "n"), _col("N_u rmse", "[%]", ">8.3f", "rmse_nu_pct"), _col("CRB", "[%]", ">6.3f", "crb_nu_pct"),
-    _col("max", "[%]", ">6.3f", "max_abs_nu_pct"), _col("L_h rmse", "[µm]", ">8.3f", "rmse_lh_um"),
-    _col("CRB", "[µm]", ">6.3f", "crb_lh_um"), _col("ratio", "", ">5.2f", "lh_rmse_over_crb"),
-    _col("max|dLh|", "[µm]", ">8.3f", "max_abs_lh_um"), _col("err/σ", "rms", ">5.2f", "rms_error_over_sigma"),
-    _col(">3σ", "", ">4", "beyond_3_sigma"), _col("ok", "[%]", ">4.0f", "ok_fraction", 100.0),
-    _col("t_open", "[µs]", ">6.2f", "rmse_t_open_us"), _col("CRB", "[µs]", ">5.2f", "crb_t_open_us"),
-    _col("robust", "[%]", ">6.0f", "robust_fraction", 100.0), _col("cold", "[ms]", ">5.1f", "median_cold_ms"),
+    keyed("sweep", "", "<10", "sweep"), Column("plant", "", "<8", plant), keyed("noise", "[V]", ">5.2f", "noise_v"),
+    keyed("n", "", ">4", "n"), keyed("N_u rmse", "[%]", ">8.3f", "rmse_nu_pct"), keyed("CRB", "[%]", ">6.3f", "crb_nu_pct"),
+    keyed("max", "[%]", ">6.3f", "max_abs_nu_pct"), keyed("L_h rmse", "[µm]", ">8.3f", "rmse_lh_um"),
+    keyed("CRB", "[µm]", ">6.3f", "crb_lh_um"), keyed("ratio", "", ">5.2f", "lh_rmse_over_crb"),
+    keyed("max|dLh|", "[µm]", ">8.3f", "max_abs_lh_um"), keyed("err/σ", "rms", ">5.2f", "rms_error_over_sigma"),
+    keyed(">3σ", "", ">4", "beyond_3_sigma"), keyed("ok", "[%]", ">4.0f", "ok_fraction", 100.0),
+    keyed("t_open", "[µs]", ">6.2f", "rmse_t_open_us"), keyed("CRB", "[µs]", ">5.2f", "crb_t_open_us"),
+    keyed("robust", "[%]", ">6.0f", "robust_fraction", 100.0), keyed("cold", "[ms]", ">5.1f", "median_cold_ms"),
 ]
 
 

@@ -118,17 +118,15 @@ class Plant:
         """One throw-away simulation: loads the compiled kernels before real-time work starts."""
         self.measure(17.0, 3e-6, 28.0, np.random.default_rng(0))
 
-    def measure(self, nu_n_per_v: float, lh_m: float, f_open_n: float, rng: np.random.Generator,
-                drive: Drive | None = None) -> Measurement:
-        """One injection with truth; ``drive`` replaces the configured drive for this injection (the
-        amplifier's ripple is added to either)."""
+    def measure(self, nu_n_per_v: float, lh_m: float, f_open_n: float, rng: np.random.Generator) -> Measurement:
+        """One injection with truth, driven by the configured drive plus the amplifier's ripple."""
         cfg = self.cfg
         m = cfg.oversample
         # simulate long enough for the plateau stroke and the whole window: the window's current, then
         # held (zero current)
         t_fine = sample_times(max(PLATEAU_WINDOW_S[1], cfg.window_s), self.sim.dt_s)
         phase = float(rng.uniform())
-        cur = cfg.amplifier(cfg.drive if drive is None else drive, phase).current(t_fine)
+        cur = true_current(t_fine, cfg, phase)
         cur = np.where(t_fine <= cfg.window_s + 1e-12, cur, 0.0)
         res = self.sim.simulate(cur, nu_n_per_v, lh_m, f_open_n, exact=True)
         if not res.success[0]:

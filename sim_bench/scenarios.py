@@ -140,10 +140,6 @@ class Scenario:
         a, b = self.temperature_c
         return a + (b - a) * min(max(t / self.seconds, 0.0), 1.0)
 
-    def __post_init__(self) -> None:
-        if not isinstance(self.targets, BenchTargets):
-            raise ValueError(f"bench scenario {self.name!r} has no targets")
-
     def truth(self, injector: int, k: int, t: float, rng: np.random.Generator) -> Truth:
         """Truth of injection ``k`` of ``injector`` at time t (s since start); the same for any k."""
         temp = self.temperature(t)

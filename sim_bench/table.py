@@ -21,6 +21,11 @@ class Column:
         return f"{text:{align or '>'}{width}}"
 
 
+def keyed(title: str, unit: str, spec: str, key: str, scale: float = 1.0) -> Column:
+    """A column showing ``row[key]`` (times ``scale``; unscaled values keep their type, e.g. int counts)."""
+    return Column(title, unit, spec, (lambda s: scale * s[key]) if scale != 1.0 else (lambda s: s[key]))
+
+
 def render(columns: list[Column], rows: list[dict], verdict: Callable[[dict], str]) -> str:
     """The table as text: titles (then ``verdict``), units, and per row the values and its verdict."""
     lines = [" ".join(c.head(c.title) for c in columns) + "  verdict",

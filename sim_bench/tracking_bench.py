@@ -25,7 +25,7 @@ from estimator.model.drive import Drive, StandardDrive
 from estimator.model.fast_sim import FastSimulator
 from sim_bench.plant import Plant, PlantConfig
 from sim_bench.scenarios import Registry, Truth
-from sim_bench.table import Column, plant, render
+from sim_bench.table import Column, keyed, plant, render
 
 F_OPEN_N = 28.0
 GLITCH_CURRENT_GAIN = 1.2     # a current-sensor gain error of 20 % that the CRC cannot see
@@ -247,19 +247,15 @@ def score(sc: TrackingScenario, rows: list[dict], mismatch: bool) -> dict:
     }
 
 
-def _col(title: str, unit: str, spec: str, key: str) -> Column:
-    return Column(title, unit, spec, lambda s: s[key])
-
-
 TRACKING_COLUMNS = [
-    _col("scenario", "", "<16", "scenario"), Column("plant", "", "<8", plant), _col("inj", "", ">4", "injections"),
-    _col("dLh raw", "rms[µm]", ">8.3f", "rms_raw_lh_um"), _col("filt", "[µm]", ">6.3f", "rms_lh_um"),
-    _col("dNu raw", "rms[%]", ">8.3f", "rms_raw_nu_pct"), _col("filt", "[%]", ">6.3f", "rms_nu_pct"),
-    _col("max|dLh|", ">10[µm]", ">8.3f", "max_abs_lh_after10_um"),
-    _col("max|dNu|", ">10[%]", ">8.3f", "max_abs_nu_after10_pct"), _col("rms dLh", "late", ">7.3f", "rms_lh_after_um"),
-    _col("t_open", "[µs]", ">6.2f", "rmse_t_open_us"), _col("err/σ", "", ">5.2f", "sigma_ratio_lh"),
-    _col("unc", "", ">4", "unconfirmed"), _col("out", "", ">4", "outliers"), _col("rej", "", ">4", "valid_rejected"),
-    _col("median", "[ms]", ">6.2f", "median_update_ms"), _col("p99", "[ms]", ">5.2f", "p99_update_ms"),
+    keyed("scenario", "", "<16", "scenario"), Column("plant", "", "<8", plant), keyed("inj", "", ">4", "injections"),
+    keyed("dLh raw", "rms[µm]", ">8.3f", "rms_raw_lh_um"), keyed("filt", "[µm]", ">6.3f", "rms_lh_um"),
+    keyed("dNu raw", "rms[%]", ">8.3f", "rms_raw_nu_pct"), keyed("filt", "[%]", ">6.3f", "rms_nu_pct"),
+    keyed("max|dLh|", ">10[µm]", ">8.3f", "max_abs_lh_after10_um"),
+    keyed("max|dNu|", ">10[%]", ">8.3f", "max_abs_nu_after10_pct"), keyed("rms dLh", "late", ">7.3f", "rms_lh_after_um"),
+    keyed("t_open", "[µs]", ">6.2f", "rmse_t_open_us"), keyed("err/σ", "", ">5.2f", "sigma_ratio_lh"),
+    keyed("unc", "", ">4", "unconfirmed"), keyed("out", "", ">4", "outliers"), keyed("rej", "", ">4", "valid_rejected"),
+    keyed("median", "[ms]", ">6.2f", "median_update_ms"), keyed("p99", "[ms]", ">5.2f", "p99_update_ms"),
 ]
 
 

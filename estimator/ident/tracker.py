@@ -51,8 +51,7 @@ from estimator.ident.search import Box
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.status import Status
 from estimator.model.fast_sim import FastSimulator
-from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V
-from estimator.model.parameters import InjectorParameters
+from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters
 
 STATE_VERSION = 2
 ROBUST_CHECK_EVERY = 4         # in robust mode, every 4th injection also fits the plain model (model-error test)

@@ -166,12 +166,6 @@ class TableDrive(TimeFunction):
         return self.current(sample_times(t_end_s, dt_s))
 
 
-def resample_current(t_s: np.ndarray, current_a: np.ndarray, t_end_s: float,
-                     dt_s: float = SAMPLE_PERIOD_S) -> np.ndarray:
-    """A current given at any (increasing) times on the 0.5 µs grid (see :meth:`TableDrive.from_table`)."""
-    return TableDrive.from_table(t_s, current_a).samples(t_end_s, dt_s)
-
-
 # Named drive shapes users can select (``--drive NAME``): name -> factory of the default instance.
 DRIVES: dict[str, Callable[[], Drive]] = {}
 
