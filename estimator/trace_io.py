@@ -42,6 +42,31 @@ class Trace:
         return value
 
 
+def meta_item(line: str) -> tuple[str, str] | None:
+    """A stripped ``# key=value`` line as (key, value); None for any other line."""
+    if not line.startswith("#"):
+        return None
+    k, sep, v = line[1:].partition("=")
+    return (k.strip(), v.strip()) if sep else None
+
+
+def csv_head(path: str | Path) -> tuple[dict[str, str], str | None]:
+    """The ``# key=value`` lines of a CSV up to its first other non-empty line, and that line (None if
+    there is none); reads no further. OSError if the file cannot be read."""
+    meta: dict[str, str] = {}
+    with open(path, "rb") as f:
+        for raw in f:
+            line = raw.decode("utf-8", "replace").strip()
+            if not line:
+                continue
+            if not line.startswith("#"):
+                return meta, line
+            item = meta_item(line)
+            if item:
+                meta[item[0]] = item[1]
+    return meta, None
+
+
 def read_trace(path: str | Path) -> Trace:
     """Read a trace CSV. Raises :class:`TraceError` with one readable line on any problem."""
     path = Path(path)
@@ -58,10 +83,9 @@ def read_trace(path: str | Path) -> Trace:
         if not s:
             continue
         if s.startswith("#"):
-            kv = s[1:].strip()
-            if "=" in kv:
-                k, v = kv.split("=", 1)
-                meta[k.strip()] = v.strip()
+            item = meta_item(s)
+            if item:
+                meta[item[0]] = item[1]
             continue
         body.append(s)
     if len(body) < 2:

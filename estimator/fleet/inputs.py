@@ -13,8 +13,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from estimator.mdf_io import MDF_SUFFIXES
-from estimator.service.estimates import source_kind
+from estimator.service.estimates import is_capture_header
 from estimator.service.replay import CAPTURE_SUFFIXES
+from estimator.trace_io import csv_head
 
 KEY_FIELDS = ("serial", "injector_key")
 TRACE_SUFFIXES = (".csv",) + MDF_SUFFIXES
@@ -53,21 +54,16 @@ def expand(inputs: list[str]) -> tuple[list[Path], list[str]]:
     return unique, missing
 
 
-def header_meta(path: Path, max_lines: int = 64) -> dict[str, str]:
-    """The ``# key=value`` lines at the top of a CSV trace (cheap: nothing else is read)."""
-    meta: dict[str, str] = {}
+def trace_meta(path: Path) -> dict[str, str]:
+    """The ``# key=value`` lines of a CSV trace ({} for a capture CSV, another file or an unreadable
+    one); one read of the file's head."""
+    if path.suffix.lower() != ".csv":
+        return {}
     try:
-        with open(path, "rb") as f:
-            for _, raw in zip(range(max_lines), f):
-                line = raw.decode("utf-8", "replace").strip()
-                if not line.startswith("#"):
-                    break
-                k, sep, v = line[1:].partition("=")
-                if sep:
-                    meta[k.strip()] = v.strip()
+        meta, first = csv_head(path)
     except OSError:
-        pass
-    return meta
+        return {}
+    return {} if is_capture_header(first) else meta
 
 
 def group(files: list[Path]) -> list[Group]:
@@ -75,7 +71,7 @@ def group(files: list[Path]) -> list[Group]:
     keyed: dict[str, list[tuple[float, str]]] = {}
     alone: list[Group] = []
     for f in files:
-        meta = header_meta(f) if f.suffix.lower() == ".csv" and _is_trace(f) else {}
+        meta = trace_meta(f)
         key = next((meta[k] for k in KEY_FIELDS if meta.get(k)), None)
         if key is None:
             alone.append(Group(None, (str(f),)))
@@ -87,10 +83,3 @@ def group(files: list[Path]) -> list[Group]:
         keyed.setdefault(key, []).append((t if t == t else float("inf"), str(f)))
     out = [Group(k, tuple(p for _, p in sorted(v))) for k, v in sorted(keyed.items())]
     return out + alone
-
-
-def _is_trace(f: Path) -> bool:
-    try:
-        return source_kind(f) == "trace"
-    except OSError:
-        return False

@@ -22,21 +22,22 @@ from estimator.service.config import DaemonConfig
 from estimator.service.daemon import build_pipeline, build_tracker
 from estimator.service.processor import ROW_FIELDS, result_row
 from estimator.service.replay import CAPTURE_SUFFIXES, iter_capture
-from estimator.trace_io import injection_from_trace
+from estimator.trace_io import csv_head, injection_from_trace
 
 FIELDS = ("source",) + ROW_FIELDS
+CAPTURE_CSV_HEADER = "timestamp,arbitration_id"   # python-can's CSV logger
+
+
+def is_capture_header(first_line: str | None) -> bool:
+    """True for the header row of python-can's CSV logger (a capture, not a trace)."""
+    return bool(first_line) and first_line.startswith(CAPTURE_CSV_HEADER)
 
 
 def source_kind(path: Path) -> str:
     """``capture`` (python-can log) or ``trace`` (one injection: CSV trace or MDF4 with channels)."""
     suffix = path.suffix.lower()
     if suffix == ".csv":
-        with open(path, "rb") as f:
-            for raw in f:
-                line = raw.decode("utf-8", "replace").strip()
-                if line and not line.startswith("#"):
-                    return "capture" if line.startswith("timestamp,arbitration_id") else "trace"
-        return "trace"
+        return "capture" if is_capture_header(csv_head(path)[1]) else "trace"
     if is_mdf(path):
         return "trace"   # MDF4 captures of bus traffic: pass kind="capture"
     return "capture" if suffix in CAPTURE_SUFFIXES else "trace"
