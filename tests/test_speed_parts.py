@@ -34,3 +34,34 @@ def test_stats_p99_per_stage():
     assert stages["assembly"] == pytest.approx(0.1) and stages["send"] == pytest.approx(0.2)
     assert total > stages["estimation"]
     assert Stats().p99s_ms() == (0.0, dict.fromkeys(STAGES, 0.0))
+
+
+@pytest.mark.parametrize("f_open_n", [35.0, 0.0])
+@pytest.mark.parametrize("samples", [201, 981])
+def test_grid_voltages_equal_simulate_bit_for_bit(sim, f_open_n, samples):
+    """A grid column's shared free run changes nothing: every point's voltage and success are the
+    ones its own simulation gives (pre-compressed rows, no-contact rows, failures and a valve that
+    opens at once with F_open = 0 included)."""
+    from estimator.model.drive import StandardDrive
+    rng = np.random.default_rng(samples)
+    cur = StandardDrive().samples((samples - 1) * sim.dt_s, sim.dt_s)
+    cur = cur * (1.0 + rng.normal(0.0, 0.01, cur.size))
+    nu, lh = np.meshgrid(np.linspace(14.9, 21.1, 7), np.r_[np.linspace(-2e-6, 10e-6, 13), 40e-6], indexing="ij")
+    nu = np.r_[nu.ravel(), rng.uniform(15.0, 21.0, 20)]
+    lh = np.r_[lh.ravel(), rng.uniform(-2e-6, 12e-6, 20)]
+    res = sim.simulate(cur, nu, lh, f_open_n)
+    u, ok = sim.grid_voltages(cur, nu, lh, f_open_n)
+    assert np.array_equal(ok, res.success)
+    assert np.array_equal(u, np.where(res.success[:, None], res.voltage_v, np.nan), equal_nan=True)
+    assert ok.sum() > nu.size // 2
+
+
+def test_grid_voltages_check_their_inputs(sim):
+    from estimator.errors import ParameterError
+    cur = np.linspace(0.0, 10.0, 50)
+    with pytest.raises(ParameterError):
+        sim.grid_voltages(cur, np.full(4, 40.0), np.full(4, 3e-6), 35.0)     # N_u outside the range
+    with pytest.raises(ParameterError):
+        sim.grid_voltages(np.r_[cur, np.nan], np.full(4, 17.0), np.full(4, 3e-6), 35.0)
+    with pytest.raises(ParameterError):
+        sim.grid_voltages(cur, np.full(4, 17.0), np.full(3, 3e-6), 35.0)

@@ -15,7 +15,8 @@ A :class:`SharedGrid` simulates each grid point once per injection: the plain an
 of an automatic cold start search the same first grid (and the same zooms where their valleys share
 a column), and a zoom's outer columns are columns of the grid before. Points are simulated over the
 longest window asked for: the first ``n`` samples of a simulation do not depend on later ones, so each
-model's cost is the one it would have computed alone.
+model's cost is the one it would have computed alone. The points of one N_u column share their free
+run until contact (:meth:`FastSimulator.grid_voltages`, bit for bit what each would give alone).
 """
 
 from __future__ import annotations
@@ -46,9 +47,8 @@ class SharedGrid:
             if todo:
                 pts = x[todo]
                 src = self.longest
-                res = src.sim.simulate(src.current, pts[:, 0], pts[:, 1] / UM_PER_M, src.injection.f_open_n)
+                u, _ = src.sim.grid_voltages(src.current, pts[:, 0], pts[:, 1] / UM_PER_M, src.injection.f_open_n)
                 model.evaluations += len(todo)   # counted where simulated: evaluations are simulations run
-                u = np.where(res.success[:, None], res.voltage_v, np.nan)
                 for i, row in zip(todo, u):
                     self._voltage[keys[i]] = row
             return model.cost_of(np.stack([self._voltage[k] for k in keys]))

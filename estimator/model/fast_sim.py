@@ -22,6 +22,7 @@ from estimator.model.dynamics import STATUS_INFEASIBLE, STATUS_TEXT
 from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters, check_nu_in, load_nominal
 
 PLATEAU_WINDOW_S = (215e-6, 490e-6)  # Table 3: mean plunger stroke s_4,s over 215-490 µs
+FREE_RUN_LH_M = 1.0   # L_h of a grid column's free run (m): a gap no actuator closes
 
 
 @dataclass(frozen=True)
@@ -112,6 +113,7 @@ class FastSimulator:
         # a plain dict, not functools.lru_cache on a bound method: that makes a reference cycle, and
         # a simulator dropped from a pool would then stay in memory until the cyclic GC runs
         self._exact: dict[float, np.ndarray] = {}
+        self._free_shared: bool | None = None   # see _columns_share_free_run
 
     # ---- discretisation -------------------------------------------------------------------
     def _scaled(self, a_si: np.ndarray) -> np.ndarray:
@@ -200,13 +202,7 @@ class FastSimulator:
             except ValueError:
                 raise ParameterError(f"candidate arrays of sizes {nu.size}, {lh.size}, {fo.size} "
                                      "do not broadcast") from None
-        code, n_neg = kernel.check_inputs(cur, nu, lh, fo, *self.nu_range)
-        if code == kernel.BAD_CURRENT:
-            raise ParameterError("current must be a 1-D array of at least 2 finite samples (A)")
-        if code == kernel.BAD_NU:
-            self.check_nu(nu)   # raises with the offending value
-        if code == kernel.BAD_LH_FOPEN:
-            raise ParameterError("L_h (m) and F_open (N >= 0) must be finite")
+        n_neg = self._check_inputs(cur, nu, lh, fo)
         n = cur.size
         d = self._d
         z0_given = self._no_z0 if nb == 1 else np.full((nb, dyn.NZ), np.nan)
@@ -235,3 +231,60 @@ class FastSimulator:
                 arr[~feasible] = np.nan
         return BatchResult(t_s=self._times(n), current_a=cur, nu_n_per_v=nu, lh_m=lh, f_open_n=fo, voltage_v=u,
                            s3_m=s3, s4_m=s4, mode=mode, t_contact_s=tc, t_open_s=to, success=success, status=status)
+
+    def _check_inputs(self, cur: np.ndarray, nu: np.ndarray, lh: np.ndarray, fo: np.ndarray) -> int:
+        """Raise ParameterError for a non-finite current, an N_u outside the range, a non-finite L_h
+        or a bad F_open; else the number of candidates with L_h <= 0."""
+        code, n_neg = kernel.check_inputs(cur, nu, lh, fo, *self.nu_range)
+        if code == kernel.BAD_CURRENT:
+            raise ParameterError("current must be a 1-D array of at least 2 finite samples (A)")
+        if code == kernel.BAD_NU:
+            self.check_nu(nu)   # raises with the offending value
+        if code == kernel.BAD_LH_FOPEN:
+            raise ParameterError("L_h (m) and F_open (N >= 0) must be finite")
+        return int(n_neg)
+
+    def _columns_share_free_run(self) -> bool:
+        """Whether grid points of one N_u run the same free trajectory until contact: the free
+        region's transition rows do not read L_h, and its guards do not read the current (whose
+        state entry the kernel sets at each sample). True for the model of eq. 27; checked, not assumed."""
+        if self._free_shared is None:
+            phi = self._table()
+            self._free_shared = bool(np.all(phi[:, 0, :dyn.NX, dyn.ZL] == 0.0)
+                                     and np.all(self.automaton.guards[0][:, [dyn.ZI, dyn.ZID]] == 0.0))
+        return self._free_shared
+
+    def grid_voltages(self, current_a: np.ndarray, nu_n_per_v: np.ndarray, lh_m: np.ndarray,
+                      f_open_n: float) -> tuple[np.ndarray, np.ndarray]:
+        """Voltages (B, N) in V and success (B,) of a grid of candidates: what :meth:`simulate` gives
+        (bit for bit; NaN rows where not successful), faster when several points share an N_u.
+
+        Points with L_h > 0 are grouped by N_u: each column's free trajectory is simulated once
+        and each point continues from the sample of its own contact (:func:`kernel.grid_voltages`).
+        Points with L_h <= 0 start pre-compressed and are simulated whole.
+        """
+        nu = np.ascontiguousarray(nu_n_per_v, dtype=float).ravel()
+        lh = np.ascontiguousarray(lh_m, dtype=float).ravel()
+        if nu.size != lh.size:
+            raise ParameterError(f"grid of {nu.size} N_u and {lh.size} L_h values")
+        u = np.full((nu.size, np.size(current_a)), np.nan)
+        ok = np.zeros(nu.size, dtype=bool)
+        free = lh > 0.0
+        col_nu, col = np.unique(nu[free], return_inverse=True)
+        if not self._columns_share_free_run() or col_nu.size == free.sum():
+            free[:] = False          # nothing to share
+        rest = ~free
+        if rest.any():
+            res = self.simulate(current_a, nu[rest], lh[rest], f_open_n)
+            u[rest], ok[rest] = res.voltage_v, res.success
+        if free.any():
+            cur = np.ascontiguousarray(current_a, dtype=float)
+            lf = lh[free]
+            if cur.ndim != 1 or cur.size < 2:
+                raise ParameterError("current must be a 1-D array of at least 2 finite samples (A)")
+            self._check_inputs(cur, col_nu, lf, np.full(lf.size, float(f_open_n)))
+            u[free], ok[free] = kernel.grid_voltages(
+                self._model, self.automaton, self._table(), col_nu, col.astype(np.int64).ravel(), lf,
+                float(f_open_n), cur, self.dt_s * dyn.TIME_SCALE, FREE_RUN_LH_M)
+        u[~ok] = np.nan
+        return u, ok

@@ -292,8 +292,12 @@ def _transition(aut, r, j, z, seated, nev, t_ev, b, out):
 
 
 @njit(cache=True, nogil=True)
-def simulate_kernel(src, model, aut, cand, cur, h, out):
+def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
     """Advance B candidates over the samples of ``cur`` (all arrays in scaled units, time in µs).
+
+    Candidate b starts at sample ``k0[b]`` in the state ``cand.z0[b]`` (its outputs before that
+    sample are left as they are); the first ``zrec.shape[0]`` candidates record the state at the
+    start of every sample in ``zrec[b, k]`` (see :func:`grid_voltages`).
 
     The transition matrix of region r for candidate b is ``sum_q w[b,q] src[idx[b,q], r]``
     (a 4-point interpolation in N_u, or one exact matrix with weight 1); it is formed the first
@@ -318,6 +322,7 @@ def simulate_kernel(src, model, aut, cand, cur, h, out):
     have = np.zeros(nreg, dtype=np.bool_)
     amat = np.empty((nreg, NZ, NZ))
     have_a = np.zeros(nreg, dtype=np.bool_)
+    nrec = zrec.shape[0]
     for b in range(nb):
         have[:] = False
         have_a[:] = False
@@ -330,8 +335,12 @@ def simulate_kernel(src, model, aut, cand, cur, h, out):
         out.status[b] = STATUS_OK
         if in_contact(region_mode[r]):
             out.t_contact[b] = 0.0
-        z[ZI] = cur[0]
-        for k in range(n):
+        rec = b < nrec
+        z[ZI] = cur[k0[b]]
+        for k in range(k0[b], n):
+            if rec:
+                for i in range(NZ):
+                    zrec[b, k, i] = z[i]
             out_u[b, k] = dot(cout[b], z)
             out_s3[b, k] = z[S3]
             out_s4[b, k] = z[S4]
@@ -476,7 +485,7 @@ def run_batch(model, aut, src, stencil, idx_in, w_in, nu, lh, fo, z0_given, regi
     cand = _candidates(model, idx, w, nu, lh, fo, z0_given, region0)
     out = Trajectories(np.empty((nb, n)), np.empty((nb, n)), np.empty((nb, n)), np.empty((nb, n), dtype=np.int8),
                        np.empty(nb), np.empty(nb), np.empty(nb, dtype=np.int64))
-    simulate_kernel(src, model, aut, cand, cur, h, out)
+    simulate_kernel(src, model, aut, cand, cur, h, out, np.zeros(nb, dtype=np.int64), np.empty((0, n, NZ)))
     u, s3, s4, mode, tc, to, status = out
     success = np.empty(nb, dtype=np.bool_)
     for b in range(nb):
@@ -506,3 +515,73 @@ def check_inputs(cur, nu, lh, fo, nu_min, nu_max):
         if lh[b] <= 0.0:
             n_neg += 1
     return INPUTS_OK, n_neg
+
+
+@njit(cache=True, nogil=True)
+def grid_voltages(model, aut, src, col_nu, col, lh, fo, cur, h, lh_free):
+    """Voltages (B, N) in V and success (B,) of grid points (N_u = ``col_nu[col[b]]``, L_h = ``lh[b]`` > 0 m).
+
+    The points of one N_u column run the same free trajectory until contact: L_h only enters the
+    contact guard (the free region's transition rows do not read it, checked by the caller). So
+    each column is simulated once with L_h = ``lh_free`` (never reached), recording its state at
+    every sample, and each point starts from the recorded state at the sample in which its own
+    contact guard crosses, with its own L_h. The result is the one :func:`run_batch` gives, bit for
+    bit, at the cost of the post-contact part plus one free run per column.
+    """
+    nc = col_nu.shape[0]
+    nb = lh.shape[0]
+    n = cur.shape[0]
+    d = model.z_scale
+    idx, w = lagrange_stencil(col_nu, model.nu0, model.dnu)
+    cols = _candidates(model, idx, w, col_nu, np.full(nc, lh_free), np.full(nc, fo), np.full((nc, NZ), np.nan),
+                       np.zeros(nc, dtype=np.int64))
+    outc = Trajectories(np.empty((nc, n)), np.empty((nc, n)), np.empty((nc, n)), np.empty((nc, n), dtype=np.int8),
+                        np.empty(nc), np.empty(nc), np.empty(nc, dtype=np.int64))
+    zrec = np.empty((nc, n, NZ))
+    simulate_kernel(src, model, aut, cols, cur, h, outc, np.zeros(nc, dtype=np.int64), zrec)
+    u = np.empty((nb, n))
+    k0 = np.zeros(nb, dtype=np.int64)
+    z0 = np.full((nb, NZ), np.nan)
+    zl = np.empty(NZ)
+    zr = np.empty(NZ)
+    guards, target = aut.guards, aut.target
+    for b in range(nb):
+        c = col[b]
+        if outc.status[c] != STATUS_OK or not np.isnan(outc.t_contact[c]):
+            continue                      # the column left the free region: simulate the point whole
+        # the first sample whose step crosses a guard of the free region, as simulate_kernel tests it
+        kc = n - 1
+        for i in range(NZ):
+            zl[i] = zrec[c, 0, i]
+        zl[ZL] = lh[b] * d[ZL]
+        for k in range(n - 1):
+            for i in range(NZ):
+                zr[i] = zrec[c, k + 1, i]
+            zr[ZL] = zl[ZL]
+            crosses = False
+            for j in range(3):
+                if target[0, j] >= 0 and dot(guards[0, j], zl) <= 0.0 and dot(guards[0, j], zr) > 0.0:
+                    crosses = True
+            if crosses:
+                kc = k
+                break
+            for i in range(NZ):
+                zl[i] = zr[i]
+        k0[b] = kc
+        for i in range(NZ):
+            z0[b, i] = zrec[c, kc, i]
+        z0[b, ZL] = lh[b] * d[ZL]
+        for k in range(kc):
+            u[b, k] = outc.u[c, k]
+    nu = np.empty(nb)
+    for b in range(nb):
+        nu[b] = col_nu[col[b]]
+    idx, w = lagrange_stencil(nu, model.nu0, model.dnu)
+    cand = _candidates(model, idx, w, nu, lh, np.full(nb, fo), z0, np.zeros(nb, dtype=np.int64))
+    out = Trajectories(u, np.empty((nb, n)), np.empty((nb, n)), np.empty((nb, n), dtype=np.int8),
+                       np.empty(nb), np.empty(nb), np.empty(nb, dtype=np.int64))
+    simulate_kernel(src, model, aut, cand, cur, h, out, k0, np.empty((0, n, NZ)))
+    success = np.empty(nb, dtype=np.bool_)
+    for b in range(nb):
+        success[b] = out.status[b] == STATUS_OK
+    return u, success
