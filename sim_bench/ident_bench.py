@@ -201,6 +201,11 @@ def speed(seed: int = 4, injections: int = 300, drive: Drive | None = None) -> d
     sim = FastSimulator()
     rng = np.random.default_rng(seed)
     meas = [plant.measure(17.0 + 0.5 * math.sin(k / 40), 4e-6, F_OPEN_N, rng) for k in range(injections)]
+    # the first identification in a process loads the compiled kernels from numba's cache (the
+    # daemon does that in its warm-up): timed apart, not as a cold start
+    t0 = time.perf_counter()
+    identify(_injection(meas[-1]), sim)
+    first_call = time.perf_counter() - t0
     cold = []
     for m in meas[:10]:
         t0 = time.perf_counter()
@@ -222,6 +227,7 @@ def speed(seed: int = 4, injections: int = 300, drive: Drive | None = None) -> d
             "warm_median_ms": float(np.median(w)), "warm_p99_ms": float(np.percentile(w, 99)),
             "warm_cpu_median_ms": 1e3 * float(np.median(cpu)),
             "cold_median_ms": 1e3 * float(np.median(cold)), "cold_max_ms": 1e3 * float(np.max(cold)),
+            "first_call_ms": 1e3 * first_call,
             "injections_per_s": (injections - 1) / total}
 
 
@@ -231,4 +237,6 @@ def format_speed(rep: dict) -> str:
         "recursive estimator, one core, 100 µs window",
         f"{'warm median':>12} {'(CPU time)':>11} {'warm p99':>9} {'cold median':>12} {'cold max':>9} {'injections/s':>13}",
         f"{rep['warm_median_ms']:>10.2f}ms {rep['warm_cpu_median_ms']:>9.2f}ms {rep['warm_p99_ms']:>7.2f}ms "
-        f"{rep['cold_median_ms']:>10.1f}ms {rep['cold_max_ms']:>7.1f}ms {rep['injections_per_s']:>13.0f}"])
+        f"{rep['cold_median_ms']:>10.1f}ms {rep['cold_max_ms']:>7.1f}ms {rep['injections_per_s']:>13.0f}",
+        f"(first identification in the process, compiled kernels loaded from the cache: "
+        f"{rep['first_call_ms']:.0f} ms, not counted as a cold start)"])
