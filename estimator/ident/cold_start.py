@@ -37,21 +37,24 @@ class SharedGrid:
 
     def __init__(self, models: list[CostModel]) -> None:
         self.longest = max(models, key=lambda m: m.n)
-        self._voltage: dict[tuple[float, float], np.ndarray] = {}   # over the longest window; NaN: failed
+        self._row: dict[tuple[float, float], int] = {}   # point -> its row of _voltage
+        self._voltage = np.empty((0, self.longest.n))     # over the longest window; NaN rows: failed
 
     def cost_fn(self, model: CostModel) -> CostFn:
         """``model``'s cost of (B, 2) points in (N/V, µm), each point simulated once over the longest window."""
         def f(x: np.ndarray) -> np.ndarray:
             keys = [tuple(p) for p in x.tolist()]
-            todo = [i for i, k in enumerate(keys) if k not in self._voltage]
+            todo = [i for i, k in enumerate(keys) if k not in self._row]
             if todo:
                 pts = x[todo]
                 src = self.longest
                 u, _ = src.sim.grid_voltages(src.current, pts[:, 0], pts[:, 1] / UM_PER_M, src.injection.f_open_n)
                 model.evaluations += len(todo)   # counted where simulated: evaluations are simulations run
-                for i, row in zip(todo, u):
-                    self._voltage[keys[i]] = row
-            return model.cost_of(np.stack([self._voltage[k] for k in keys]))
+                base = self._voltage.shape[0]
+                self._voltage = np.concatenate([self._voltage, u])
+                for n, i in enumerate(todo):
+                    self._row.setdefault(keys[i], base + n)
+            return model.cost_of(self._voltage[[self._row[k] for k in keys]])
         return f
 
 
