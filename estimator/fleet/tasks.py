@@ -20,17 +20,21 @@ def process_group(key: str | None, paths: tuple[str, ...], cfg: Any, trace_optio
     from estimator.errors import EstimatorError
     from estimator.ident.tracker import Tracker
     from estimator.service.daemon import build_pool
-    from estimator.service.estimates import iter_estimates, new_pipeline
+    from estimator.service.estimates import iter_estimates, new_pipeline, source_kind
 
     pool_key = (cfg.params, cfg.max_sample_periods, cfg.sample_periods_ns)
     if pool_key not in _POOLS:
         _POOLS[pool_key] = build_pool(cfg)
-    tracker = Tracker(cfg.tracker_config(), pool=_POOLS[pool_key])   # one per task: state per injector key
-    pipeline = new_pipeline(cfg) if key is not None else None
+    pool = _POOLS[pool_key]
+    tracker = Tracker(cfg.tracker_config(), pool=pool)   # one per task: state per injector key
+    pipeline = None    # built for the first capture of a keyed group (a DBC parse: ~10 ms a task)
     rows: list[dict] = []
     for path in paths:
         try:
-            for row in iter_estimates(Path(path), cfg, trace_options=trace_options, tracker=tracker,
+            kind = source_kind(Path(path))
+            if key is not None and kind == "capture" and pipeline is None:
+                pipeline = new_pipeline(cfg, pool)
+            for row in iter_estimates(Path(path), cfg, kind=kind, trace_options=trace_options, tracker=tracker,
                                       pipeline=pipeline):
                 row["injector_key"] = key
                 rows.append(row)

@@ -141,16 +141,16 @@ def build_pool(cfg: DaemonConfig) -> SimulatorPool:
     return SimulatorPool(load_parameters(cfg.params), cfg.max_sample_periods, cfg.sample_periods_ns)
 
 
-def build_tracker(cfg: DaemonConfig) -> Tracker:
-    """The recursive estimator as configured."""
-    return Tracker(cfg.tracker_config(), pool=build_pool(cfg))
+def build_tracker(cfg: DaemonConfig, pool: SimulatorPool | None = None) -> Tracker:
+    """The recursive estimator as configured (on ``pool`` if given: its simulators' tables are built once)."""
+    return Tracker(cfg.tracker_config(), pool=pool or build_pool(cfg))
 
 
-def build_pipeline(cfg: DaemonConfig) -> tuple[Codec, Ingest, Processor, BusClock]:
+def build_pipeline(cfg: DaemonConfig, pool: SimulatorPool | None = None) -> tuple[Codec, Ingest, Processor, BusClock]:
     """Codec, ingest, processor and bus clock: the same in the live daemon and in the replay."""
     codec = Codec(load_database(cfg.dbc))
     ingest = Ingest(codec, cfg.assembly_timeout_ms * 1e-3, cfg.max_injectors)
-    processor = Processor(codec, build_tracker(cfg), ingest.counters, cfg.commands)
+    processor = Processor(codec, build_tracker(cfg, pool), ingest.counters, cfg.commands)
     return codec, ingest, processor, BusClock(cfg.silent_bus_s)
 
 
