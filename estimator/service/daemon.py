@@ -143,7 +143,7 @@ def build_pool(cfg: DaemonConfig) -> SimulatorPool:
 
 def build_tracker(cfg: DaemonConfig, pool: SimulatorPool | None = None) -> Tracker:
     """The recursive estimator as configured (on ``pool`` if given: its simulators' tables are built once)."""
-    return Tracker(cfg.tracker_config(), pool=pool or build_pool(cfg))
+    return Tracker(cfg.tracker_config(), pool=pool if pool is not None else build_pool(cfg))
 
 
 def build_pipeline(cfg: DaemonConfig, pool: SimulatorPool | None = None) -> tuple[Codec, Ingest, Processor, BusClock]:
