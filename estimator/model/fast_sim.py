@@ -25,6 +25,18 @@ PLATEAU_WINDOW_S = (215e-6, 490e-6)  # Table 3: mean plunger stroke s_4,s over 2
 FREE_RUN_LH_M = 1.0   # L_h of a grid column's free run (m): a gap no actuator closes
 
 
+BAD_CURRENT_TEXT = "current must be a 1-D array of at least 2 finite samples (A)"
+
+
+def _current(current_a: np.ndarray) -> np.ndarray:
+    """The sampled current (A) as a contiguous 1-D float array of at least 2 samples, else
+    ParameterError (its finiteness is checked with the candidates, in :func:`kernel.check_inputs`)."""
+    cur = np.ascontiguousarray(current_a, dtype=float)
+    if cur.ndim != 1 or cur.size < 2:
+        raise ParameterError(BAD_CURRENT_TEXT)
+    return cur
+
+
 @dataclass(frozen=True)
 class BatchResult:
     """Simulated trajectories of B candidates over N samples (SI units).
@@ -186,9 +198,7 @@ class FastSimulator:
         ``current_a`` holds the current at t = 0, dt, 2 dt, ... (A); it is linear in between.
         Candidates whose initial state is infeasible get ``success=False`` and NaN outputs.
         """
-        cur = np.ascontiguousarray(current_a, dtype=float)
-        if cur.ndim != 1 or cur.size < 2:
-            raise ParameterError("current must be a 1-D array of at least 2 finite samples (A)")
+        cur = _current(current_a)
         if f_open_n is None:
             f_open_n = self.params.valve.f_open_n
         nu = np.ascontiguousarray(nu_n_per_v, dtype=float).ravel()
@@ -237,7 +247,7 @@ class FastSimulator:
         or a bad F_open; else the number of candidates with L_h <= 0."""
         code, n_neg = kernel.check_inputs(cur, nu, lh, fo, *self.nu_range)
         if code == kernel.BAD_CURRENT:
-            raise ParameterError("current must be a 1-D array of at least 2 finite samples (A)")
+            raise ParameterError(BAD_CURRENT_TEXT)
         if code == kernel.BAD_NU:
             self.check_nu(nu)   # raises with the offending value
         if code == kernel.BAD_LH_FOPEN:
@@ -263,11 +273,12 @@ class FastSimulator:
         and each point continues from the sample of its own contact (:func:`kernel.grid_voltages`).
         Points with L_h <= 0 start pre-compressed and are simulated whole.
         """
+        cur = _current(current_a)
         nu = np.ascontiguousarray(nu_n_per_v, dtype=float).ravel()
         lh = np.ascontiguousarray(lh_m, dtype=float).ravel()
         if nu.size != lh.size:
             raise ParameterError(f"grid of {nu.size} N_u and {lh.size} L_h values")
-        u = np.full((nu.size, np.size(current_a)), np.nan)
+        u = np.full((nu.size, cur.size), np.nan)
         ok = np.zeros(nu.size, dtype=bool)
         free = lh > 0.0
         col_nu, col = np.unique(nu[free], return_inverse=True)
@@ -275,13 +286,10 @@ class FastSimulator:
             free[:] = False          # nothing to share
         rest = ~free
         if rest.any():
-            res = self.simulate(current_a, nu[rest], lh[rest], f_open_n)
+            res = self.simulate(cur, nu[rest], lh[rest], f_open_n)
             u[rest], ok[rest] = res.voltage_v, res.success
         if free.any():
-            cur = np.ascontiguousarray(current_a, dtype=float)
             lf = lh[free]
-            if cur.ndim != 1 or cur.size < 2:
-                raise ParameterError("current must be a 1-D array of at least 2 finite samples (A)")
             self._check_inputs(cur, col_nu, lf, np.full(lf.size, float(f_open_n)))
             u[free], ok[free] = kernel.grid_voltages(
                 self._model, self.automaton, self._table(), col_nu, col.astype(np.int64).ravel(), lf,
