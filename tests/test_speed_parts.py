@@ -65,3 +65,79 @@ def test_grid_voltages_check_their_inputs(sim):
         sim.grid_voltages(np.r_[cur, np.nan], np.full(4, 17.0), np.full(4, 3e-6), 35.0)
     with pytest.raises(ParameterError):
         sim.grid_voltages(cur, np.full(4, 17.0), np.full(3, 3e-6), 35.0)
+
+
+def _cycle_case(sim, mismatch: bool, seed: int):
+    from sim_bench.ident_bench import F_OPEN_N, _injection
+    from sim_bench.plant import Plant, PlantConfig
+    plant = Plant(PlantConfig(mismatch=mismatch, window_s=150e-6 if mismatch else 100e-6))
+    return _injection(plant.measure(16.0 + seed, (2.0 + seed) * 1e-6, F_OPEN_N, np.random.default_rng(seed)))
+
+
+@pytest.mark.parametrize("mismatch, robust, norm", [(False, False, "l2"), (True, True, "l2"), (False, False, "l1")])
+def test_compiled_cycle_is_the_python_cycle(sim, mismatch, robust, norm):
+    """One warm cycle in one compiled call gives what the Python stencil, vertex and Gauss–Newton fit
+    give (to rounding: its sums run in another order), in plain, robust and L1 mode."""
+    from estimator.ident import compiled_cycle as cc
+    from estimator.ident.cost import CostModel
+    from estimator.ident.local_fit import _stencil_cycle, fit_with_jacobian
+    from estimator.ident.search import Box
+    from estimator.ident.config import IdentConfig
+    from estimator.ident.idle_stroke import identify
+    from estimator.ident.idle_stroke import effective_window_s
+    box = Box(np.array([14.9, 0.5]), np.array([21.1, 20.0]))
+    fits = 0
+    for seed in (1, 2, 3):
+        inj = _cycle_case(sim, mismatch, seed)
+        config = IdentConfig(robust="on" if robust else "off", norm=norm)
+        est = identify(inj, sim, config)
+        window = effective_window_s(config, inj, robust)
+        d = est.directions       # a warm start: the cold start's conjugate directions, near its optimum
+        sd = np.sqrt(np.diag(d.T @ est.cov_um @ d))
+        for shift in ((0.5, -0.5), (-1.0, 0.3)):
+            x0, st = est.point.array() + d @ (np.array(shift) * sd), 2.0 * sd
+            m_py = CostModel(sim, inj, window, norm, robust)
+            m_c = CostModel(sim, inj, window, norm, robust)
+            x_py, ok_py, jac_py = _stencil_cycle(m_py, x0, d, st, box)
+            cf = cc.run_cycle(m_c, x0, d, st, box)
+            np.testing.assert_allclose(cf.x, x_py, rtol=1e-12)
+            assert np.array_equal(cf.ok, ok_py)
+            if jac_py is None:
+                assert cf.code == cc.CYCLE_PARTIAL and np.isnan(cf.jac).all()
+                continue
+            fits += 1
+            assert cf.code == cc.CYCLE_FIT
+            np.testing.assert_allclose(cf.jac, jac_py, rtol=1e-7, atol=1e-9 * np.abs(jac_py).max())
+            fit = fit_with_jacobian(m_py, x_py, jac_py)
+            assert m_c.evaluations == m_py.evaluations == 6 and cf.success
+            for name in ("criterion", "paper_cost_vs", "sigma_v", "t_contact_s", "t_open_s"):
+                assert getattr(cf, name) == pytest.approx(getattr(fit, name), rel=1e-9), name
+            for name in ("jtj", "gn_step", "cov_x", "residual"):
+                np.testing.assert_allclose(getattr(cf, name), getattr(fit, name), rtol=1e-7,
+                                           atol=1e-9 * np.abs(getattr(fit, name)).max(), err_msg=name)
+            v, w = fit.directions
+            np.testing.assert_allclose(cf.eigenvalues, w, rtol=1e-9)
+            np.testing.assert_allclose(np.abs(cf.directions.T @ v), np.eye(2), atol=1e-9)   # up to sign
+    assert fits >= 4
+
+
+def test_compiled_cycle_hands_the_unusual_cases_to_python(sim):
+    """A stencil that leaves the box gives the vertex and the directions that found it, no fit; a
+    stencil point with L_h <= 0 (a pre-compressed start) is not simulated by the compiled cycle."""
+    from estimator.ident import compiled_cycle as cc
+    from estimator.ident.cost import CostModel
+    from estimator.ident.local_fit import _stencil_cycle
+    from estimator.ident.search import Box
+    inj = _cycle_case(sim, False, 1)
+    d = np.array([[0.96, -0.28], [0.28, 0.96]])
+    box = Box(np.array([14.9, 2.95]), np.array([21.1, 20.0]))
+    x0, st = np.array([17.0, 3.0]), np.array([0.03, 0.15])
+    cf = cc.run_cycle(CostModel(sim, inj), x0, d, st, box)
+    x_py, ok_py, jac_py = _stencil_cycle(CostModel(sim, inj), x0, d, st, box)
+    assert cf.code == cc.CYCLE_PARTIAL and jac_py is None and np.isnan(cf.jac).all()
+    np.testing.assert_allclose(cf.x, x_py, rtol=1e-12)
+    assert np.array_equal(cf.ok, ok_py)
+    low = Box(np.array([14.9, -3.0]), np.array([21.1, 20.0]))
+    m = CostModel(sim, inj)
+    cf = cc.run_cycle(m, np.array([17.0, 0.05]), d, st, low)
+    assert cf.code == cc.CYCLE_FALLBACK and m.evaluations == 0

@@ -28,6 +28,8 @@ from estimator.ident.measurement import Injection
 from estimator.model.fast_sim import BatchResult, FastSimulator
 
 NUISANCE_THRESHOLDS = (0.04, 0.10, 0.25, 0.50)   # fractions of the window's final charge
+MAD_PER_SIGMA = 0.6744897501960817   # median absolute deviation of a unit normal
+NOISE_FLOOR_V = 1e-3   # 1 mV: far below any amplifier ADC step; keeps noise-free (simulated) traces sane
 NUISANCE_NAMES = ("I", "Q") + tuple(f"max(Q-{r:.2f}Qend,0)" for r in NUISANCE_THRESHOLDS)
 
 
@@ -65,8 +67,7 @@ def noise_sigma_v(residual_v: np.ndarray) -> float:
     d = np.abs(np.diff(residual_v))
     k = d.size // 2
     mad = float(np.partition(d, k)[k])
-    # floor: 1 mV, far below any amplifier ADC step; keeps noise-free (simulated) traces sane
-    return max(mad / 0.6744897501960817 / np.sqrt(2.0), 1e-3)
+    return max(mad / MAD_PER_SIGMA / np.sqrt(2.0), NOISE_FLOOR_V)
 
 
 def model_error_statistic(residual_v: np.ndarray, basis: np.ndarray, sigma_v: float | None = None) -> float:
@@ -111,7 +112,7 @@ class CostModel:
         inj = self.injection
         self.n = min(inj.n, int(round(self.window_s / inj.dt_s)) + 1)
         self.current = np.ascontiguousarray(inj.current_a[: self.n])
-        self.measured = inj.voltage_v[: self.n]
+        self.measured = np.ascontiguousarray(inj.voltage_v[: self.n])
         self.dt = inj.dt_s
         self.weights = np.full(self.n, self.dt)   # trapezoidal rule
         self.weights[[0, -1]] *= 0.5

@@ -74,8 +74,7 @@ def predict_valve(sim: FastSimulator, injection: Injection, nu: float, lh_m: flo
     215–490 µs as in Table 3. NaN when the valve does not open with that charge.
     """
     cur = injection.drive().samples(max(PLATEAU_WINDOW_S[1], injection.duration_s), sim.dt_s)
-    res = sim.simulate(cur, nu, lh_m, injection.f_open_n)
-    return float(res.t_contact_s[0]), float(res.t_open_s[0]), float(res.plateau_stroke_m()[0])
+    return sim.valve_prediction(cur, nu, lh_m, injection.f_open_n)
 
 
 def _cost_model(sim: FastSimulator, inj: Injection, config: IdentConfig, robust: bool) -> CostModel:

@@ -21,10 +21,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 N_STATE = 4
 NU, LH, RATE, SLOPE = range(N_STATE)
-H = np.eye(2, N_STATE)          # z = H x: the raw estimate measures N_u and L_h
 CHI2_1DOF_1E4 = 15.14           # P(chi2(1) > 15.14) = 1e-4: a one-component jump explains the innovation
 
 
@@ -47,29 +47,63 @@ class ProcessNoise:
 def predict(x: np.ndarray, p: np.ndarray, dt_s: float, d_temp_c: float | None,
             noise: ProcessNoise) -> tuple[np.ndarray, np.ndarray]:
     """State and covariance ``dt_s`` seconds and ``d_temp_c`` degC (None: not measured) later."""
-    a = math.exp(-dt_s / noise.rate_tau_s)
-    f = np.eye(N_STATE)
-    f[NU, RATE] = noise.rate_tau_s * (1.0 - a)
-    f[RATE, RATE] = a
-    f[NU, SLOPE] = d_temp_c or 0.0
-    q = np.zeros((N_STATE, N_STATE))
     known = d_temp_c is not None     # a measured temperature explains most drift: less left to chase
-    qr = (noise.rate_per_sqrt_s_known_t if known else noise.rate_per_sqrt_s) ** 2
+    q_rate = noise.rate_per_sqrt_s_known_t if known else noise.rate_per_sqrt_s
     q_nu = noise.nu_per_sqrt_s_known_t if known else noise.nu_per_sqrt_s
-    q[NU, NU] = noise.nu_per_injection ** 2 + q_nu ** 2 * dt_s + qr * dt_s ** 3 / 3.0
-    q[NU, RATE] = q[RATE, NU] = qr * dt_s ** 2 / 2.0
-    q[RATE, RATE] = qr * dt_s
-    q[LH, LH] = noise.lh_per_injection_um ** 2 + noise.lh_per_sqrt_s_um ** 2 * dt_s
-    q[SLOPE, SLOPE] = noise.slope_per_sqrt_s ** 2 * dt_s
-    x = f @ x
-    p = f @ p @ f.T + q
-    return x, cap(p, noise.max_var)
+    return _predict(np.asarray(x, dtype=float), np.asarray(p, dtype=float), float(dt_s), float(d_temp_c or 0.0),
+                    noise.rate_tau_s, noise.nu_per_injection, q_nu, q_rate, noise.lh_per_injection_um,
+                    noise.lh_per_sqrt_s_um, noise.slope_per_sqrt_s, np.asarray(noise.max_var, dtype=float))
+
+
+@njit(cache=True, nogil=True)
+def _predict(x, p, dt, dtemp, tau, nu_inj, q_nu, q_rate, lh_inj, q_lh, q_slope, max_var):
+    """``x' = F x``, ``p' = cap(F p F' + Q)``: the drift rate decays with ``tau`` (s) into N_u, the
+    temperature slope acts over ``dtemp``; Q per injection and per second (random walks of N_u, L_h,
+    the rate (integrated into N_u) and the slope)."""
+    a = math.exp(-dt / tau)
+    f = np.eye(N_STATE)
+    f[NU, RATE] = tau * (1.0 - a)
+    f[RATE, RATE] = a
+    f[NU, SLOPE] = dtemp
+    q = np.zeros((N_STATE, N_STATE))
+    qr = q_rate * q_rate
+    q[NU, NU] = nu_inj ** 2 + q_nu ** 2 * dt + qr * dt ** 3 / 3.0
+    q[NU, RATE] = qr * dt ** 2 / 2.0
+    q[RATE, NU] = q[NU, RATE]
+    q[RATE, RATE] = qr * dt
+    q[LH, LH] = lh_inj ** 2 + q_lh ** 2 * dt
+    q[SLOPE, SLOPE] = q_slope ** 2 * dt
+    xn = np.zeros(N_STATE)
+    fp = np.zeros((N_STATE, N_STATE))
+    for i in range(N_STATE):
+        for k in range(N_STATE):
+            xn[i] += f[i, k] * x[k]
+            for j in range(N_STATE):
+                fp[i, j] += f[i, k] * p[k, j]
+    pn = q.copy()
+    for i in range(N_STATE):
+        for j in range(N_STATE):
+            for k in range(N_STATE):
+                pn[i, j] += fp[i, k] * f[j, k]
+    return xn, _cap(pn, max_var)
 
 
 def cap(p: np.ndarray, max_var) -> np.ndarray:
     """``p`` with each variance at most its cap (rows and columns scaled, so it stays positive definite)."""
-    d = np.sqrt(np.minimum(1.0, np.asarray(max_var) / np.maximum(np.diag(p), 1e-300)))
-    return p * np.outer(d, d)
+    return _cap(np.asarray(p, dtype=float), np.asarray(max_var, dtype=float))
+
+
+@njit(cache=True, nogil=True)
+def _cap(p, max_var):
+    n = p.shape[0]
+    d = np.empty(n)
+    for i in range(n):
+        d[i] = math.sqrt(min(1.0, max_var[i] / max(p[i, i], 1e-300)))
+    out = np.empty_like(p)
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = p[i, j] * (d[i] * d[j])
+    return out
 
 
 @dataclass(frozen=True)
@@ -83,19 +117,69 @@ class Innovation:
 
 def innovation(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> Innovation:
     """The innovation of measurement ``z`` (covariance ``r``) against the state."""
-    e = z - H @ x
-    s = H @ p @ H.T + r
-    return Innovation(e, s, float(e @ np.linalg.solve(s, e)))
+    e, s, d2 = _innovation(np.asarray(x, dtype=float), np.asarray(p, dtype=float), np.asarray(z, dtype=float),
+                           np.asarray(r, dtype=float))
+    return Innovation(e, s, d2)
+
+
+@njit(cache=True, nogil=True)
+def _innovation(x, p, z, r):
+    """``e = z - H x``, ``s = H p H' + r`` and ``e' s^-1 e`` (H picks N_u and L_h)."""
+    e = np.empty(2)
+    s = np.empty((2, 2))
+    for i in range(2):
+        e[i] = z[i] - x[i]
+        for j in range(2):
+            s[i, j] = p[i, j] + r[i, j]
+    det = s[0, 0] * s[1, 1] - s[0, 1] * s[1, 0]
+    d2 = (s[1, 1] * e[0] * e[0] - (s[0, 1] + s[1, 0]) * e[0] * e[1] + s[0, 0] * e[1] * e[1]) / det
+    return e, s, d2
 
 
 def update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Kalman update with ``z`` (Joseph form: stays symmetric positive definite)."""
-    s = H @ p @ H.T + r
-    k = np.linalg.solve(s, H @ p).T          # p H' s^-1 (s, p symmetric)
-    x = x + k @ (z - H @ x)
-    ikh = np.eye(N_STATE) - k @ H
-    p = ikh @ p @ ikh.T + k @ r @ k.T
-    return x, 0.5 * (p + p.T)
+    return _update(np.asarray(x, dtype=float), np.asarray(p, dtype=float), np.asarray(z, dtype=float),
+                   np.asarray(r, dtype=float))
+
+
+@njit(cache=True, nogil=True)
+def _update(x, p, z, r):
+    """Gain ``K = p H' s^-1``, ``x + K (z - H x)``, ``(I - K H) p (I - K H)' + K r K'`` symmetrised."""
+    n = N_STATE
+    s00, s01, s10, s11 = p[0, 0] + r[0, 0], p[0, 1] + r[0, 1], p[1, 0] + r[1, 0], p[1, 1] + r[1, 1]
+    det = s00 * s11 - s01 * s10
+    k = np.empty((n, 2))
+    for i in range(n):                      # K = (s^-1 H p)' with s^-1 = [[s11, -s01], [-s10, s00]] / det
+        k[i, 0] = (s11 * p[0, i] - s01 * p[1, i]) / det
+        k[i, 1] = (-s10 * p[0, i] + s00 * p[1, i]) / det
+    e0, e1 = z[0] - x[0], z[1] - x[1]
+    xn = np.empty(n)
+    for i in range(n):
+        xn[i] = x[i] + k[i, 0] * e0 + k[i, 1] * e1
+    ikh = np.eye(n)
+    for i in range(n):
+        ikh[i, 0] -= k[i, 0]
+        ikh[i, 1] -= k[i, 1]
+    a = np.zeros((n, n))
+    for i in range(n):
+        for j in range(n):
+            for m in range(n):
+                a[i, j] += ikh[i, m] * p[m, j]
+    pn = np.zeros((n, n))
+    for i in range(n):
+        for j in range(n):
+            acc = 0.0
+            for m in range(n):
+                acc += a[i, m] * ikh[j, m]
+            for u in range(2):
+                for v in range(2):
+                    acc += k[i, u] * r[u, v] * k[j, v]
+            pn[i, j] = acc
+    out = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = 0.5 * (pn[i, j] + pn[j, i])
+    return xn, out
 
 
 def gated_update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray,

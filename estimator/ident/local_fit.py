@@ -12,6 +12,7 @@ from functools import cached_property
 
 import numpy as np
 
+from estimator.ident.compiled_cycle import CYCLE_FALLBACK, CYCLE_FIT, CycleFit, run_cycle
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M
 from estimator.ident.cost import CostModel, noise_sigma_v
@@ -88,6 +89,31 @@ def _fit_from(model: CostModel, x: np.ndarray, res, r0: np.ndarray, jac: np.ndar
                     raw, float(res.t_contact_s[0]), float(res.t_open_s[0]), ok)
 
 
+def _stencil_cycle(model: CostModel, x: np.ndarray, d: np.ndarray, st: np.ndarray,
+                   box: Box) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The batched cycle's stencil in Python: the vertex, which directions gave it, and the
+    Jacobian (None unless the stencil was inside the box, both vertices found and all simulated)."""
+    pts, inside = conjugate_stencil(x, d, st, box)
+    res = simulate_at(model, pts)
+    xv, ok = conjugate_vertex(pts, model.from_result(res), x, d, st, box)
+    if not (inside and ok.all() and res.success.all()):
+        return xv, ok, None
+    # the stencil's central differences along d1, d2 are the Gauss–Newton Jacobian:
+    # dU/dx = D (dU/dalpha), with alpha the coordinates along the directions
+    r = model.residuals(res)
+    jac_a = np.stack([-(r[2] - r[1]) / (2 * st[0]), -(r[4] - r[3]) / (2 * st[1])])
+    return xv, ok, d @ jac_a
+
+
+def _compiled_fit(cf: CycleFit) -> LocalFit:
+    """The LocalFit of a compiled cycle (its conjugate directions already computed)."""
+    fit = LocalFit(cf.x.copy(), float(cf.criterion), float(cf.paper_cost_vs), cf.jtj, cf.gn_step, float(cf.sigma_v),
+                   cf.cov_x, cf.residual, float(cf.t_contact_s), float(cf.t_open_s), bool(cf.success))
+    if cf.success:
+        fit.__dict__["directions"] = (cf.directions, cf.eigenvalues)   # the cached_property's slot
+    return fit
+
+
 def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.ndarray, box: Box,
            config: IdentConfig, max_cycles: int | None = None, j0: float | None = None,
            batched: bool = False) -> tuple[LocalFit, bool, int]:
@@ -107,24 +133,26 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
         start = x.copy()
         todo = [0, 1]
         jac = None
+        fit = None
         if batched:
-            pts, inside = conjugate_stencil(x, d, st, box)
-            res = simulate_at(model, pts)
-            x, ok = conjugate_vertex(pts, model.from_result(res), start, d, st, box)
+            # the common case in one compiled call (compiled_cycle); what it cannot do, Python does
+            cf = run_cycle(model, x, d, st, box)
+            if cf.code == CYCLE_FALLBACK:
+                x, ok, jac = _stencil_cycle(model, x, d, st, box)
+            else:
+                x, ok = cf.x, cf.ok
+                jac = cf.jac if np.isfinite(cf.jac[0, 0]) else None
+                if cf.code == CYCLE_FIT:
+                    fit = _compiled_fit(cf)
             todo = [i for i in range(2) if not ok[i]]
             j = None
-            if inside and not todo and res.success.all():
-                # the stencil's central differences along d1, d2 are the Gauss–Newton Jacobian:
-                # dU/dx = D (dU/dalpha), with alpha the coordinates along the directions
-                r = model.residuals(res)
-                jac_a = np.stack([-(r[2] - r[1]) / (2 * st[0]), -(r[4] - r[3]) / (2 * st[1])])
-                jac = d @ jac_a
         for i in todo:
             # the vertex of the first search is the centre of the second, and the vertex of the
             # second is the centre of the local fit: both are evaluated there, not twice
             lr = line_search(f, x, d[:, i], float(st[i]), box, j0=j if i == 0 else None, evaluate_vertex=False)
             x, j = lr.x, None
-        fit = fit_with_jacobian(model, x, jac) if jac is not None else local_fit(model, x, box)
+        if fit is None:
+            fit = fit_with_jacobian(model, x, jac) if jac is not None else local_fit(model, x, box)
         if not fit.success:
             return fit, False, cycles
         move = np.abs(x - start)

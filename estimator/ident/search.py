@@ -12,6 +12,7 @@ from typing import Callable
 import numpy as np
 
 CostFn = Callable[[np.ndarray], np.ndarray]   # (B, 2) -> (B,)
+TRUST_STEPS = 2.5   # a conjugate vertex further than this many steps from the centre is not trusted
 
 
 @dataclass(frozen=True)
@@ -37,7 +38,7 @@ class Box:
 
     def at_bound(self, x: np.ndarray, tol: np.ndarray) -> bool:
         """True if x lies within tol of a bound."""
-        return bool(np.any(x <= self.lo + tol) or np.any(x >= self.hi - tol))
+        return any(x[i] <= self.lo[i] + tol[i] or x[i] >= self.hi[i] - tol[i] for i in range(2))
 
 
 @dataclass(frozen=True)
@@ -156,7 +157,7 @@ def conjugate_stencil(x0: np.ndarray, d: np.ndarray, steps: np.ndarray, box: Box
 
 
 def conjugate_vertex(pts: np.ndarray, j: np.ndarray, x0: np.ndarray, d: np.ndarray, steps: np.ndarray, box: Box,
-                     trust: float = 2.5) -> tuple[np.ndarray, np.ndarray]:
+                     trust: float = TRUST_STEPS) -> tuple[np.ndarray, np.ndarray]:
     """Both line searches along conjugate directions from one batch of five points.
 
     For a quadratic cost, minimising along d1 does not change the minimiser along d2 when the

@@ -513,13 +513,22 @@ def _carry_search(st: TrackerState, raw: Estimate, r: np.ndarray, config: Tracke
     standard deviations of where the next optimum is expected along each: the filter's covariance,
     one injection's process noise and the raw estimate's own scatter.
     """
-    if not (np.all(np.isfinite(raw.jtj)) and np.linalg.det(raw.jtj) > 1e-14 * raw.jtj[0, 0] * raw.jtj[1, 1]):
+    (a, b), (c, d) = raw.jtj.tolist()
+    if not (math.isfinite(a + b + c + d) and a * d - b * c > 1e-14 * a * d):
         return
-    v = raw.directions
-    expected = np.array(st.p)[:2, :2] + np.diag([config.q_nu_n_per_v ** 2, config.q_lh_um ** 2]) + r
-    sd = np.sqrt(np.einsum("ji,jk,ki->i", v, expected, v))
-    st.directions = v.tolist()
-    st.steps = np.clip(2.0 * sd, 1e-3, 2.0).tolist()
+    v = raw.directions.tolist()
+    (e00, e01), (e10, e11) = r.tolist()
+    e00 += st.p[0][0] + config.q_nu_n_per_v ** 2       # the filter's covariance, one injection's
+    e01 += st.p[0][1]                                   # process noise, the raw estimate's scatter
+    e10 += st.p[1][0]
+    e11 += st.p[1][1] + config.q_lh_um ** 2
+    steps = []
+    for i in range(2):
+        v0, v1 = v[0][i], v[1][i]
+        var = v0 * (e00 * v0 + e01 * v1) + v1 * (e10 * v0 + e11 * v1)
+        steps.append(min(max(2.0 * math.sqrt(max(var, 0.0)), 1e-3), 2.0))
+    st.directions = v
+    st.steps = steps
 
 
 def _publish(filt: tuple[np.ndarray, np.ndarray] | None, raw: Estimate, status: Status, reason: str,

@@ -9,6 +9,7 @@ error is below 1e-13 relative (``tests/test_fast_sim.py`` checks it against dire
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg import expm
@@ -35,6 +36,15 @@ def _current(current_a: np.ndarray) -> np.ndarray:
     if cur.ndim != 1 or cur.size < 2:
         raise ParameterError(BAD_CURRENT_TEXT)
     return cur
+
+
+class KernelHandle(NamedTuple):
+    """What a compiled caller needs to run :func:`kernel.run_batch` for this simulator."""
+
+    model: kernel.KernelModel
+    automaton: tuple
+    table: np.ndarray      # interpolation table of the transition matrices (scaled units)
+    h_us: float            # sample period in the kernel's time unit (µs)
 
 
 @dataclass(frozen=True)
@@ -76,12 +86,22 @@ class BatchResult:
         return plateau_mean(self.t_s, self.s4_m, window_s)
 
 
+def plateau_samples(t_s: np.ndarray, window_s: tuple[float, float]) -> tuple[int, int] | None:
+    """The samples ``k0 <= k < k1`` of the increasing times ``t_s`` (s) with window[0] <= t <= window[1]
+    (1 ps slack); None if there are none or the times end before the window does."""
+    k0 = int(np.searchsorted(t_s, window_s[0] - 1e-12, side="left"))
+    k1 = int(np.searchsorted(t_s, window_s[1] + 1e-12, side="right"))
+    if k0 >= k1 or t_s[-1] < window_s[1] - 1e-12:
+        return None
+    return k0, k1
+
+
 def plateau_mean(t_s: np.ndarray, values: np.ndarray, window_s: tuple[float, float]) -> np.ndarray:
     """Mean of ``values[..., k]`` over samples with window[0] <= t <= window[1]; NaN if none."""
-    sel = (t_s >= window_s[0] - 1e-12) & (t_s <= window_s[1] + 1e-12)
-    if not np.any(sel) or t_s[-1] < window_s[1] - 1e-12:
+    ks = plateau_samples(t_s, window_s)
+    if ks is None:
         return np.full(np.shape(values)[:-1], np.nan)
-    return np.mean(values[..., sel], axis=-1)
+    return np.mean(values[..., ks[0]:ks[1]], axis=-1)
 
 
 class FastSimulator:
@@ -154,6 +174,11 @@ class FastSimulator:
             grid = self._nu0 + self._dnu * np.arange(self._ngrid)
             self._phi_table = np.ascontiguousarray(expm(self.scaled_matrices(grid) * (self.dt_s * dyn.TIME_SCALE)))
         return self._phi_table
+
+    def kernel_handle(self) -> KernelHandle:
+        """The compiled model, automaton, transition table and sample period, for compiled callers
+        (the candidates' N_u must be within :attr:`nu_range`, their L_h > 0)."""
+        return KernelHandle(self._model, self.automaton, self._table(), self.dt_s * dyn.TIME_SCALE)
 
     def transition_matrices(self, nu: np.ndarray | float, exact: bool = False) -> np.ndarray:
         """One-sample transition matrices exp(A_r h), shape (B, 6, NZ, NZ), scaled units."""
@@ -241,6 +266,23 @@ class FastSimulator:
                 arr[~feasible] = np.nan
         return BatchResult(t_s=self._times(n), current_a=cur, nu_n_per_v=nu, lh_m=lh, f_open_n=fo, voltage_v=u,
                            s3_m=s3, s4_m=s4, mode=mode, t_contact_s=tc, t_open_s=to, success=success, status=status)
+
+    def valve_prediction(self, current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_open_n: float,
+                         window_s: tuple[float, float] = PLATEAU_WINDOW_S) -> tuple[float, float, float]:
+        """Contact time, opening time (s) and mean plunger stroke over ``window_s`` (m) of one candidate:
+        the numbers :meth:`simulate` and :meth:`BatchResult.plateau_stroke_m` give (to rounding), without
+        building the trajectories in Python (the per-injection valve prediction)."""
+        cur = _current(current_a)
+        if not lh_m > 0.0:    # a pre-compressed start: the general path
+            res = self.simulate(cur, nu_n_per_v, lh_m, f_open_n)
+            return float(res.t_contact_s[0]), float(res.t_open_s[0]), float(res.plateau_stroke_m(window_s)[0])
+        nu, lh, fo = np.array([nu_n_per_v], dtype=float), np.array([lh_m], dtype=float), np.array([f_open_n], dtype=float)
+        self._check_inputs(cur, nu, lh, fo)
+        ks = plateau_samples(self._times(cur.size), window_s)
+        k0, k1 = ks if ks is not None else (0, 0)
+        tc, to, stroke = kernel.valve_prediction(self._model, self.automaton, self._table(), nu, lh, fo, cur,
+                                                 self.dt_s * dyn.TIME_SCALE, k0, k1)
+        return float(tc), float(to), float(stroke)
 
     def _check_inputs(self, cur: np.ndarray, nu: np.ndarray, lh: np.ndarray, fo: np.ndarray) -> int:
         """Raise ParameterError for a non-finite current, an N_u outside the range, a non-finite L_h

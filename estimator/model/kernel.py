@@ -499,6 +499,19 @@ def run_batch(model, aut, src, stencil, idx_in, w_in, nu, lh, fo, z0_given, regi
 
 
 @njit(cache=True, nogil=True)
+def valve_prediction(model, aut, src, nu, lh, fo, cur, h, k0, k1):
+    """Contact time, opening time (s) and the mean plunger stroke (m) over samples k0 <= k < k1
+    (NaN if k0 >= k1) of one candidate (``nu``, ``lh``, ``fo`` of size 1, L_h > 0) from rest."""
+    z0 = np.full((1, NZ), np.nan)
+    _, _, s4, _, tc, to, _, _ = run_batch(model, aut, src, True, np.zeros((1, 4), dtype=np.int64), np.zeros((1, 4)),
+                                         nu, lh, fo, z0, np.zeros(1, dtype=np.int64), cur, h)
+    stroke = np.nan
+    if k1 > k0:
+        stroke = np.mean(s4[0, k0:k1])
+    return tc[0], to[0], stroke
+
+
+@njit(cache=True, nogil=True)
 def check_inputs(cur, nu, lh, fo, nu_min, nu_max):
     """``INPUTS_OK`` if all inputs are usable, else ``BAD_CURRENT``, ``BAD_NU`` or ``BAD_LH_FOPEN``;
     and the number of candidates with L_h <= 0 (which need their pre-compressed initial state)."""
