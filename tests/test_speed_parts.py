@@ -141,3 +141,54 @@ def test_compiled_cycle_hands_the_unusual_cases_to_python(sim):
     m = CostModel(sim, inj)
     cf = cc.run_cycle(m, np.array([17.0, 0.05]), d, st, low)
     assert cf.code == cc.CYCLE_FALLBACK and m.evaluations == 0
+
+
+def test_compiled_nuisance_span_is_the_numpy_one():
+    """The compiled nuisance columns are the numpy formulas bit for bit; the residual energy in their
+    span is the least-squares projection's, with raw columns (normal equations) and with the
+    orthonormal basis."""
+    from estimator.ident.cost import NUISANCE_THRESHOLDS, model_error_statistic, nuisance_basis, nuisance_columns
+    from estimator.model.drive import StandardDrive
+    rng = np.random.default_rng(3)
+    dt = 0.5e-6
+    cur = StandardDrive().samples(100e-6, dt) + rng.normal(0.0, 0.02, 201)
+    q = np.r_[0.0, np.cumsum((cur[1:] + cur[:-1]) * (0.5 * dt))]
+    want = np.empty((201, 6))
+    want[:, 0] = cur / np.abs(cur).max()
+    want[:, 1] = q / q[-1]
+    for k, r in enumerate(NUISANCE_THRESHOLDS):
+        want[:, 2 + k] = np.maximum(want[:, 1] - r, 0.0)
+    cols = nuisance_columns(cur, dt)
+    assert np.array_equal(cols, want)
+    res = rng.normal(0.0, 0.1, 201) + 0.3 * cols[:, 3]
+    coef, *_ = np.linalg.lstsq(cols, res, rcond=None)
+    energy = float(np.sum((cols @ coef) ** 2))
+    assert model_error_statistic(res, cols, 0.1) == pytest.approx(energy / 0.01, rel=1e-9)
+    assert model_error_statistic(res, nuisance_basis(cur, dt), 0.1) == pytest.approx(energy / 0.01, rel=1e-9)
+    assert model_error_statistic(res, np.empty((201, 0)), 0.1) == 0.0
+
+
+@pytest.mark.parametrize("robust", [False, True])
+def test_compiled_forward_fit_is_the_python_one(sim, robust):
+    """local_fit's compiled three-point fit equals its Python twin (at the upper bounds the steps turn
+    back); a point whose neighbour needs a pre-compressed start stays in Python."""
+    from estimator.ident.cost import CostModel
+    from estimator.ident.local_fit import _forward_fit, local_fit
+    from estimator.ident.search import Box
+    inj = _cycle_case(sim, robust, 2)
+    box = Box(np.array([14.9, 0.001]), np.array([18.0, 4.0]))
+    for x in (np.array([18.0, 4.0]), np.array([17.97, 3.9])):
+        m_c, m_py = CostModel(sim, inj, 100e-6, "l2", robust), CostModel(sim, inj, 100e-6, "l2", robust)
+        got, want = local_fit(m_c, x, box), _forward_fit(m_py, x, box)
+        assert m_c.evaluations == m_py.evaluations == 3 and got.success and want.success
+        for name in ("criterion", "paper_cost_vs", "sigma_v", "t_contact_s", "t_open_s"):
+            assert getattr(got, name) == pytest.approx(getattr(want, name), rel=1e-9), name
+        for name in ("jtj", "gn_step", "cov_x", "residual"):
+            np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-7,
+                                       atol=1e-9 * np.abs(getattr(want, name)).max(), err_msg=name)
+    m = CostModel(sim, inj)
+    from estimator.ident import compiled_cycle as cc
+    low = Box(np.array([14.9, -3.0]), np.array([21.1, 20.0]))
+    assert cc.run_forward_fit(m, np.array([17.0, -0.001]), np.array([2e-3, 2e-3]), low).code == cc.CYCLE_FALLBACK
+    fit = local_fit(m, np.array([17.0, -0.001]), low)    # pre-compressed: in Python
+    assert m.evaluations == 3 and fit.success and np.isfinite(fit.criterion)

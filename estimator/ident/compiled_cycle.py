@@ -211,11 +211,25 @@ def warm_cycle(sim_model, aut, src, h, nu_lo, nu_hi, cur, fo, measured, weights,
     uv, sv, tcv, tov = _simulate(sim_model, aut, src, h, xv, fo, cur)
     rv = np.empty((1, n))
     _residuals(measured, uv, basis, project, rv)
-    crit = _costs(rv, weights, l1, sv)[0]
+    crit, paper, jtj, step, sigma, cov, raw, fine, dirs, eig = _gauss_newton(measured, weights, l1, uv[0], rv[0],
+                                                                             sv[0], sv[0], jac)
+    return (CYCLE_FIT, 6, x, ok, jac, crit, paper, jtj, step, sigma, cov, raw, tcv[0], tov[0], fine, dirs, eig)
+
+
+@njit(cache=True, nogil=True)
+def _gauss_newton(measured, weights, l1, u, r0, u_ok, success, jac):
+    """local_fit._fit_from: the Gauss–Newton model at a point from its simulated voltage ``u`` (V), its
+    (projected) residual ``r0`` and ``jac`` = dU/dx (2, N); ``u_ok``: the point's own simulation
+    succeeded, ``success``: every simulation behind the fit did. Returns (criterion, paper cost, jtj,
+    step, sigma, covariance, unprojected residual, success, directions, eigenvalues)."""
+    n = u.shape[0]
+    ok1 = np.empty(1, dtype=np.bool_)
+    ok1[0] = u_ok
+    crit = _costs(r0.reshape((1, n)), weights, l1, ok1)[0]
     raw = np.empty(n)
     paper = 0.0
     for k in range(n):
-        raw[k] = measured[k] - uv[0, k]
+        raw[k] = measured[k] - u[k]
         paper += abs(raw[k]) * weights[k]
     jtj = np.empty((2, 2))
     jr = np.zeros(2)
@@ -226,9 +240,9 @@ def warm_cycle(sim_model, aut, src, h, nu_lo, nu_hi, cur, fo, measured, weights,
                 s += jac[p, k] * jac[q, k]
             jtj[p, q] = s
         for k in range(n):
-            jr[p] += jac[p, k] * rv[0, k]
-    fine = sv[0] and np.all(np.isfinite(jtj))
-    sigma = _noise_sigma(rv[0]) if fine else np.nan
+            jr[p] += jac[p, k] * r0[k]
+    fine = success and np.all(np.isfinite(jtj))
+    sigma = _noise_sigma(r0) if fine else np.nan
     det = jtj[0, 0] * jtj[1, 1] - jtj[0, 1] * jtj[1, 0] if fine else 0.0
     cov = np.full((2, 2), np.inf)
     step = np.zeros(2)
@@ -240,23 +254,73 @@ def warm_cycle(sim_model, aut, src, h, nu_lo, nu_hi, cur, fo, measured, weights,
             for q in range(2):
                 cov[p, q] = sigma ** 2 * inv[p, q]
             step[p] = inv[p, 0] * jr[0] + inv[p, 1] * jr[1]
-    dirs = nan22
+    dirs = np.full((2, 2), np.nan)
     eig = np.full(2, np.nan)
     if fine:
         w, v = np.linalg.eigh(0.5 * (jtj + jtj.T))
         dirs = np.ascontiguousarray(v)
         eig = np.maximum(w, 0.0)
-    return (CYCLE_FIT, 6, x, ok, jac, crit, paper, jtj, step, sigma, cov, raw, tcv[0], tov[0], fine, dirs, eig)
+    return crit, paper, jtj, step, sigma, cov, raw, fine, dirs, eig
+
+
+@njit(cache=True, nogil=True)
+def forward_fit(sim_model, aut, src, h, nu_lo, nu_hi, cur, fo, measured, weights, basis, project, l1, x, fd,
+                hi):
+    """local_fit.local_fit compiled: x and its two forward-difference neighbours (steps ``fd`` in
+    (N/V, µm), turned back where they would leave the box below ``hi``) in one batch, the Gauss–Newton
+    model at x. Returns the fields of :class:`CycleFit` (``CYCLE_FALLBACK``: a point not simulable here)."""
+    n = cur.shape[0]
+    steps = np.empty(2)
+    for i in range(2):
+        steps[i] = fd[i] if x[i] + fd[i] <= hi[i] else -fd[i]
+    pts = np.empty((3, 2))
+    for b in range(3):
+        pts[b, 0] = x[0]
+        pts[b, 1] = x[1]
+    pts[1, 0] += steps[0]
+    pts[2, 1] += steps[1]
+    simulable = True
+    for b in range(3):
+        if not (pts[b, 1] > 0.0 and nu_lo <= pts[b, 0] <= nu_hi):
+            simulable = False
+    code, _ = kernel.check_inputs(cur, pts[:, 0].copy(), pts[:, 1].copy(), np.full(3, fo), nu_lo, nu_hi)
+    nan22 = np.full((2, 2), np.nan)
+    if not simulable or code != kernel.INPUTS_OK:
+        return (CYCLE_FALLBACK, 0, x.copy(), np.zeros(2, dtype=np.bool_), np.full((2, n), np.nan), np.nan, np.nan,
+                nan22, np.full(2, np.nan), np.nan, nan22, np.full(n, np.nan), np.nan, np.nan, False, nan22,
+                np.full(2, np.nan))
+    u, success, tc, to = _simulate(sim_model, aut, src, h, pts, fo, cur)
+    r = np.empty((3, n))
+    _residuals(measured, u, basis, project, r)
+    jac = np.empty((2, n))
+    for k in range(n):
+        jac[0, k] = -(r[1, k] - r[0, k]) / steps[0]
+        jac[1, k] = -(r[2, k] - r[0, k]) / steps[1]
+    crit, paper, jtj, step, sigma, cov, raw, fine, dirs, eig = _gauss_newton(
+        measured, weights, l1, u[0], r[0], success[0], success[0] and success[1] and success[2], jac)
+    ok = np.ones(2, dtype=np.bool_)
+    return (CYCLE_FIT, 3, x.copy(), ok, jac, crit, paper, jtj, step, sigma, cov, raw, tc[0], to[0], fine, dirs, eig)
+
+
+def _model_args(model: CostModel) -> tuple:
+    """The compiled functions' arguments that come from the cost model and its simulator."""
+    sim = model.sim
+    handle = sim.kernel_handle()
+    basis = np.ascontiguousarray(model.basis) if model.robust else _NO_BASIS   # one compiled layout
+    return (handle.model, handle.automaton, handle.table, handle.h_us, *sim.nu_range, model.current,
+            float(model.injection.f_open_n), model.measured, model.weights, basis, model.robust, model.norm == "l1")
+
+
+def run_forward_fit(model: CostModel, x: np.ndarray, fd: np.ndarray, box: Box) -> CycleFit:
+    """:func:`forward_fit` for a cost model (its evaluations counted)."""
+    out = CycleFit(*forward_fit(*_model_args(model), np.ascontiguousarray(x, dtype=float), fd, box.hi))
+    model.evaluations += out.evaluations
+    return out
 
 
 def run_cycle(model: CostModel, x0: np.ndarray, d: np.ndarray, st: np.ndarray, box: Box) -> CycleFit:
     """:func:`warm_cycle` for a cost model (its evaluations counted) from ``x0`` along ``d``, ``st``."""
-    sim = model.sim
-    handle = sim.kernel_handle()
-    basis = model.basis if model.robust else _NO_BASIS
-    out = CycleFit(*warm_cycle(handle.model, handle.automaton, handle.table, handle.h_us, *sim.nu_range,
-                               model.current, float(model.injection.f_open_n), model.measured, model.weights,
-                               basis, model.robust, model.norm == "l1", np.ascontiguousarray(x0, dtype=float),
+    out = CycleFit(*warm_cycle(*_model_args(model), np.ascontiguousarray(x0, dtype=float),
                                np.ascontiguousarray(d, dtype=float), np.ascontiguousarray(st, dtype=float),
                                box.lo, box.hi))
     model.evaluations += out.evaluations

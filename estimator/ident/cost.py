@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from estimator.ident.measurement import Injection
 from estimator.model.fast_sim import BatchResult, FastSimulator
@@ -35,21 +36,40 @@ NUISANCE_NAMES = ("I", "Q") + tuple(f"max(Q-{r:.2f}Qend,0)" for r in NUISANCE_TH
 
 def charge_c(current_a: np.ndarray, dt_s: float) -> np.ndarray:
     """Cumulative charge (C) of a current that is linear between samples (trapezoidal rule)."""
+    return _charge(np.ascontiguousarray(current_a, dtype=float), float(dt_s))
+
+
+@njit(cache=True, nogil=True)
+def _charge(current_a, dt_s):
     q = np.empty(current_a.size)
     q[0] = 0.0
-    np.cumsum((current_a[1:] + current_a[:-1]) * (0.5 * dt_s), out=q[1:])
+    acc = 0.0
+    for k in range(1, current_a.size):
+        acc += (current_a[k] + current_a[k - 1]) * (0.5 * dt_s)
+        q[k] = acc
     return q
 
 
 def nuisance_columns(current_a: np.ndarray, dt_s: float) -> np.ndarray:
     """The nuisance span's columns I, Q, max(Q - r_i, 0), each normalised to max 1, shape (N, 6)."""
-    q = charge_c(current_a, dt_s)
-    q_end = max(float(q[-1]), 1e-12)
-    b = np.empty((q.size, 2 + len(NUISANCE_THRESHOLDS)))
-    b[:, 0] = current_a / max(float(np.abs(current_a).max()), 1e-300)
-    b[:, 1] = q / q_end
-    for k, r in enumerate(NUISANCE_THRESHOLDS):
-        np.maximum(b[:, 1] - r, 0.0, out=b[:, 2 + k])
+    return _nuisance_columns(np.ascontiguousarray(current_a, dtype=float), float(dt_s), _THRESHOLDS)
+
+
+_THRESHOLDS = np.array(NUISANCE_THRESHOLDS)
+
+
+@njit(cache=True, nogil=True)
+def _nuisance_columns(current_a, dt_s, thresholds):
+    q = _charge(current_a, dt_s)
+    n = q.size
+    q_end = max(q[-1], 1e-12)
+    i_max = max(np.abs(current_a).max(), 1e-300)
+    b = np.empty((n, 2 + thresholds.size))
+    for k in range(n):
+        b[k, 0] = current_a[k] / i_max
+        b[k, 1] = q[k] / q_end
+        for m in range(thresholds.size):
+            b[k, 2 + m] = max(b[k, 1] - thresholds[m], 0.0)
     return b
 
 
@@ -79,12 +99,31 @@ def model_error_statistic(residual_v: np.ndarray, basis: np.ndarray, sigma_v: fl
     degrees of freedom (mean 6); a model error of the I/Q form makes it large.
     """
     sigma = noise_sigma_v(residual_v) if sigma_v is None else sigma_v
-    if basis.shape[1] and abs(float(basis[:, 0] @ basis[:, 0]) - 1.0) > 1e-9:
-        # raw columns (nuisance_columns): the projection through the normal equations
-        br = basis.T @ residual_v
-        return float(br @ np.linalg.solve(basis.T @ basis, br)) / sigma ** 2
-    proj = basis.T @ residual_v
-    return float(proj @ proj) / sigma ** 2
+    return _span_energy(np.ascontiguousarray(residual_v, dtype=float), np.ascontiguousarray(basis, dtype=float)) / sigma ** 2
+
+
+@njit(cache=True, nogil=True)
+def _span_energy(r, b):
+    """``|P r|^2`` for the projection P onto the span of the columns of ``b`` (N, K): ``|b' r|^2`` if they
+    are orthonormal, else through the normal equations ``(b'r)' (b'b)^-1 (b'r)``."""
+    n, m = b.shape
+    if m == 0:
+        return 0.0
+    br = np.zeros(m)
+    for k in range(n):
+        for q in range(m):
+            br[q] += b[k, q] * r[k]
+    norm0 = 0.0
+    for k in range(n):
+        norm0 += b[k, 0] * b[k, 0]
+    if abs(norm0 - 1.0) <= 1e-9:
+        return br @ br
+    g = np.zeros((m, m))
+    for k in range(n):
+        for p in range(m):
+            for q in range(m):
+                g[p, q] += b[k, p] * b[k, q]
+    return br @ np.linalg.solve(g, br)
 
 
 @dataclass

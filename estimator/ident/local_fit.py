@@ -12,7 +12,7 @@ from functools import cached_property
 
 import numpy as np
 
-from estimator.ident.compiled_cycle import CYCLE_FALLBACK, CYCLE_FIT, CycleFit, run_cycle
+from estimator.ident.compiled_cycle import CYCLE_FALLBACK, CYCLE_FIT, CycleFit, run_cycle, run_forward_fit
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M
 from estimator.ident.cost import CostModel, noise_sigma_v
@@ -56,7 +56,14 @@ class LocalFit:
 
 
 def local_fit(model: CostModel, x: np.ndarray, box: Box) -> LocalFit:
-    """Simulate x and two forward-difference neighbours in one batch (steps toward the box inside)."""
+    """Simulate x and two forward-difference neighbours in one batch (steps toward the box inside);
+    compiled (:func:`compiled_cycle.forward_fit`) unless a point needs a pre-compressed start."""
+    cf = run_forward_fit(model, x, FD_STEP, box)
+    return _compiled_fit(cf) if cf.code == CYCLE_FIT else _forward_fit(model, x, box)
+
+
+def _forward_fit(model: CostModel, x: np.ndarray, box: Box) -> LocalFit:
+    """:func:`local_fit` in Python (any L_h: pre-compressed starts included)."""
     steps = np.where(x + FD_STEP <= box.hi, FD_STEP, -FD_STEP)
     pts = np.array([x, x + [steps[0], 0.0], x + [0.0, steps[1]]])
     res = simulate_at(model, pts)
@@ -159,7 +166,7 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
         d, w = fit.directions
         # next steps: two standard deviations along each direction, at least the tolerance
         sd = np.sqrt(np.maximum(fit.sigma_v ** 2 / np.maximum(w, 1e-300), 0.0))
-        st = np.clip(2.0 * sd, 4 * np.min(tol), 2.0)
+        st = np.minimum(np.maximum(2.0 * sd, 4 * min(tol)), 2.0)   # np.clip, without its overhead
         j = fit.criterion
         # converged when the last cycle hardly moved, or when the Gauss–Newton model puts the
         # minimum within a quarter standard deviation (or the tolerance) of where we are
