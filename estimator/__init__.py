@@ -10,3 +10,8 @@ __version__ = "0.2.0"
 # Set before numpy loads OpenBLAS; an explicit setting in the environment wins.
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     _os.environ.setdefault(_var, "1")
+
+# numba's cache keyed by the compiled sources (see numba_cache): before anything imports numba
+from estimator import numba_cache as _numba_cache  # noqa: E402
+
+_numba_cache.configure()

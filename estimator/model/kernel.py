@@ -1,10 +1,11 @@
 """Compiled inner loop of the fast hybrid simulator (numba; scaled units, see dynamics.Z_SCALE).
 
 Each candidate is advanced sample by sample with the exact transition matrix of its current
-affine region. When a guard changes sign inside a sample, the crossing instant is located by
-regula falsi (Illinois) on the exact flow ``exp(A sigma) z`` (a truncated Taylor series, exact to
-machine precision for ``|A| sigma < 1``), the reset map is applied, and the rest of the sample is
-integrated in the new region. Everything here works on plain arrays: no Python objects.
+affine region. When a guard changes sign inside a sample, the exact flow ``exp(A sigma) z`` over
+the sample's rest is expanded once in its Taylor series (exact to machine precision for
+``|A| sigma < 1``); along it the guard is a scalar polynomial in time, whose root is the crossing
+instant. The reset map is applied there, and the rest of the sample is integrated in the new
+region. Everything here works on plain arrays: no Python objects.
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from estimator.model.dynamics import (MODE_OPEN, NX, NZ, S3, S4, STATUS_EVENT_CA
                                       ZL, coupling_jit, damping_jit, output_row_into)
 
 MAX_EVENTS_PER_SAMPLE = 12
+LOCATE_MARGIN = 1e-7      # a located event is taken this fraction of the interval past the root
+MAX_TAYLOR_TERMS = 40     # of exp(A sigma) z with |A| sigma < 1: far more than the ~12 that reach 1e-17
 INPUTS_OK, BAD_CURRENT, BAD_NU, BAD_LH_FOPEN = 0, 1, 2, 3   # codes of check_inputs
 
 
@@ -41,110 +44,118 @@ class KernelModel(NamedTuple):
 
 
 @njit(cache=True, nogil=True)
-def _flow(a, z, sigma, out):
-    """out = exp(a * sigma) @ z by Taylor series (a: (NZ, NZ) per time unit, |a| sigma < 1).
+def _taylor(a, z, sigma, c):
+    """The Taylor series of exp(a sigma) z (a: (NZ, NZ) per time unit, |a| sigma < 1): row k of ``c``
+    holds (a sigma)^k z / k!, k = 0 .. K - 1, until a term is below 1e-17 of the state; returns K.
 
     Rows ZID.. of ``a`` are zero (current slope and constants do not change) and row ZI only reads
-    ZID, so after the first term only the first ZI + 1 entries of a term are non-zero: the series
-    works on those.
-    """
+    ZID, so only the first ZI + 1 entries of a term are non-zero after the first (the rest of the
+    state is constant): the series works on those. The state at u sigma (0 <= u <= 1) is the
+    polynomial sum_k c[k] u^k (:func:`_state_at`), a guard g along it the scalar polynomial
+    sum_k (g . c[k]) u^k (:func:`_locate`)."""
     m = ZI + 1
-    term = np.empty(m)
-    tmp = np.empty(m)
     size = 0.0
     for i in range(NZ):
-        out[i] = z[i]
         size = max(size, abs(z[i]))
-    # first term: the full product (the constant inputs act once)
+    for i in range(m):
+        c[0, i] = z[i]
     big = 0.0
     for i in range(m):
         s = 0.0
         for j in range(NZ):
             s += a[i, j] * z[j]
-        term[i] = sigma * s
-        out[i] += term[i]
-        big = max(big, abs(term[i]))
+        c[1, i] = sigma * s
+        big = max(big, abs(c[1, i]))
     k = 2
-    while big > 1e-17 * size and k < 40:
-        c = sigma / k
+    while big > 1e-17 * size and k < MAX_TAYLOR_TERMS:
+        f = sigma / k
         big = 0.0
         for i in range(m):
             s = 0.0
             for j in range(m):
-                s += a[i, j] * term[j]
-            tmp[i] = c * s
-        for i in range(m):
-            term[i] = tmp[i]
-            out[i] += tmp[i]
-            big = max(big, abs(tmp[i]))
+                s += a[i, j] * c[k - 1, j]
+            c[k, i] = f * s
+            big = max(big, abs(c[k, i]))
         k += 1
+    return k
 
 
 @njit(cache=True, nogil=True)
-def _rate(g, a, z):
-    """d/dt (g @ z) = g @ a @ z."""
-    s = 0.0
-    for j in range(NZ):
-        c = 0.0
-        for i in range(NZ):
-            c += g[i] * a[i, j]
-        s += c * z[j]
-    return s
+def _flow(a, z, sigma, out, terms):
+    """out = exp(a * sigma) @ z (a: (NZ, NZ) per time unit, |a| sigma < 1): the Taylor series of
+    :func:`_taylor`, its terms kept in ``terms``, summed by :func:`_state_at`."""
+    _state_at(terms, _taylor(a, z, sigma, terms), z, 1.0, out)
 
 
 @njit(cache=True, nogil=True)
-def _locate(a, g, z, zn, rem, g0, g1, out, smooth):
-    """Crossing time of g @ exp(a s) z in (0, rem] where g0 <= 0 < g1 (zn = state at rem).
+def _state_at(c, nterms, z, u, out):
+    """out = the state at the fraction u of the interval of :func:`_taylor`'s terms ``c`` (Horner)."""
+    m = ZI + 1
+    for i in range(m):
+        v = c[nterms - 1, i]
+        for k in range(nterms - 2, -1, -1):
+            v = v * u + c[k, i]
+        out[i] = v
+    for i in range(m, NZ):
+        out[i] = z[i]
 
-    Start from the root of the cubic Hermite interpolant of the guard (values and rates at both
-    ends), then Newton on the exact flow inside the bracket (bisection if a step leaves it).
-    Returns a time at which the guard is already positive, with the state there in ``out``.
-    ``smooth``: the boundary between two spring pieces, across which the force is continuous, so
-    the first point found past the root is accepted (a switching-time error δ changes the state
-    by O(δ^2) and less); contact, opening and closing are located to 1e-7 of the step.
+
+@njit(cache=True, nogil=True)
+def _locate(c, nterms, g, z, rem, out):
+    """Crossing time of the guard g in (0, rem] along the flow whose Taylor terms over rem are ``c``
+    (:func:`_taylor`), the guard being <= 0 at the start and > 0 at the end of the interval.
+
+    The guard along the flow is a scalar polynomial in u = t / rem: its root is found by Newton's
+    method kept inside the bracket (bisection when a step leaves it) to 1e-13 of the interval, and
+    the event is taken ``LOCATE_MARGIN`` of the interval past it, where the guard is positive.
+    Returns that time, with the state there in ``out``.
     """
-    d0 = _rate(g, a, z)
-    d1 = _rate(g, a, zn)
-    # Hermite cubic on u in [0, 1]: p(u) = h00 g0 + h10 rem d0 + h01 g1 + h11 rem d1
-    u = -g0 / (g1 - g0)
-    for _ in range(8):
-        u2 = u * u
-        u3 = u2 * u
-        pv = ((2 * u3 - 3 * u2 + 1) * g0 + (u3 - 2 * u2 + u) * rem * d0 + (-2 * u3 + 3 * u2) * g1
-              + (u3 - u2) * rem * d1)
-        dp = ((6 * u2 - 6 * u) * g0 + (3 * u2 - 4 * u + 1) * rem * d0 + (-6 * u2 + 6 * u) * g1
-              + (3 * u2 - 2 * u) * rem * d1)
-        if dp == 0.0:
+    m = ZI + 1
+    p = np.empty(MAX_TAYLOR_TERMS)
+    p[0] = dot(g, z)
+    for k in range(1, nterms):
+        s = 0.0
+        for i in range(m):
+            s += g[i] * c[k, i]
+        p[k] = s
+    lo, hi = 0.0, 1.0
+    p1 = 0.0
+    for k in range(nterms):
+        p1 += p[k]
+    u = -p[0] / (p1 - p[0]) if p1 > p[0] and p[0] <= 0.0 else 0.5
+    if not (u > 0.0 and u < 1.0):
+        u = 0.5
+    if p[0] > 0.0:            # already positive (seated guard pair): the earliest time after the start
+        hi = 1e-7
+    else:
+        for _ in range(100):
+            pv = p[nterms - 1]
+            dp = 0.0
+            for k in range(nterms - 2, -1, -1):
+                dp = dp * u + pv
+                pv = pv * u + p[k]
+            if pv > 0.0:
+                hi = u
+            else:
+                lo = u
+            if hi - lo <= 1e-13:
+                break
+            un = u - pv / dp if dp != 0.0 else 0.5 * (lo + hi)
+            if abs(un - u) <= 1e-14:
+                un = u + 1e-13 if pv <= 0.0 else u - 1e-13   # converged: step across the root
+            if not (un > lo and un < hi):
+                un = 0.5 * (lo + hi)
+            u = un
+    # a little past the root (1e-7 of the interval, the tolerance of the regula falsi this replaced):
+    # a state exactly on the boundary lets rounding send a grazing trajectory back and forth
+    u = min(hi + LOCATE_MARGIN, 1.0)
+    _state_at(c, nterms, z, u, out)
+    for _ in range(8):        # the state's own guard value decides (rounding of the polynomial)
+        if dot(g, out) > 0.0 or u >= 1.0:
             break
-        un = u - pv / dp
-        if not (un > 0.0 and un < 1.0):
-            break
-        u = un
-    lo, hi = 0.0, rem
-    s = u * rem
-    tol = 1e-7 * rem
-    for _ in range(60):
-        _flow(a, z, s, out)
-        fs = dot(g, out)
-        if fs > 0.0:
-            hi = s
-            if smooth:
-                return s
-        else:
-            lo = s
-        d = _rate(g, a, out)
-        step = s - fs / d if d != 0.0 else 0.5 * (lo + hi)
-        if abs(step - s) < tol and fs > 0.0:
-            return s
-        if abs(step - s) < tol:
-            step = s + tol          # converged just below the root: step across it
-        if not (step > lo and step < hi):
-            step = 0.5 * (lo + hi)
-        if hi - lo < tol:
-            break
-        s = step
-    _flow(a, z, hi, out)
-    return hi
+        u = min(u + 1e-12, 1.0)
+        _state_at(c, nterms, z, u, out)
+    return u * rem
 
 
 @njit(cache=True, nogil=True)
@@ -242,22 +253,23 @@ def _guard_ends(guards, open_seated, open_index, r, j, z, zn, seated):
 
 
 @njit(cache=True, nogil=True)
-def _locate_first(guards, open_seated, open_index, target, reset, region_mode, amat, r, z, zn, rem, seated,
-                  zt, zb):
+def _locate_first(guards, open_seated, open_index, target, amat, r, z, zn, rem, seated, zt, zb, terms):
     """The guard of region r that fires first between z and zn (``rem`` µs later; ``amat`` the
     region's continuous matrix). Returns (j, s): the guard (-1: none) and the time after z at which
     it is positive; the state there is left in zb. Called only when some guard crosses.
     """
     best = -1
     best_s = rem
+    nterms = 0
     for j in range(3):
         if target[r, j] < 0:
             continue
         g0, g1, spring_only = _guard_ends(guards, open_seated, open_index, r, j, z, zn, seated)
         if g0 <= 0.0 and g1 > 0.0:
             g = open_seated[r] if spring_only else guards[r, j]
-            smooth = reset[r, j] == 0 and region_mode[target[r, j]] == region_mode[r]
-            s = _locate(amat, g, z, zn, rem, g0, g1, zt, smooth)
+            if nterms == 0:     # the flow's terms, shared by the guards that cross in this interval
+                nterms = _taylor(amat, z, rem, terms)
+            s = _locate(terms, nterms, g, z, rem, zt)
             if s < best_s or best < 0:
                 best_s = s
                 best = j
@@ -322,6 +334,7 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
     have = np.zeros(nreg, dtype=np.bool_)
     amat = np.empty((nreg, NZ, NZ))
     have_a = np.zeros(nreg, dtype=np.bool_)
+    terms = np.empty((MAX_TAYLOR_TERMS, ZI + 1))
     nrec = zrec.shape[0]
     for b in range(nb):
         have[:] = False
@@ -359,7 +372,7 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
                     # the valve plunger states are held at rest while the valve is closed
                     _step(phi, const, r, z, zn, NX if region_mode[r] >= MODE_OPEN else S4, h)
                 else:   # the rest of a sample after an event
-                    _flow(_continuous(model, cand, b, r, amat, have_a), z, rem, zn)
+                    _flow(_continuous(model, cand, b, r, amat, have_a), z, rem, zn, terms)
                 # does a guard cross? automaton.guard_value at both ends, written out: as an inlined
                 # call it made the whole simulation 35 % slower (speed-sim)
                 crosses = False
@@ -383,9 +396,9 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
                     for i in range(NZ):
                         z[i] = zn[i]
                     break
-                best, best_s = _locate_first(guards, open_seated, open_index, target, reset, region_mode,
+                best, best_s = _locate_first(guards, open_seated, open_index, target,
                                              _continuous(model, cand, b, r, amat, have_a), r, z, zn, rem, seated,
-                                             zt, zb)
+                                             zt, zb, terms)
                 for i in range(NZ):
                     z[i] = zb[i]
                 t_ev = k * h + (h - rem) + best_s
