@@ -175,3 +175,22 @@ def test_prior_and_reset(sim):
     assert r.evaluations < 40 and abs(r.lh_m * 1e6 - 2.1) < 0.15
     tr.reset(3)
     assert 3 not in tr.states
+
+
+def test_warm_up_runs_a_cold_start_and_compiled_warm_updates_without_touching_the_states(monkeypatch):
+    from estimator.ident import compiled_cycle, local_fit
+    codes = []
+    real = local_fit.run_cycle
+
+    def counting(*args):
+        out = real(*args)
+        codes.append(out.code)
+        return out
+    monkeypatch.setattr(local_fit, "run_cycle", counting)
+    tr = Tracker(TrackerConfig())
+    tr.set_prior(3, 17.0, 2.0)
+    before = tr.states[3].to_dict()
+    tr.warm_up()
+    assert list(tr.states) == [3] and tr.states[3].to_dict() == before
+    assert codes == [compiled_cycle.CYCLE_FIT] * 2      # both warm updates took the compiled cycle
+    assert len(tr.pool) == 1                           # the default sample period's simulator, shared

@@ -599,6 +599,19 @@ class Tracker:
                 problems.append(f"injector {inj_id}: {why}")
         return problems
 
+    def warm_up(self) -> None:
+        """Load (or compile) every compiled function an update uses, and the N_u table of the default
+        sample period: a cold start and two warm updates of a simulated injection on a scratch tracker
+        that shares this one's simulators (this tracker's states are not touched)."""
+        from estimator.model.drive import SAMPLE_PERIOD_S, StandardDrive
+
+        sim = self.simulator(SAMPLE_PERIOD_S)
+        cur = StandardDrive().samples(100e-6, SAMPLE_PERIOD_S)
+        res = sim.simulate(cur, [16.0, 17.0, 18.0], [-0.5e-6, 2e-6, 6e-6])
+        scratch = Tracker(self.config, pool=self.pool)
+        for k in range(3):
+            scratch.update(Injection(cur, res.voltage_v[1], SAMPLE_PERIOD_S, counter=k, time_s=0.04 * k))
+
     def reset(self, injector_id: int) -> None:
         """Forget everything about one injector."""
         self.states.pop(injector_id, None)

@@ -346,18 +346,9 @@ class Daemon:
         signal.signal(signal.SIGHUP, on_hup)
 
     def warm_up(self) -> None:
-        """Load the compiled kernels and the N_u table before READY, so the first injection is not late:
-        a cold start and two warm updates of a simulated injection, on a scratch tracker that shares
-        this one's simulators (the daemon's own states are not touched)."""
-        from estimator.ident.measurement import Injection
-        from estimator.model.drive import SAMPLE_PERIOD_S, StandardDrive
-
-        sim = self.tracker.simulator(SAMPLE_PERIOD_S)
-        cur = StandardDrive().samples(100e-6)
-        res = sim.simulate(cur, [16.0, 17.0, 18.0], [-0.5e-6, 2e-6, 6e-6])
-        scratch = Tracker(self.tracker.config, pool=self.tracker.pool)
-        for k in range(3):
-            scratch.update(Injection(cur, res.voltage_v[1], SAMPLE_PERIOD_S, counter=k, time_s=0.04 * k))
+        """Load the compiled kernels and the N_u table before READY, so the first injection is not late
+        (:meth:`Tracker.warm_up`: the daemon's own states are not touched)."""
+        self.tracker.warm_up()
 
     def run(self) -> int:
         """Run until stopped; returns the exit code."""
