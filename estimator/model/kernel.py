@@ -16,10 +16,12 @@ import numpy as np
 from numba import njit
 
 from estimator.model.automaton import apply_reset, dot, guard_value, in_contact, rearmed
-from estimator.model.dynamics import (MODE_OPEN, NX, NZ, S3, S4, STATUS_EVENT_CAP, STATUS_OK, Z1, ZF, ZI, ZID,
-                                      ZL, coupling_jit, damping_jit, output_row_into)
+from estimator.model.dynamics import (MODE_OPEN, NX, NZ, S3, S4, STATUS_EVENT_CAP, STATUS_OK, V4, Z1, ZF, ZI,
+                                      ZID, ZL, coupling_jit, damping_jit, output_row_into)
 
 MAX_EVENTS_PER_SAMPLE = 12
+# the sample step in simulate_kernel is written out for these nine physical states, the plunger last
+assert NX == 9 and (S4, V4) == (7, 8), "simulate_kernel's written-out step expects NX = 9, S4 = 7, V4 = 8"
 LOCATE_MARGIN = 1e-7      # a located event is taken this fraction of the interval past the root
 MAX_TAYLOR_TERMS = 40     # of exp(A sigma) z with |A| sigma < 1: far more than the ~12 that reach 1e-17
 INPUTS_OK, BAD_CURRENT, BAD_NU, BAD_LH_FOPEN = 0, 1, 2, 3   # codes of check_inputs
@@ -215,23 +217,7 @@ class Trajectories(NamedTuple):
 
 
 # The per-sample code takes plain arrays: a call, or an array taken out of a named tuple, costs
-# ~30 ns per sample, as much as the step itself; _step is inlined by numba (inline="always").
-
-@njit(cache=True, nogil=True, inline="always")
-def _step(phi, const, r, z, zn, nx, h):
-    """zn = the state one full sample (h µs) after z in region r, with its transition rows phi[r]
-    and constant part const[r]; states nx.. (the plunger while the valve is closed) are held."""
-    zi = z[ZI]
-    zd = z[ZID]
-    for i in range(nx):
-        s = const[r, i] + phi[r, i, ZI] * zi + phi[r, i, ZID] * zd
-        for j in range(nx):
-            s += phi[r, i, j] * z[j]
-        zn[i] = s
-    for i in range(nx, NZ):
-        zn[i] = z[i]
-    zn[ZI] = zi + h * zd
-
+# ~30 ns per sample, as much as the step itself; the step is written out in simulate_kernel.
 
 @njit(cache=True, nogil=True, inline="always")
 def _guard_ends(guards, open_seated, open_index, r, j, z, zn, seated):
@@ -304,6 +290,20 @@ def _transition(aut, r, j, z, seated, nev, t_ev, b, out):
 
 
 @njit(cache=True, nogil=True)
+def _nonzeros(rows):
+    """Per row of ``rows`` (R, NZ): the indices of its non-zero entries in order (R, NZ) and their count."""
+    nr = rows.shape[0]
+    idx = np.zeros((nr, NZ), dtype=np.int64)
+    cnt = np.zeros(nr, dtype=np.int64)
+    for a in range(nr):
+        for i in range(NZ):
+            if rows[a, i] != 0.0:
+                idx[a, cnt[a]] = i
+                cnt[a] += 1
+    return idx, cnt
+
+
+@njit(cache=True, nogil=True)
 def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
     """Advance B candidates over the samples of ``cur`` (all arrays in scaled units, time in µs).
 
@@ -316,7 +316,7 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
     time the candidate enters the region. The continuous matrix, needed only to locate events, is
     ``a_const[r] + cpl[b] a_coup[r] + dmp[b] a_damp[r]``. ``aut`` is the automaton
     (:class:`automaton.Automaton`), ``cand`` the candidates, ``cur`` (N,) the current in A. Per
-    sample: :func:`_step`, then, if a guard crosses, :func:`_locate_first` and :func:`_transition`
+    sample: the step (written out), then, if a guard crosses, :func:`_locate_first` and :func:`_transition`
     and the rest of the sample from there. The :class:`Trajectories` ``out`` are written in place;
     t_contact/t_open in µs (NaN: none).
     """
@@ -336,6 +336,11 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
     have_a = np.zeros(nreg, dtype=np.bool_)
     terms = np.empty((MAX_TAYLOR_TERMS, ZI + 1))
     nrec = zrec.shape[0]
+    # the guards and output rows read few states: per sample they are summed over their non-zero
+    # entries only, in index order (the dense sum's order; the skipped terms are exact zeros)
+    g_idx, g_cnt = _nonzeros(guards.reshape((nreg * 3, NZ)))
+    s_idx, s_cnt = _nonzeros(open_seated)
+    c_idx, c_cnt = _nonzeros(cout)
     for b in range(nb):
         have[:] = False
         have_a[:] = False
@@ -354,7 +359,10 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
             if rec:
                 for i in range(NZ):
                     zrec[b, k, i] = z[i]
-            out_u[b, k] = dot(cout[b], z)
+            u = 0.0
+            for q in range(c_cnt[b]):
+                u += cout[b, c_idx[b, q]] * z[c_idx[b, q]]
+            out_u[b, k] = u
             out_s3[b, k] = z[S3]
             out_s4[b, k] = z[S4]
             out_mode[b, k] = region_mode[r]
@@ -369,8 +377,48 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
                     if not have[r]:
                         _region_phi(src, cand, b, r, z, phi, const)
                         have[r] = True
-                    # the valve plunger states are held at rest while the valve is closed
-                    _step(phi, const, r, z, zn, NX if region_mode[r] >= MODE_OPEN else S4, h)
+                    # one full sample with the transition rows phi[r] and the constant part const[r]. The NX
+                    # rows are summed in NX local accumulators, each in the order const, I, dI/dt, z_0 .. z_nx-1
+                    # (a row-by-row loop's order: the same to the bit), so the processor overlaps the sums instead
+                    # of waiting on one chain of additions, and no array is passed to a helper (a call or an inlined
+                    # function taking arrays cost reference counting every sample): 7-12 % per simulation. The
+                    # valve plunger states (S4, V4) are held at rest while the valve is closed (nx = S4).
+                    nx = NX if region_mode[r] >= MODE_OPEN else S4
+                    zi = z[ZI]
+                    zd = z[ZID]
+                    s0 = const[r, 0] + phi[r, 0, ZI] * zi + phi[r, 0, ZID] * zd
+                    s1 = const[r, 1] + phi[r, 1, ZI] * zi + phi[r, 1, ZID] * zd
+                    s2 = const[r, 2] + phi[r, 2, ZI] * zi + phi[r, 2, ZID] * zd
+                    s3 = const[r, 3] + phi[r, 3, ZI] * zi + phi[r, 3, ZID] * zd
+                    s4 = const[r, 4] + phi[r, 4, ZI] * zi + phi[r, 4, ZID] * zd
+                    s5 = const[r, 5] + phi[r, 5, ZI] * zi + phi[r, 5, ZID] * zd
+                    s6 = const[r, 6] + phi[r, 6, ZI] * zi + phi[r, 6, ZID] * zd
+                    s7 = const[r, 7] + phi[r, 7, ZI] * zi + phi[r, 7, ZID] * zd
+                    s8 = const[r, 8] + phi[r, 8, ZI] * zi + phi[r, 8, ZID] * zd
+                    for j in range(nx):
+                        zj = z[j]
+                        s0 += phi[r, 0, j] * zj
+                        s1 += phi[r, 1, j] * zj
+                        s2 += phi[r, 2, j] * zj
+                        s3 += phi[r, 3, j] * zj
+                        s4 += phi[r, 4, j] * zj
+                        s5 += phi[r, 5, j] * zj
+                        s6 += phi[r, 6, j] * zj
+                        s7 += phi[r, 7, j] * zj
+                        s8 += phi[r, 8, j] * zj
+                    for i in range(NZ):
+                        zn[i] = z[i]
+                    zn[0] = s0
+                    zn[1] = s1
+                    zn[2] = s2
+                    zn[3] = s3
+                    zn[4] = s4
+                    zn[5] = s5
+                    zn[6] = s6
+                    if nx == NX:
+                        zn[S4] = s7
+                        zn[V4] = s8
+                    zn[ZI] = zi + h * zd
                 else:   # the rest of a sample after an event
                     _flow(_continuous(model, cand, b, r, amat, have_a), z, rem, zn, terms)
                 # does a guard cross? automaton.guard_value at both ends, written out: as an inlined
@@ -379,12 +427,22 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
                 for j in range(3):
                     if target[r, j] < 0:
                         continue
-                    g = guards[r, j]
-                    g0 = dot(g, z)
-                    g1 = dot(g, zn)
+                    rj = 3 * r + j
+                    g0 = 0.0
+                    g1 = 0.0
+                    for q in range(g_cnt[rj]):
+                        i = g_idx[rj, q]
+                        g0 += guards[r, j, i] * z[i]
+                        g1 += guards[r, j, i] * zn[i]
                     if seated and j == open_index[r]:
-                        g0 = min(g0, dot(open_seated[r], z))
-                        g1 = min(g1, dot(open_seated[r], zn))
+                        s0 = 0.0
+                        s1 = 0.0
+                        for q in range(s_cnt[r]):
+                            i = s_idx[r, q]
+                            s0 += open_seated[r, i] * z[i]
+                            s1 += open_seated[r, i] * zn[i]
+                        g0 = min(g0, s0)
+                        g1 = min(g1, s1)
                     if g0 <= 0.0 and g1 > 0.0:
                         crosses = True
                 if not crosses:
@@ -571,6 +629,7 @@ def grid_voltages(model, aut, src, col_nu, col, lh, fo, cur, h, lh_free):
     zl = np.empty(NZ)
     zr = np.empty(NZ)
     guards, target = aut.guards, aut.target
+    f_idx, f_cnt = _nonzeros(guards[0])      # the free region's guards, as simulate_kernel sums them
     for b in range(nb):
         c = col[b]
         if outc.status[c] != STATUS_OK or not np.isnan(outc.t_contact[c]):
@@ -586,7 +645,15 @@ def grid_voltages(model, aut, src, col_nu, col, lh, fo, cur, h, lh_free):
             zr[ZL] = zl[ZL]
             crosses = False
             for j in range(3):
-                if target[0, j] >= 0 and dot(guards[0, j], zl) <= 0.0 and dot(guards[0, j], zr) > 0.0:
+                if target[0, j] < 0:
+                    continue
+                g0 = 0.0
+                g1 = 0.0
+                for q in range(f_cnt[j]):
+                    i = f_idx[j, q]
+                    g0 += guards[0, j, i] * zl[i]
+                    g1 += guards[0, j, i] * zr[i]
+                if g0 <= 0.0 and g1 > 0.0:
                     crosses = True
             if crosses:
                 kc = k
