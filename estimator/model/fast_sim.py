@@ -135,13 +135,14 @@ class FastSimulator:
         self._no_z0.setflags(write=False)
         self._t_cache: dict[int, np.ndarray] = {}
         per_region = (dyn.N_REGIONS, dyn.NZ, dyn.NZ)
+        a_const = np.ascontiguousarray(self._scaled(self.structure.a_const))
+        a_coup = np.ascontiguousarray(np.broadcast_to(self._scaled(self.structure.a_coupling), per_region))
+        a_damp = np.ascontiguousarray(np.broadcast_to(self._scaled(self.structure.a_damping), per_region))
         self._model = kernel.KernelModel(
-            nu0=float(self._nu0), dnu=float(self._dnu),
-            a_const=np.ascontiguousarray(self._scaled(self.structure.a_const)),
-            a_coup=np.ascontiguousarray(np.broadcast_to(self._scaled(self.structure.a_coupling), per_region)),
-            a_damp=np.ascontiguousarray(np.broadcast_to(self._scaled(self.structure.a_damping), per_region)),
+            nu0=float(self._nu0), dnu=float(self._dnu), a_const=a_const, a_coup=a_coup, a_damp=a_damp,
             ks=float(psa.ks_n_per_m), rb=float(psa.rb_v2s_per_mn), r0a=float(psa.r0a_ohm),
-            r0b=float(psa.r0b_v_per_n), z_scale=np.ascontiguousarray(self._d))
+            r0b=float(psa.r0b_v_per_n), z_scale=np.ascontiguousarray(self._d),
+            a_pattern=kernel.sparsity(a_const, a_coup, a_damp))
         # a plain dict, not functools.lru_cache on a bound method: that makes a reference cycle, and
         # a simulator dropped from a pool would then stay in memory until the cyclic GC runs
         self._exact: dict[float, np.ndarray] = {}

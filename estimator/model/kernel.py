@@ -43,18 +43,20 @@ class KernelModel(NamedTuple):
     r0a: float              # R_0a in Ohm
     r0b: float              # R_0b in V/N
     z_scale: np.ndarray     # (NZ,) dynamics.Z_SCALE
+    a_pattern: np.ndarray   # (6, ZI + 1, NZ + 2) uint64: the non-zero columns of the region matrices (sparsity)
 
 
 @njit(cache=True, nogil=True)
-def _taylor(a, z, sigma, c):
+def _taylor(a, pat, z, sigma, c):
     """The Taylor series of exp(a sigma) z (a: (NZ, NZ) per time unit, |a| sigma < 1): row k of ``c``
     holds (a sigma)^k z / k!, k = 0 .. K - 1, until a term is below 1e-17 of the state; returns K.
 
     Rows ZID.. of ``a`` are zero (current slope and constants do not change) and row ZI only reads
     ZID, so only the first ZI + 1 entries of a term are non-zero after the first (the rest of the
-    state is constant): the series works on those. The state at u sigma (0 <= u <= 1) is the
-    polynomial sum_k c[k] u^k (:func:`_state_at`), a guard g along it the scalar polynomial
-    sum_k (g . c[k]) u^k (:func:`_locate`)."""
+    state is constant): the series works on those, and on the non-zero entries of each row of ``a``
+    only (``pat``, :func:`sparsity`; in index order, so the sums are the dense ones). The state at
+    u sigma (0 <= u <= 1) is the polynomial sum_k c[k] u^k (:func:`_state_at`), a guard g along it the
+    scalar polynomial sum_k (g . c[k]) u^k (:func:`_locate`)."""
     m = ZI + 1
     size = 0.0
     for i in range(NZ):
@@ -64,7 +66,8 @@ def _taylor(a, z, sigma, c):
     big = 0.0
     for i in range(m):
         s = 0.0
-        for j in range(NZ):
+        for q in range(pat[i, 0]):
+            j = pat[i, 2 + q]
             s += a[i, j] * z[j]
         c[1, i] = sigma * s
         big = max(big, abs(c[1, i]))
@@ -74,7 +77,8 @@ def _taylor(a, z, sigma, c):
         big = 0.0
         for i in range(m):
             s = 0.0
-            for j in range(m):
+            for q in range(pat[i, 1]):
+                j = pat[i, 2 + q]
                 s += a[i, j] * c[k - 1, j]
             c[k, i] = f * s
             big = max(big, abs(c[k, i]))
@@ -83,10 +87,29 @@ def _taylor(a, z, sigma, c):
 
 
 @njit(cache=True, nogil=True)
-def _flow(a, z, sigma, out, terms):
-    """out = exp(a * sigma) @ z (a: (NZ, NZ) per time unit, |a| sigma < 1): the Taylor series of
-    :func:`_taylor`, its terms kept in ``terms``, summed by :func:`_state_at`."""
-    _state_at(terms, _taylor(a, z, sigma, terms), z, 1.0, out)
+def sparsity(a_const, a_coup, a_damp):
+    """Per region, per row i < ZI + 1 of the continuous matrix: ``[n, n_m, j_1 .. j_n]``, the columns
+    that can be non-zero (in a_const, a_coup or a_damp) in order, n_m of them below ZI + 1
+    (:attr:`KernelModel.a_pattern`)."""
+    nreg = a_const.shape[0]
+    m = ZI + 1
+    pat = np.zeros((nreg, m, NZ + 2), dtype=np.uint64)   # unsigned: no wraparound test when indexing
+    for r in range(nreg):
+        for i in range(m):
+            for j in range(NZ):
+                if a_const[r, i, j] != 0.0 or a_coup[r, i, j] != 0.0 or a_damp[r, i, j] != 0.0:
+                    pat[r, i, 2 + pat[r, i, 0]] = j
+                    pat[r, i, 0] += 1
+                    if j < m:
+                        pat[r, i, 1] += 1
+    return pat
+
+
+@njit(cache=True, nogil=True)
+def _flow(a, pat, z, sigma, out, terms):
+    """out = exp(a * sigma) @ z (a: (NZ, NZ) per time unit, |a| sigma < 1, its pattern ``pat``): the
+    Taylor series of :func:`_taylor`, its terms kept in ``terms``, summed by :func:`_state_at`."""
+    _state_at(terms, _taylor(a, pat, z, sigma, terms), z, 1.0, out)
 
 
 @njit(cache=True, nogil=True)
@@ -239,7 +262,7 @@ def _guard_ends(guards, open_seated, open_index, r, j, z, zn, seated):
 
 
 @njit(cache=True, nogil=True)
-def _locate_first(guards, open_seated, open_index, target, amat, r, z, zn, rem, seated, zt, zb, terms):
+def _locate_first(guards, open_seated, open_index, target, amat, pat, r, z, zn, rem, seated, zt, zb, terms):
     """The guard of region r that fires first between z and zn (``rem`` µs later; ``amat`` the
     region's continuous matrix). Returns (j, s): the guard (-1: none) and the time after z at which
     it is positive; the state there is left in zb. Called only when some guard crosses.
@@ -254,7 +277,7 @@ def _locate_first(guards, open_seated, open_index, target, amat, r, z, zn, rem, 
         if g0 <= 0.0 and g1 > 0.0:
             g = open_seated[r] if spring_only else guards[r, j]
             if nterms == 0:     # the flow's terms, shared by the guards that cross in this interval
-                nterms = _taylor(amat, z, rem, terms)
+                nterms = _taylor(amat, pat, z, rem, terms)
             s = _locate(terms, nterms, g, z, rem, zt)
             if s < best_s or best < 0:
                 best_s = s
@@ -293,7 +316,7 @@ def _transition(aut, r, j, z, seated, nev, t_ev, b, out):
 def _nonzeros(rows):
     """Per row of ``rows`` (R, NZ): the indices of its non-zero entries in order (R, NZ) and their count."""
     nr = rows.shape[0]
-    idx = np.zeros((nr, NZ), dtype=np.int64)
+    idx = np.zeros((nr, NZ), dtype=np.uint64)     # unsigned: indexing with them needs no wraparound test
     cnt = np.zeros(nr, dtype=np.int64)
     for a in range(nr):
         for i in range(NZ):
@@ -341,6 +364,7 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
     g_idx, g_cnt = _nonzeros(guards.reshape((nreg * 3, NZ)))
     s_idx, s_cnt = _nonzeros(open_seated)
     c_idx, c_cnt = _nonzeros(cout)
+    pattern = model.a_pattern
     for b in range(nb):
         have[:] = False
         have_a[:] = False
@@ -420,7 +444,7 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
                         zn[V4] = s8
                     zn[ZI] = zi + h * zd
                 else:   # the rest of a sample after an event
-                    _flow(_continuous(model, cand, b, r, amat, have_a), z, rem, zn, terms)
+                    _flow(_continuous(model, cand, b, r, amat, have_a), pattern[r], z, rem, zn, terms)
                 # does a guard cross? automaton.guard_value at both ends, written out: as an inlined
                 # call it made the whole simulation 35 % slower (speed-sim)
                 crosses = False
@@ -455,8 +479,8 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
                         z[i] = zn[i]
                     break
                 best, best_s = _locate_first(guards, open_seated, open_index, target,
-                                             _continuous(model, cand, b, r, amat, have_a), r, z, zn, rem, seated,
-                                             zt, zb, terms)
+                                             _continuous(model, cand, b, r, amat, have_a), pattern[r], r, z, zn,
+                                             rem, seated, zt, zb, terms)
                 for i in range(NZ):
                     z[i] = zb[i]
                 t_ev = k * h + (h - rem) + best_s
