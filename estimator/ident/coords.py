@@ -43,11 +43,14 @@ class NuLh(NamedTuple):
 TO_SI = np.array([1.0, 1.0 / UM_PER_M])
 
 
+_COV_TO_SI = np.outer(TO_SI, TO_SI)
+
+
 def cov_to_si(cov_um: np.ndarray) -> np.ndarray:
     """A (2, 2) covariance in (N/V, µm) converted to (N/V, m)."""
-    return cov_um * np.outer(TO_SI, TO_SI)
+    return cov_um * _COV_TO_SI
 
 
 def cov_from_si(cov_m: np.ndarray) -> np.ndarray:
     """A (2, 2) covariance in (N/V, m) converted to (N/V, µm)."""
-    return cov_m / np.outer(TO_SI, TO_SI)
+    return cov_m / _COV_TO_SI

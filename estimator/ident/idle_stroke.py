@@ -118,7 +118,7 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
     if not fit.success:
         return rejected("simulation failed at the optimum", evaluations)
     x = fit.x
-    tol = np.array(config.tol) * 5
+    tol = (config.tol[0] * 5, config.tol[1] * 5)
     if box.at_bound(x, tol):
         status, msg = Status.AT_BOUND, "estimate at a search bound"
     elif not converged:

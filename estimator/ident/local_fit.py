@@ -7,6 +7,7 @@ directions of that model until the Gauss–Newton step is within a fraction of a
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -121,6 +122,19 @@ def _compiled_fit(cf: CycleFit) -> LocalFit:
     return fit
 
 
+def _within(v: np.ndarray, tol: tuple[float, float], k: float, cov: np.ndarray | None = None) -> bool:
+    """Both |components| of ``v`` at most max(tol_i, k sigma_i) (sigma_i from ``cov``'s diagonal;
+    just tol_i without ``cov``); False where that bound is NaN, as numpy's comparison is."""
+    for i in range(2):
+        bound = tol[i]
+        if cov is not None:
+            s = k * math.sqrt(abs(float(cov[i, i])))
+            bound = bound if s < bound else s       # np.maximum: NaN wins
+        if not float(v[i]) <= bound:
+            return False
+    return True
+
+
 def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.ndarray, box: Box,
            config: IdentConfig, max_cycles: int | None = None, j0: float | None = None,
            batched: bool = False) -> tuple[LocalFit, bool, int]:
@@ -132,7 +146,7 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
     """
     x, j = box.clip(x0.astype(float)), j0
     d, st = directions, steps
-    tol = np.array(config.tol)
+    tol = tuple(config.tol)
     converged = False
     cycles = 0
     f = cost_fn(model)
@@ -162,19 +176,18 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
             fit = fit_with_jacobian(model, x, jac) if jac is not None else local_fit(model, x, box)
         if not fit.success:
             return fit, False, cycles
-        move = np.abs(x - start)
+        # converged when the last cycle hardly moved, or when the Gauss–Newton model puts the
+        # minimum within a quarter standard deviation (or the tolerance) of where we are (2-vectors
+        # as floats: the same comparisons as numpy's, NaN included, without its per-call overhead)
+        if _within(np.abs(x - start), tol, 0.0) or _within(np.abs(fit.gn_step), tol, 0.25, fit.cov_x):
+            converged = True
+            break
         d, w = fit.directions
         # next steps: two standard deviations along each direction, at least the tolerance
         sd = np.sqrt(np.maximum(fit.sigma_v ** 2 / np.maximum(w, 1e-300), 0.0))
         st = np.minimum(np.maximum(2.0 * sd, 4 * min(tol)), 2.0)   # np.clip, without its overhead
         j = fit.criterion
-        # converged when the last cycle hardly moved, or when the Gauss–Newton model puts the
-        # minimum within a quarter standard deviation (or the tolerance) of where we are
         sigma_x = np.sqrt(np.abs(np.diag(fit.cov_x)))
-        close = np.maximum(tol, 0.25 * sigma_x)
-        if np.all(move <= tol) or np.all(np.abs(fit.gn_step) <= close):
-            converged = True
-            break
         if batched and np.all(np.abs(fit.gn_step) <= 4.0 * np.maximum(sigma_x, tol)):
             # near the minimum already: one Gauss–Newton step is cheaper than another cycle
             x_gn = box.clip(x + fit.gn_step)

@@ -36,8 +36,8 @@ class Box:
             lo, hi = max(lo, min(a, b)), min(hi, max(a, b))
         return lo, hi
 
-    def at_bound(self, x: np.ndarray, tol: np.ndarray) -> bool:
-        """True if x lies within tol of a bound."""
+    def at_bound(self, x: np.ndarray, tol) -> bool:
+        """True if x lies within tol (two numbers: N/V, µm) of a bound."""
         return any(x[i] <= self.lo[i] + tol[i] or x[i] >= self.hi[i] - tol[i] for i in range(2))
 
 

@@ -332,7 +332,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
         st.rejected += 1
         return st, _publish(held, rejected(problem), Status.REJECTED, problem, sim, inj, predict=False)
 
-    cold = not st.initialized or not np.all(np.isfinite(st.x[:2]))   # a prior counts as initialized
+    cold = not (st.initialized and math.isfinite(st.x[0]) and math.isfinite(st.x[1]))   # a prior counts
     x0 = held[0][:2] if held is not None else None
     raw = _cold_estimate(st, inj, sim, config) if cold else _warm_estimate(st, x0, inj, sim, config, box)
     if raw.status == Status.REJECTED:
@@ -348,7 +348,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
         raw = _cold_estimate(st, inj, sim, config)
     z = raw.point.array()
     r = _robust_cov(raw, config)
-    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(z))):
+    if not all(map(math.isfinite, r.ravel().tolist() + z.tolist())):
         st.rejected += 1
         return st, _publish(held, raw, Status.REJECTED, "no curvature at the optimum", sim, inj, predict=False)
 
