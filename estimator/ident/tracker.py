@@ -574,7 +574,9 @@ class Tracker:
 
         A sample period the pool refuses gives a ``rejected`` result and leaves the state alone.
         """
-        state = self.states.get(inj.injector_id, TrackerState())
+        state = self.states.get(inj.injector_id)
+        if state is None:
+            state = TrackerState()
         refusal = self.pool.refusal(inj.dt_s)
         if refusal is not None:
             return _publish(None, rejected(refusal), Status.REJECTED, refusal, None, inj, False)
