@@ -2,16 +2,17 @@
 
 :func:`estimator.ident.local_fit.refine` with ``batched=True`` runs, per cycle, the conjugate
 stencil (five candidates), both parabolic vertices, the stencil's central-difference Jacobian, one
-simulation at the vertex and the Gauss–Newton model there. In Python those are two kernel calls and
-some forty small numpy operations around them (≈ 0.25 ms per warm update against ≈ 0.15 ms in the
-kernel). :func:`warm_cycle` does the same arithmetic in one call; it is the compiled twin of
+simulation at the vertex and the Gauss–Newton model there. In Python those were two kernel calls
+and some forty small numpy operations around them (≈ 0.25 ms per warm update, more than the kernel
+itself). :func:`warm_cycle` does the same arithmetic in one call; it is the compiled twin of
 :func:`search.conjugate_stencil`, :func:`search.conjugate_vertex`, :meth:`cost.CostModel.cost_of`,
 :func:`cost.noise_sigma_v` and :func:`local_fit._fit_from`, and ``tests/test_speed_parts.py``
 holds the two to the same results (to rounding: sums are taken in another order than numpy's).
+:func:`forward_fit` is the same for :func:`local_fit.local_fit` (x and two forward differences).
 
-Only the common case is compiled: every stencil point inside the box with L_h > 0, both parabolas
-convex and within the trust region, every simulation successful. Anything else returns
-``CYCLE_PARTIAL`` or ``CYCLE_FALLBACK`` and the caller continues in Python from there.
+Only the common case is compiled: every point inside the box with L_h > 0, both parabolas convex
+and within the trust region, every simulation successful. Anything else returns ``CYCLE_PARTIAL``
+or ``CYCLE_FALLBACK`` and the caller continues in Python from there.
 """
 
 from __future__ import annotations
