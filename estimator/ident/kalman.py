@@ -85,16 +85,13 @@ def _predict(x, p, dt, dtemp, tau, nu_inj, q_nu, q_rate, lh_inj, q_lh, q_slope, 
         for j in range(N_STATE):
             for k in range(N_STATE):
                 pn[i, j] += fp[i, k] * f[j, k]
-    return xn, _cap(pn, max_var)
-
-
-def cap(p: np.ndarray, max_var) -> np.ndarray:
-    """``p`` with each variance at most its cap (rows and columns scaled, so it stays positive definite)."""
-    return _cap(np.asarray(p, dtype=float), np.asarray(max_var, dtype=float))
+    return xn, cap(pn, max_var)
 
 
 @njit(cache=True, nogil=True)
-def _cap(p, max_var):
+def cap(p, max_var):
+    """``p`` with each variance at most its cap ``max_var`` (rows and columns scaled, so it stays
+    positive definite)."""
     n = p.shape[0]
     d = np.empty(n)
     for i in range(n):
