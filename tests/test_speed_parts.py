@@ -192,3 +192,17 @@ def test_compiled_forward_fit_is_the_python_one(sim, robust):
     assert cc.run_forward_fit(m, np.array([17.0, -0.001]), np.array([2e-3, 2e-3]), low).code == cc.CYCLE_FALLBACK
     fit = local_fit(m, np.array([17.0, -0.001]), low)    # pre-compressed: in Python
     assert m.evaluations == 3 and fit.success and np.isfinite(fit.criterion)
+
+
+@pytest.mark.parametrize("n", [201, 200])
+def test_noise_level_is_the_middle_absolute_difference(n):
+    """The one noise estimate both fit paths use: the upper middle of the sorted |first differences|,
+    as a white-noise sigma (MAD of a difference of two samples), floored at 1 mV."""
+    from estimator.ident.cost import MAD_PER_SIGMA, NOISE_FLOOR_V, noise_sigma_v
+    rng = np.random.default_rng(n)
+    r = rng.normal(0.0, 0.1, n) + np.linspace(0.0, 3.0, n)     # a smooth trend differencing removes
+    d = np.sort(np.abs(np.diff(r)))
+    assert noise_sigma_v(r) == d[d.size // 2] / MAD_PER_SIGMA / np.sqrt(2.0)
+    e = np.sort(np.abs(np.diff(r[::2])))                        # a strided view is read right
+    assert noise_sigma_v(r[::2]) == e[e.size // 2] / MAD_PER_SIGMA / np.sqrt(2.0)
+    assert noise_sigma_v(np.zeros(n)) == NOISE_FLOOR_V

@@ -5,9 +5,10 @@ stencil (five candidates), both parabolic vertices, the stencil's central-differ
 simulation at the vertex and the Gauss–Newton model there. In Python those were two kernel calls
 and some forty small numpy operations around them (≈ 0.25 ms per warm update, more than the kernel
 itself). :func:`warm_cycle` does the same arithmetic in one call; it is the compiled twin of
-:func:`search.conjugate_stencil`, :func:`search.conjugate_vertex`, :meth:`cost.CostModel.cost_of`,
-:func:`cost.noise_sigma_v` and :func:`local_fit._fit_from`, and ``tests/test_speed_parts.py``
-holds the two to the same results (to rounding: sums are taken in another order than numpy's).
+:func:`search.conjugate_stencil`, :func:`search.conjugate_vertex`, :meth:`cost.CostModel.cost_of`
+and :func:`local_fit._fit_from` (the noise level is :func:`cost.noise_sigma` itself), and
+``tests/test_speed_parts.py`` holds the two to the same results (to rounding: sums are taken in
+another order than numpy's).
 :func:`forward_fit` is the same for :func:`local_fit.local_fit` (x and two forward differences).
 
 Only the common case is compiled: every point inside the box with L_h > 0, both parabolas convex
@@ -23,7 +24,7 @@ import numpy as np
 from numba import njit
 
 from estimator.ident.coords import UM_PER_M
-from estimator.ident.cost import MAD_PER_SIGMA, NOISE_FLOOR_V, CostModel
+from estimator.ident.cost import CostModel, noise_sigma
 from estimator.ident.search import TRUST_STEPS, Box
 from estimator.model import kernel
 from estimator.model.dynamics import NZ
@@ -105,17 +106,6 @@ def _parabola(a0, a1, a2, j0, j1, j2):
     if not c2 > 0.0:
         return np.nan, np.nan
     return -c1 / (2 * c2), 2 * c2
-
-
-@njit(cache=True, nogil=True)
-def _noise_sigma(r):
-    """cost.noise_sigma_v: the MAD of first differences as a white-noise sigma (V), floored."""
-    n = r.shape[0]
-    d = np.empty(n - 1)
-    for k in range(n - 1):
-        d[k] = abs(r[k + 1] - r[k])
-    mad = np.partition(d, (n - 1) // 2)[(n - 1) // 2]
-    return max(mad / MAD_PER_SIGMA / np.sqrt(2.0), NOISE_FLOOR_V)
 
 
 @njit(cache=True, nogil=True)
@@ -243,7 +233,7 @@ def _gauss_newton(measured, weights, l1, u, r0, u_ok, success, jac):
         for k in range(n):
             jr[p] += jac[p, k] * r0[k]
     fine = success and np.all(np.isfinite(jtj))
-    sigma = _noise_sigma(r0) if fine else np.nan
+    sigma = noise_sigma(r0) if fine else np.nan
     det = jtj[0, 0] * jtj[1, 1] - jtj[0, 1] * jtj[1, 0] if fine else 0.0
     cov = np.full((2, 2), np.inf)
     step = np.zeros(2)

@@ -84,9 +84,17 @@ def noise_sigma_v(residual_v: np.ndarray) -> float:
 
     Differencing removes smooth model errors; the median ignores isolated spikes.
     """
-    d = np.abs(np.diff(residual_v))
-    k = d.size // 2
-    mad = float(np.partition(d, k)[k])
+    return float(noise_sigma(np.ascontiguousarray(residual_v, dtype=float)))
+
+
+@njit(cache=True, nogil=True)
+def noise_sigma(r):
+    """:func:`noise_sigma_v` of a contiguous float array, callable from compiled code."""
+    n = r.shape[0]
+    d = np.empty(n - 1)
+    for k in range(n - 1):
+        d[k] = abs(r[k + 1] - r[k])
+    mad = np.partition(d, (n - 1) // 2)[(n - 1) // 2]
     return max(mad / MAD_PER_SIGMA / np.sqrt(2.0), NOISE_FLOOR_V)
 
 
