@@ -27,7 +27,6 @@ from estimator.ident.coords import UM_PER_M
 from estimator.ident.cost import CostModel, noise_sigma
 from estimator.ident.search import TRUST_STEPS, Box
 from estimator.model import kernel
-from estimator.model.dynamics import NZ
 
 CYCLE_FIT, CYCLE_PARTIAL, CYCLE_FALLBACK = 0, 1, 2
 """Outcomes: the fit at the vertex is done; the vertex is known but a direction or the fit needs
@@ -117,11 +116,26 @@ def _simulate(sim_model, aut, src, h, pts, fo, cur):
     for b in range(nb):
         nu[b] = pts[b, 0]
         lh[b] = pts[b, 1] / UM_PER_M
-    z0 = np.full((nb, NZ), np.nan)
-    u, _, _, _, tc, to, _, success = kernel.run_batch(
-        sim_model, aut, src, True, np.zeros((1, 4), dtype=np.int64), np.zeros((1, 4)), nu, lh, np.full(nb, fo),
-        z0, np.zeros(nb, dtype=np.int64), cur, h)
+    u, _, _, _, tc, to, _, success = kernel.run_from_rest(sim_model, aut, src, nu, lh, np.full(nb, fo), cur, h)
     return u, success, tc, to
+
+
+@njit(cache=True, nogil=True)
+def _simulable(pts, fo, cur, nu_lo, nu_hi):
+    """Whether the compiled path can simulate the points (B, 2) in (N/V, µm): :func:`kernel.check_inputs`
+    passes and no point needs a pre-compressed start (L_h <= 0)."""
+    code, n_neg = kernel.check_inputs(cur, pts[:, 0].copy(), pts[:, 1].copy(), np.full(pts.shape[0], fo),
+                                      nu_lo, nu_hi)
+    return code == kernel.INPUTS_OK and n_neg == 0
+
+
+@njit(cache=True, nogil=True)
+def _no_fit(code, evaluations, x, ok, jac):
+    """The :class:`CycleFit` tuple of a cycle that stopped before the fit (NaN fields)."""
+    n = jac.shape[1]
+    nan22 = np.full((2, 2), np.nan)
+    return (code, evaluations, x, ok, jac, np.nan, np.nan, nan22, np.full(2, np.nan), np.nan, nan22.copy(),
+            np.full(n, np.nan), np.nan, np.nan, False, nan22.copy(), np.full(2, np.nan))
 
 
 @njit(cache=True, nogil=True)
@@ -138,8 +152,6 @@ def warm_cycle(sim_model, aut, src, h, nu_lo, nu_hi, cur, fo, measured, weights,
     """
     n = cur.shape[0]
     nanjac = np.full((2, n), np.nan)
-    empty = np.full(n, np.nan)
-    nan22 = np.full((2, 2), np.nan)
     # the stencil {x0, x0 -/+ s1 d1, x0 -/+ s2 d2}, moved into the box
     cand = np.empty((5, 2))
     pts = np.empty((5, 2))
@@ -150,19 +162,14 @@ def warm_cycle(sim_model, aut, src, h, nu_lo, nu_hi, cur, fo, measured, weights,
         cand[3, i] = x0[i] - st[1] * d[i, 1]
         cand[4, i] = x0[i] + st[1] * d[i, 1]
     inside = True
-    simulable = True
     for b in range(5):
         for i in range(2):
             v = min(max(cand[b, i], lo[i]), hi[i])
             pts[b, i] = v
             if v != cand[b, i]:
                 inside = False
-        if not (pts[b, 1] > 0.0 and nu_lo <= pts[b, 0] <= nu_hi and np.isfinite(pts[b, 0])):
-            simulable = False
-    code, _ = kernel.check_inputs(cur, pts[:, 0].copy(), pts[:, 1].copy(), np.full(5, fo), nu_lo, nu_hi)
-    if not simulable or code != kernel.INPUTS_OK:
-        return (CYCLE_FALLBACK, 0, x0.copy(), np.zeros(2, dtype=np.bool_), nanjac, np.nan, np.nan, nan22,
-                np.full(2, np.nan), np.nan, nan22, empty, np.nan, np.nan, False, nan22, np.full(2, np.nan))
+    if not _simulable(pts, fo, cur, nu_lo, nu_hi):
+        return _no_fit(CYCLE_FALLBACK, 0, x0.copy(), np.zeros(2, dtype=np.bool_), nanjac)
     u, success, _, _ = _simulate(sim_model, aut, src, h, pts, fo, cur)
     r = np.empty((5, n))
     _residuals(measured, u, basis, project, r)
@@ -183,8 +190,7 @@ def warm_cycle(sim_model, aut, src, h, nu_lo, nu_hi, cur, fo, measured, weights,
         x[i] = min(max(x[i], lo[i]), hi[i])
     all_ok = success[0] and success[1] and success[2] and success[3] and success[4]
     if not (inside and ok[0] and ok[1] and all_ok):
-        return (CYCLE_PARTIAL, 5, x, ok, nanjac, np.nan, np.nan, nan22, np.full(2, np.nan), np.nan, nan22,
-                empty, np.nan, np.nan, False, nan22, np.full(2, np.nan))
+        return _no_fit(CYCLE_PARTIAL, 5, x, ok, nanjac)
     # the stencil's central differences along d1, d2 are the Gauss–Newton Jacobian: dU/dx = D dU/dalpha
     jac = np.empty((2, n))
     for k in range(n):
@@ -193,8 +199,7 @@ def warm_cycle(sim_model, aut, src, h, nu_lo, nu_hi, cur, fo, measured, weights,
         jac[0, k] = d[0, 0] * ja0 + d[0, 1] * ja1
         jac[1, k] = d[1, 0] * ja0 + d[1, 1] * ja1
     if not x[1] > 0.0:      # a pre-compressed start at the vertex: the fit is made in Python
-        return (CYCLE_PARTIAL, 5, x, ok, jac, np.nan, np.nan, nan22, np.full(2, np.nan), np.nan, nan22,
-                empty, np.nan, np.nan, False, nan22, np.full(2, np.nan))
+        return _no_fit(CYCLE_PARTIAL, 5, x, ok, jac)
     # the local fit at the vertex with that Jacobian (local_fit._fit_from)
     xv = np.empty((1, 2))
     xv[0, 0] = x[0]
@@ -270,16 +275,8 @@ def forward_fit(sim_model, aut, src, h, nu_lo, nu_hi, cur, fo, measured, weights
         pts[b, 1] = x[1]
     pts[1, 0] += steps[0]
     pts[2, 1] += steps[1]
-    simulable = True
-    for b in range(3):
-        if not (pts[b, 1] > 0.0 and nu_lo <= pts[b, 0] <= nu_hi):
-            simulable = False
-    code, _ = kernel.check_inputs(cur, pts[:, 0].copy(), pts[:, 1].copy(), np.full(3, fo), nu_lo, nu_hi)
-    nan22 = np.full((2, 2), np.nan)
-    if not simulable or code != kernel.INPUTS_OK:
-        return (CYCLE_FALLBACK, 0, x.copy(), np.zeros(2, dtype=np.bool_), np.full((2, n), np.nan), np.nan, np.nan,
-                nan22, np.full(2, np.nan), np.nan, nan22, np.full(n, np.nan), np.nan, np.nan, False, nan22,
-                np.full(2, np.nan))
+    if not _simulable(pts, fo, cur, nu_lo, nu_hi):
+        return _no_fit(CYCLE_FALLBACK, 0, x.copy(), np.zeros(2, dtype=np.bool_), np.full((2, n), np.nan))
     u, success, tc, to = _simulate(sim_model, aut, src, h, pts, fo, cur)
     r = np.empty((3, n))
     _residuals(measured, u, basis, project, r)

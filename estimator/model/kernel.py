@@ -594,12 +594,18 @@ def run_batch(model, aut, src, stencil, idx_in, w_in, nu, lh, fo, z0_given, regi
 
 
 @njit(cache=True, nogil=True)
+def run_from_rest(model, aut, src, nu, lh, fo, cur, h):
+    """:func:`run_batch` for candidates that start at rest (L_h > 0) with N_u interpolated in the table."""
+    nb = nu.shape[0]
+    return run_batch(model, aut, src, True, np.zeros((1, 4), dtype=np.int64), np.zeros((1, 4)), nu, lh, fo,
+                     np.full((nb, NZ), np.nan), np.zeros(nb, dtype=np.int64), cur, h)
+
+
+@njit(cache=True, nogil=True)
 def valve_prediction(model, aut, src, nu, lh, fo, cur, h, k0, k1):
     """Contact time, opening time (s) and the mean plunger stroke (m) over samples k0 <= k < k1
     (NaN if k0 >= k1) of one candidate (``nu``, ``lh``, ``fo`` of size 1, L_h > 0) from rest."""
-    z0 = np.full((1, NZ), np.nan)
-    _, _, s4, _, tc, to, _, _ = run_batch(model, aut, src, True, np.zeros((1, 4), dtype=np.int64), np.zeros((1, 4)),
-                                         nu, lh, fo, z0, np.zeros(1, dtype=np.int64), cur, h)
+    _, _, s4, _, tc, to, _, _ = run_from_rest(model, aut, src, nu, lh, fo, cur, h)
     stroke = np.nan
     if k1 > k0:
         stroke = np.mean(s4[0, k0:k1])
