@@ -514,7 +514,7 @@ def _carry_search(st: TrackerState, raw: Estimate, r: np.ndarray, config: Tracke
     one injection's process noise and the raw estimate's own scatter.
     """
     (a, b), (c, d) = raw.jtj.tolist()
-    if not (math.isfinite(a + b + c + d) and a * d - b * c > 1e-14 * a * d):
+    if not (all(map(math.isfinite, (a, b, c, d))) and a * d - b * c > 1e-14 * a * d):
         return
     v = raw.directions.tolist()
     (e00, e01), (e10, e11) = r.tolist()

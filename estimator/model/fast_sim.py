@@ -281,8 +281,8 @@ class FastSimulator:
         self._check_inputs(cur, nu, lh, fo)
         ks = plateau_samples(self._times(cur.size), window_s)
         k0, k1 = ks if ks is not None else (0, 0)
-        tc, to, stroke = kernel.valve_prediction(self._model, self.automaton, self._table(), nu, lh, fo, cur,
-                                                 self.dt_s * dyn.TIME_SCALE, k0, k1)
+        h = self.kernel_handle()
+        tc, to, stroke = kernel.valve_prediction(h.model, h.automaton, h.table, nu, lh, fo, cur, h.h_us, k0, k1)
         return float(tc), float(to), float(stroke)
 
     def _check_inputs(self, cur: np.ndarray, nu: np.ndarray, lh: np.ndarray, fo: np.ndarray) -> int:
