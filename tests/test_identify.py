@@ -140,3 +140,61 @@ def test_the_plain_and_robust_searches_share_their_grids_without_changing_either
     est = identify(inj, sim)              # the automatic cold start shares them the same way
     assert est.evaluations < spent_alone - 13 * 25
     assert (est.nu_n_per_v, est.lh_m * 1e6) in [tuple(f.x) for f, _ in fits_together]
+
+
+def _full_grid_profile_start(f, box, config):
+    """The profile search with every row of every zoom column simulated (the reference)."""
+    from estimator.ident.cold_start import _column_minima
+    nu = np.linspace(box.lo[0], box.hi[0], config.grid[0])
+    lh = np.linspace(box.lo[1], box.hi[1], config.grid[1])
+    for zoom in range(config.zooms + 1):
+        pts = np.stack(np.meshgrid(nu, lh, indexing="ij"), axis=-1).reshape(-1, 2)
+        prof, lh_best = _column_minima(f(pts).reshape(nu.size, lh.size), lh)
+        i = int(np.argmin(prof))
+        if zoom < config.zooms:
+            nu = np.linspace(nu[max(i - 1, 0)], nu[min(i + 1, nu.size - 1)], config.zoom_points)
+    return box.clip(np.array([nu[i], lh_best[i]]))
+
+
+@pytest.mark.parametrize("nu_true,lh_true,slope", [(17.3, 4.1, -20.0), (15.2, -1.4, -20.0), (20.8, 9.6, 3.0),
+                                                   (18.0, 0.2, 40.0)])
+def test_zoom_columns_simulate_a_window_of_rows_and_find_the_full_grids_start(nu_true, lh_true, slope):
+    """Issue #14: a zoom column simulates only the rows near its neighbours' minima (widened where
+    its minimum lands on the window's edge) and the start point is the full grid's, bit for bit,
+    for a narrow sloping valley like eq. 28's (slope in µm per N/V)."""
+    from estimator.ident.cold_start import profile_start
+    from estimator.ident.search import Box
+
+    evaluated = []
+
+    def f(x):
+        evaluated.append(len(x))
+        valley = lh_true + slope * (x[:, 0] - nu_true)
+        return (x[:, 1] - valley) ** 2 + 30.0 * (x[:, 0] - nu_true) ** 2
+
+    config = IdentConfig()
+    box = Box(np.array([14.9, -2.0]), np.array([21.1, 10.0]))
+    x = profile_start(f, box, config)[0]
+    windowed = sum(evaluated)
+    np.testing.assert_array_equal(x, _full_grid_profile_start(f, box, config))
+    full = 13 * 25 + 2 * 9 * 25
+    assert windowed < full - 2 * 9 * 12       # the zooms simulated fewer than half their rows
+
+
+def test_window_widens_until_the_column_minimum_is_inside():
+    """A window that misses a column's minimum grows towards it until the minimum and both its
+    neighbours are simulated: the same column minima as the whole column."""
+    from estimator.ident.cold_start import _column_minima, _window_profile
+
+    nu = np.array([15.0, 16.0, 17.0])
+    lh = np.linspace(-2.0, 10.0, 25)
+    target = np.array([-1.9, 4.3, 9.9])
+
+    def f(x):
+        return (x[:, 1] - target[np.searchsorted(nu, x[:, 0])]) ** 2
+
+    full = f(np.stack(np.meshgrid(nu, lh, indexing="ij"), axis=-1).reshape(-1, 2)).reshape(3, 25)
+    got = _window_profile(f, nu, lh, np.array([12, 0, 3]), np.array([14, 2, 5]), 2)
+    want = _column_minima(full, lh)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w)
