@@ -9,7 +9,7 @@ is a smooth, unimodal function of N_u. So the search is
 1. the coarse grid (columns of N_u, rows of L_h), each column's minimum refined by a parabola;
 2. ``zooms`` times: ``zoom_points`` columns between the neighbours of the best column (the span
    shrinks by ``(zoom_points - 1) / 2`` per zoom), each simulating only the L_h rows between its
-   neighbours' minima and a margin (:func:`_window_profile`; 35 % fewer simulations per cold start,
+   neighbours' minima and a margin (:func:`_window_profile`; 20–45 % fewer simulations per cold start,
    the same start point where a column's cost has one minimum near the valley);
 3. conjugate-direction refinement (:func:`estimator.ident.local_fit.refine`) from the best point.
 
