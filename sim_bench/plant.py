@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from estimator.model.drive import SAMPLE_PERIOD_S, ChopperRipple, Drive, StandardDrive, sample_times
+from estimator.model.drive import SAMPLE_PERIOD_S, ChopperRipple, Drive, StandardDrive, sample_count, sample_times
 from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
 
 # Prandtl–Ishlinskii operator of the mismatch plant: thresholds in C, weights in V/C. The paper
@@ -138,7 +138,7 @@ class Plant:
             r_model = psa.resistance_ohm(nu_n_per_v)
             scale = r_model / psa.resistance_ohm(PI_NU_REF_N_PER_V)
             u = u - r_model * cur + scale * pi_hysteresis(q) + SERIES_RESISTANCE_OHM * cur
-        n_meas = int(round(cfg.window_s / cfg.dt_s)) + 1
+        n_meas = sample_count(cfg.window_s, cfg.dt_s)
         idx = np.arange(n_meas) * m
         clean_u, clean_i = u[idx], cur[idx]
         adc = cfg.adc

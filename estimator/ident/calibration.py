@@ -19,6 +19,7 @@ import numpy as np
 from scipy.optimize import least_squares, minimize
 
 from estimator.ident.measurement import Injection
+from estimator.model.drive import sample_count
 from estimator.model.parameters import InjectorParameters, load_nominal
 from estimator.model.psa_lti import simulate_psa
 
@@ -87,7 +88,7 @@ def calibrate(traces: list[CalibrationTrace], base: InjectorParameters | None = 
         prob = inj.problem()
         if prob:
             raise ValueError(f"calibration trace at {tr.temperature_c} degC: {prob}")
-        k = min(inj.n, int(round(window_s / inj.dt_s)) + 1)
+        k = min(inj.n, sample_count(window_s, inj.dt_s))
         w = np.full(k, inj.dt_s)
         w[[0, -1]] *= 0.5
         sets.append((inj.current_a[:k], inj.voltage_v[:k], tr.s3_m[:k], inj.dt_s, w))

@@ -5,7 +5,8 @@ stencil (five candidates), both parabolic vertices, the stencil's central-differ
 simulation at the vertex and the Gauss–Newton model there. In Python those were two kernel calls
 and some forty small numpy operations around them (≈ 0.25 ms per warm update, more than the kernel
 itself). :func:`warm_cycle` does the same arithmetic in one call; it is the compiled twin of
-:func:`search.conjugate_stencil`, :func:`search.conjugate_vertex`, :meth:`cost.CostModel.cost_of`
+:func:`search.conjugate_stencil`, :func:`search.conjugate_vertex` (whose parabola,
+:func:`search.parabola_vertex`, it calls), :meth:`cost.CostModel.cost_of`
 and :func:`local_fit._fit_from` (the noise level is :func:`cost.noise_sigma` itself), and
 ``tests/test_speed_parts.py`` holds the two to the same results (to rounding: sums are taken in
 another order than numpy's).
@@ -25,7 +26,7 @@ from numba import njit
 
 from estimator.ident.coords import UM_PER_M
 from estimator.ident.cost import CostModel, noise_sigma
-from estimator.ident.search import TRUST_STEPS, Box
+from estimator.ident.search import TRUST_STEPS, Box, parabola_vertex
 from estimator.model import kernel
 
 CYCLE_FIT, CYCLE_PARTIAL, CYCLE_FALLBACK = 0, 1, 2
@@ -92,19 +93,6 @@ def _costs(r, weights, l1, success):
             s += (abs(v) if l1 else v * v) * weights[k]
         j[b] = s if (success[b] and np.isfinite(s)) else np.inf
     return j
-
-
-@njit(cache=True, nogil=True)
-def _parabola(a0, a1, a2, j0, j1, j2):
-    """Vertex and curvature of the parabola through three points; (nan, nan) unless convex."""
-    den = (a0 - a1) * (a0 - a2) * (a1 - a2)
-    if den == 0.0 or not (np.isfinite(j0) and np.isfinite(j1) and np.isfinite(j2)):
-        return np.nan, np.nan
-    c2 = (a2 * (j1 - j0) + a1 * (j0 - j2) + a0 * (j2 - j1)) / den
-    c1 = (a2 * a2 * (j0 - j1) + a1 * a1 * (j2 - j0) + a0 * a0 * (j1 - j2)) / den
-    if not c2 > 0.0:
-        return np.nan, np.nan
-    return -c1 / (2 * c2), 2 * c2
 
 
 @njit(cache=True, nogil=True)
@@ -181,7 +169,7 @@ def warm_cycle(sim_model, aut, src, h, nu_lo, nu_hi, cur, fo, measured, weights,
         a = np.empty(3)
         for q, p in enumerate((1 + 2 * i, 0, 2 + 2 * i)):
             a[q] = (pts[p, 0] - x0[0]) * d[0, i] + (pts[p, 1] - x0[1]) * d[1, i]
-        vx, _ = _parabola(a[0], a[1], a[2], j[1 + 2 * i], j[0], j[2 + 2 * i])
+        vx, _ = parabola_vertex(a[0], a[1], a[2], j[1 + 2 * i], j[0], j[2 + 2 * i])
         if np.isfinite(vx) and abs(vx) <= TRUST_STEPS * st[i] and a[0] < a[1] < a[2]:
             x[0] += vx * d[0, i]
             x[1] += vx * d[1, i]

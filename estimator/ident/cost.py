@@ -26,6 +26,7 @@ import numpy as np
 from numba import njit
 
 from estimator.ident.measurement import Injection
+from estimator.model.drive import sample_count
 from estimator.model.fast_sim import BatchResult, FastSimulator
 
 NUISANCE_THRESHOLDS = (0.04, 0.10, 0.25, 0.50)   # fractions of the window's final charge
@@ -157,7 +158,7 @@ class CostModel:
         if self.norm not in ("l1", "l2"):
             raise ValueError(f"norm must be 'l1' or 'l2', not {self.norm!r}")
         inj = self.injection
-        self.n = min(inj.n, int(round(self.window_s / inj.dt_s)) + 1)
+        self.n = min(inj.n, sample_count(self.window_s, inj.dt_s))
         self.current = np.ascontiguousarray(inj.current_a[: self.n])
         self.measured = np.ascontiguousarray(inj.voltage_v[: self.n])
         self.dt = inj.dt_s

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from estimator.ident.cost import nuisance_basis
+from estimator.model.drive import sample_count
 from estimator.model.fast_sim import FastSimulator
 
 FD = (1e-3, 1e-9)   # N/V, m
@@ -19,7 +20,7 @@ FD = (1e-3, 1e-9)   # N/V, m
 def crb(sim: FastSimulator, current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_open_n: float,
         sigma_v: float, window_s: float = 100e-6, robust: bool = False) -> np.ndarray:
     """Lower bound of the covariance of (N_u [N/V], L_h [m]), shape (2, 2)."""
-    n = min(current_a.size, int(round(window_s / sim.dt_s)) + 1)
+    n = min(current_a.size, sample_count(window_s, sim.dt_s))
     cur = np.ascontiguousarray(current_a[:n])
     nu = np.array([nu_n_per_v + FD[0], nu_n_per_v - FD[0], nu_n_per_v, nu_n_per_v])
     lh = np.array([lh_m, lh_m, lh_m + FD[1], lh_m - FD[1]])

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimator.errors import TraceError
-from estimator.model.drive import SAMPLE_PERIOD_REL_TOL, TableDrive
+from estimator.model.drive import SAMPLE_PERIOD_REL_TOL, TableDrive, sample_count
 
 MIN_WINDOW_S = 40e-6          # shorter windows hold too little of the charging phase to identify anything
 MAX_ABS_CURRENT_A = 100.0     # beyond any injector amplifier
@@ -87,7 +87,7 @@ class Injection:
 
     def window(self, t_end_s: float) -> "Injection":
         """The samples with t <= t_end_s (a view-sized copy)."""
-        k = min(self.n, int(round(t_end_s / self.dt_s)) + 1)
+        k = min(self.n, sample_count(t_end_s, self.dt_s))
         return Injection(self.current_a[:k], self.voltage_v[:k], self.dt_s, self.f_open_n,
                          self.injector_id, self.counter, self.temperature_c, self.time_s)
 

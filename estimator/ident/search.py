@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
+from numba import njit
 
 CostFn = Callable[[np.ndarray], np.ndarray]   # (B, 2) -> (B,)
 TRUST_STEPS = 2.5   # a conjugate vertex further than this many steps from the centre is not trusted
@@ -53,17 +54,24 @@ class LineResult:
     bracketed: bool
 
 
-def _parabola(a: np.ndarray, j: np.ndarray) -> tuple[float, float] | None:
-    """Vertex and curvature (2nd derivative) of the parabola through three points, if convex."""
-    (a0, a1, a2), (j0, j1, j2) = a, j
+@njit(cache=True, nogil=True)
+def parabola_vertex(a0: float, a1: float, a2: float, j0: float, j1: float, j2: float) -> tuple[float, float]:
+    """Vertex and curvature (2nd derivative) of the parabola through (a_i, j_i); (nan, nan) unless it
+    is convex and the three costs are finite (compiled: the warm cycle calls it too)."""
     den = (a0 - a1) * (a0 - a2) * (a1 - a2)
-    if den == 0 or not np.all(np.isfinite(j)):
-        return None
+    if den == 0.0 or not (np.isfinite(j0) and np.isfinite(j1) and np.isfinite(j2)):
+        return np.nan, np.nan
     c2 = (a2 * (j1 - j0) + a1 * (j0 - j2) + a0 * (j2 - j1)) / den
     c1 = (a2 * a2 * (j0 - j1) + a1 * a1 * (j2 - j0) + a0 * a0 * (j1 - j2)) / den
-    if c2 <= 0:
-        return None
+    if not c2 > 0.0:
+        return np.nan, np.nan
     return -c1 / (2 * c2), 2 * c2
+
+
+def _parabola(a: np.ndarray, j: np.ndarray) -> tuple[float, float] | None:
+    """:func:`parabola_vertex` of three points ``a`` and their costs ``j``; None unless convex."""
+    vertex, curvature = parabola_vertex(float(a[0]), float(a[1]), float(a[2]), float(j[0]), float(j[1]), float(j[2]))
+    return None if np.isnan(curvature) else (vertex, curvature)
 
 
 def line_search(f: CostFn, x0: np.ndarray, d: np.ndarray, step: float, box: Box, j0: float | None = None,

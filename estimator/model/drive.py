@@ -36,10 +36,14 @@ DISCHARGE_START_S = 500e-6
 STANDARD_AMPLITUDE_A = 4.2870333
 
 
+def sample_count(t_end_s: float, dt_s: float = SAMPLE_PERIOD_S) -> int:
+    """Number of sample instants 0, dt, ..., up to and including t_end (s)."""
+    return int(round(t_end_s / dt_s)) + 1
+
+
 def sample_times(t_end_s: float, dt_s: float = SAMPLE_PERIOD_S) -> np.ndarray:
     """Sample instants 0, dt, ..., up to and including t_end (s)."""
-    n = int(round(t_end_s / dt_s)) + 1
-    return np.arange(n) * dt_s
+    return np.arange(sample_count(t_end_s, dt_s)) * dt_s
 
 
 @runtime_checkable
@@ -156,9 +160,9 @@ class TableDrive(TimeFunction):
         return np.interp(np.asarray(t_s, dtype=float), self.t_s, self.current_a, left=0.0, right=0.0)
 
     def samples(self, t_end_s: float, dt_s: float = SAMPLE_PERIOD_S) -> np.ndarray:
-        n = int(round(t_end_s / dt_s)) + 1
         if self.dt_s is not None and abs(self.dt_s - dt_s) <= SAMPLE_PERIOD_REL_TOL * dt_s:
             # the same grid (within the period tolerance the identifier accepts): the samples themselves
+            n = sample_count(t_end_s, dt_s)
             out = np.zeros(n)
             k = min(n, self.current_a.size)
             out[:k] = self.current_a[:k]

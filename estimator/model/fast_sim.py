@@ -334,8 +334,8 @@ class FastSimulator:
         if free.any():
             lf = lh[free]
             self._check_inputs(cur, col_nu, lf, np.full(lf.size, float(f_open_n)))
-            u[free], ok[free] = kernel.grid_voltages(
-                self._model, self.automaton, self._table(), col_nu, col.astype(np.int64).ravel(), lf,
-                float(f_open_n), cur, self.dt_s * dyn.TIME_SCALE, FREE_RUN_LH_M)
+            h = self.kernel_handle()
+            u[free], ok[free] = kernel.grid_voltages(h.model, h.automaton, h.table, col_nu, col.astype(np.int64).ravel(),
+                                                     lf, float(f_open_n), cur, h.h_us, FREE_RUN_LH_M)
         u[~ok] = np.nan
         return u, ok
