@@ -198,3 +198,16 @@ def test_window_widens_until_the_column_minimum_is_inside():
     want = _column_minima(full, lh)
     for g, w in zip(got, want):
         np.testing.assert_array_equal(g, w)
+
+
+def test_a_single_bad_sample_anywhere_rejects_the_trace():
+    """One NaN or infinite sample, in either signal, at either end, names the problem."""
+    t = np.arange(201) * 0.5e-6
+    cur = 10.0 * np.sin(np.pi * t / 100e-6)
+    volt = 100.0 * (1 - np.cos(np.pi * t / 100e-6))
+    assert Injection(cur, volt, 0.5e-6).problem() is None
+    for signal, k, v in ((0, 0, np.nan), (0, 200, np.inf), (1, 200, np.nan), (1, 0, -np.inf), (1, 100, np.nan)):
+        i, u = cur.copy(), volt.copy()
+        (i if signal == 0 else u)[k] = v
+        assert Injection(i, u, 0.5e-6).problem() == "NaN or infinite samples"
+    assert Injection(cur.astype(np.float32), volt, 0.5e-6).problem() is None     # any float dtype

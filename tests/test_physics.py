@@ -94,3 +94,24 @@ def test_start_in_sigma3_is_infeasible(params):
     dyn.initial_state(params, NU, lh_min * 0.99, 28.0)
     with pytest.raises(dyn.InfeasibleError, match="would start open"):
         dyn.initial_state(params, NU, lh_min * 1.01, 28.0)
+
+
+def test_batched_precompressed_starts_are_initial_state_scaled(params):
+    """The simulators' batch of pre-compressed starts is initial_state's, row by row (soft and
+    stiff contact pieces, a start at rest left alone, an infeasible one marked and left alone)."""
+    lh_min = dyn.min_feasible_lh_m(params, 28.0)
+    lh = np.array([-0.2e-6, -1.9e-6, lh_min * 0.999, 3e-6, lh_min * 1.01])
+    nu = np.array([15.5, NU, 20.5, NU, NU])
+    fo = np.full(lh.size, 28.0)
+    z0 = np.full((lh.size, dyn.NZ), np.nan)
+    region0 = np.zeros(lh.size, dtype=np.int64)
+    feasible = dyn.precompressed_starts(dyn.spring_constants(params), nu, lh, fo, dyn.Z_SCALE, z0, region0)
+    assert feasible.tolist() == [True, True, True, True, False]
+    regions = []
+    for b in range(3):
+        z, r = dyn.initial_state(params, nu[b], lh[b], 28.0)
+        np.testing.assert_array_equal(z0[b], z * dyn.Z_SCALE)
+        assert region0[b] == r
+        regions.append(r)
+    assert set(regions) == {1, 2}                   # both contact pieces are covered
+    assert np.all(np.isnan(z0[3:])) and region0[3:].tolist() == [0, 0]

@@ -6,9 +6,11 @@ Checks return a reason instead of raising deep inside the estimator: a bad trace
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from estimator.errors import TraceError
 from estimator.model.drive import SAMPLE_PERIOD_REL_TOL, TableDrive, sample_count
@@ -17,6 +19,23 @@ MIN_WINDOW_S = 40e-6          # shorter windows hold too little of the charging 
 MAX_ABS_CURRENT_A = 100.0     # beyond any injector amplifier
 MAX_ABS_VOLTAGE_V = 1000.0
 MIN_PEAK_CURRENT_A = 0.2      # a "flat" current does not excite the actuator
+
+
+@njit(cache=True, nogil=True)
+def _extremes(i, u):
+    """(max, min) of ``i`` and of ``u`` in one pass each; NaN if either holds a NaN (as numpy's max)."""
+    i_max, i_min, u_max, u_min = -np.inf, np.inf, -np.inf, np.inf
+    for k in range(i.shape[0]):
+        v = i[k]
+        if v != v:
+            return np.nan, np.nan, np.nan, np.nan
+        i_max, i_min = max(i_max, v), min(i_min, v)
+    for k in range(u.shape[0]):
+        v = u[k]
+        if v != v:
+            return np.nan, np.nan, np.nan, np.nan
+        u_max, u_min = max(u_max, v), min(u_min, v)
+    return i_max, i_min, u_max, u_min
 
 
 @dataclass(frozen=True)
@@ -72,8 +91,9 @@ class Injection:
             return "invalid sample period"
         if i.size == 0:
             return "too short (no samples)"
-        i_max, i_min, u_max, u_min = float(i.max()), float(i.min()), float(u.max()), float(u.min())
-        if not all(map(np.isfinite, (i_max, i_min, u_max, u_min))):   # NaN propagates into max/min
+        i_max, i_min, u_max, u_min = _extremes(np.ascontiguousarray(i, dtype=float),
+                                               np.ascontiguousarray(u, dtype=float))
+        if not all(map(math.isfinite, (i_max, i_min, u_max, u_min))):   # NaN propagates into them
             return "NaN or infinite samples"
         if not np.isfinite(self.f_open_n) or not (0.0 <= self.f_open_n <= 5000.0):
             return "preload force out of range"

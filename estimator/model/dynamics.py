@@ -249,6 +249,65 @@ def psa_state_space(p: InjectorParameters, nu: float) -> tuple[np.ndarray, np.nd
     return a, b, c_full[:7].reshape(1, 7), np.array([[c_full[ZI], 0.0]])
 
 
+def spring_constants(p: InjectorParameters) -> np.ndarray:
+    """(k_g1, k_g2, k_p, k_v1, k_v2, s_p) in SI units: the numbers of the static pre-compression."""
+    a, v = p.psa, p.valve
+    return np.array([a.kg1_n_per_m, a.kg2_n_per_m, a.kp_n_per_m, v.kv1_n_per_m, v.kv2_n_per_m, v.sp_m])
+
+
+@njit(cache=True, nogil=True)
+def _precompressed_into(k, nu, lh_m, x):
+    """The static Σ2 equilibrium of :func:`precompressed_state` written into ``x`` (NX,); returns the
+    contact force in N. ``k`` is :func:`spring_constants`."""
+    kg1, kg2, kp, kv1, kv2, sp = k[0], k[1], k[2], k[3], k[4], k[5]
+    kappa = 1.0 / kg1 + 1.0 / kg2 + 1.0 / kp
+    target = -lh_m
+    # F_v is piecewise linear: try the soft piece, then the stiff one.
+    s = target / (1.0 + kv1 * kappa)
+    if s > sp:
+        s = (target - kappa * (kv1 - kv2) * sp) / (1.0 + kv2 * kappa)
+    if s <= 0.0:             # ValveParameters.contact_force_n (Fig. 11)
+        force = 0.0
+    elif s <= sp:
+        force = kv1 * s
+    else:
+        force = kv1 * sp + kv2 * (s - sp)
+    for i in range(NX):
+        x[i] = 0.0
+    x[S1] = -force / kg1
+    x[S2] = x[S1] - force / kg2
+    x[S3] = x[S2] - force / kp
+    x[Q] = nu * (x[S3] - x[S2])
+    return force
+
+
+@njit(cache=True, nogil=True)
+def precompressed_starts(k, nu, lh_m, f_open_n, z_scale, z0, region0):
+    """Initial states of the candidates with L_h <= 0 (all arrays (B,), SI units): rows of ``z0``
+    (B, NZ) get the scaled augmented state (times ``z_scale``) and ``region0`` the region of
+    :func:`initial_state`; returns a (B,) mask, False where the start is infeasible (the valve
+    would start open; that row is left as it is). Rows with L_h > 0 are not touched."""
+    nb = nu.shape[0]
+    feasible = np.ones(nb, dtype=np.bool_)
+    x = np.empty(NX)
+    for b in range(nb):
+        if not lh_m[b] <= 0.0:
+            continue
+        force = _precompressed_into(k, nu[b], lh_m[b], x)
+        if force >= f_open_n[b]:
+            feasible[b] = False
+            continue
+        for i in range(NZ):
+            z0[b, i] = 0.0
+        for i in range(NX):
+            z0[b, i] = x[i] * z_scale[i]
+        z0[b, ZL] = lh_m[b] * z_scale[ZL]
+        z0[b, ZF] = f_open_n[b] * z_scale[ZF]
+        z0[b, Z1] = 1.0 * z_scale[Z1]
+        region0[b] = 1 if (x[S3] - lh_m[b]) <= k[5] else 2
+    return feasible
+
+
 def precompressed_state(p: InjectorParameters, nu: float, lh_m: float) -> tuple[np.ndarray, float]:
     """Static Σ2 equilibrium for L_h <= 0 with the actuator discharged to U = 0.
 
@@ -256,20 +315,9 @@ def precompressed_state(p: InjectorParameters, nu: float, lh_m: float) -> tuple[
     k_p (s3 - s2) = -F_v, k_g2 (s2 - s1) = k_g1 s1 = -F_v, so the compression s solves
     ``s + F_v(s) (1/k_g1 + 1/k_g2 + 1/k_p) = -L_h``. Returns (x (9,), contact force F_v in N).
     """
-    a, v = p.psa, p.valve
-    kappa = 1.0 / a.kg1_n_per_m + 1.0 / a.kg2_n_per_m + 1.0 / a.kp_n_per_m
-    target = -lh_m
-    # F_v is piecewise linear: try the soft piece, then the stiff one.
-    s = target / (1.0 + v.kv1_n_per_m * kappa)
-    if s > v.sp_m:
-        s = (target - kappa * (v.kv1_n_per_m - v.kv2_n_per_m) * v.sp_m) / (1.0 + v.kv2_n_per_m * kappa)
-    force = v.contact_force_n(s)
     x = np.zeros(NX)
-    x[S1] = -force / a.kg1_n_per_m
-    x[S2] = x[S1] - force / a.kg2_n_per_m
-    x[S3] = x[S2] - force / a.kp_n_per_m
-    x[Q] = nu * (x[S3] - x[S2])
-    return x, force
+    force = _precompressed_into(spring_constants(p), float(nu), float(lh_m), x)
+    return x, float(force)
 
 
 def initial_state(p: InjectorParameters, nu: float, lh_m: float, f_open_n: float,

@@ -14,7 +14,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.linalg import expm
 
-from estimator.errors import InfeasibleError, ParameterError
+from estimator.errors import ParameterError
 from estimator.model import dynamics as dyn
 from estimator.model import kernel
 from estimator.model.automaton import build_automaton
@@ -122,6 +122,7 @@ class FastSimulator:
         self.dt_s = float(dt_s)
         self.structure = dyn.build_structure(self.params)
         self._d = dyn.Z_SCALE
+        self._springs = dyn.spring_constants(self.params)
         self.automaton = build_automaton(self.structure, self._d)
         psa = self.params.psa
         margin = 2 * nu_step + NU_EXTRAPOLATION_N_PER_V
@@ -244,15 +245,9 @@ class FastSimulator:
         z0_given = self._no_z0 if nb == 1 else np.full((nb, dyn.NZ), np.nan)
         region0 = np.zeros(nb, dtype=np.int64)
         feasible = None
-        if n_neg:   # pre-compressed starts: the static equilibrium (rare, in Python)
+        if n_neg:   # pre-compressed starts: the static equilibrium (dynamics.initial_state, compiled)
             z0_given = np.full((nb, dyn.NZ), np.nan)
-            feasible = np.ones(nb, dtype=bool)
-            for b in np.flatnonzero(lh <= 0.0):
-                try:
-                    z0, region0[b] = dyn.initial_state(self.params, nu[b], lh[b], fo[b])
-                    z0_given[b] = z0 * d
-                except InfeasibleError:
-                    feasible[b] = False
+            feasible = dyn.precompressed_starts(self._springs, nu, lh, fo, d, z0_given, region0)
         if exact:
             src, idx, w = self._phi_source(nu, True)
         else:
@@ -321,21 +316,27 @@ class FastSimulator:
         lh = np.ascontiguousarray(lh_m, dtype=float).ravel()
         if nu.size != lh.size:
             raise ParameterError(f"grid of {nu.size} N_u and {lh.size} L_h values")
-        u = np.full((nu.size, cur.size), np.nan)
-        ok = np.zeros(nu.size, dtype=bool)
         free = lh > 0.0
         col_nu, col = np.unique(nu[free], return_inverse=True)
         if not self._columns_share_free_run() or col_nu.size == free.sum():
             free[:] = False          # nothing to share
         rest = ~free
-        if rest.any():
+        if not rest.any():           # every point shares a free run: the kernel's arrays as they are
+            u, ok = self._shared_free_runs(cur, col_nu, col, lh, f_open_n)
+        else:
+            u = np.full((nu.size, cur.size), np.nan)
+            ok = np.zeros(nu.size, dtype=bool)
             res = self.simulate(cur, nu[rest], lh[rest], f_open_n)
             u[rest], ok[rest] = res.voltage_v, res.success
-        if free.any():
-            lf = lh[free]
-            self._check_inputs(cur, col_nu, lf, np.full(lf.size, float(f_open_n)))
-            h = self.kernel_handle()
-            u[free], ok[free] = kernel.grid_voltages(h.model, h.automaton, h.table, col_nu, col.astype(np.int64).ravel(),
-                                                     lf, float(f_open_n), cur, h.h_us, FREE_RUN_LH_M)
+            if free.any():
+                u[free], ok[free] = self._shared_free_runs(cur, col_nu, col, lh[free], f_open_n)
         u[~ok] = np.nan
         return u, ok
+
+    def _shared_free_runs(self, cur: np.ndarray, col_nu: np.ndarray, col: np.ndarray, lh: np.ndarray,
+                          f_open_n: float) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`kernel.grid_voltages` of points with L_h > 0 (m) in the N_u columns ``col_nu[col]`` (N/V)."""
+        self._check_inputs(cur, col_nu, lh, np.full(lh.size, float(f_open_n)))
+        h = self.kernel_handle()
+        return kernel.grid_voltages(h.model, h.automaton, h.table, col_nu, col.astype(np.int64).ravel(), lh,
+                                    float(f_open_n), cur, h.h_us, FREE_RUN_LH_M)
