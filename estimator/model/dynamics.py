@@ -56,7 +56,7 @@ import numpy as np
 from numba import njit
 
 from estimator.errors import InfeasibleError
-from estimator.model.parameters import InjectorParameters
+from estimator.model.parameters import InjectorParameters, contact_force
 
 # indices into the augmented state z
 S1, V1, S2, V2, S3, V3, Q, S4, V4, ZI, ZID, ZL, ZF, Z1 = range(14)
@@ -266,12 +266,7 @@ def _precompressed_into(k, nu, lh_m, x):
     s = target / (1.0 + kv1 * kappa)
     if s > sp:
         s = (target - kappa * (kv1 - kv2) * sp) / (1.0 + kv2 * kappa)
-    if s <= 0.0:             # ValveParameters.contact_force_n (Fig. 11)
-        force = 0.0
-    elif s <= sp:
-        force = kv1 * s
-    else:
-        force = kv1 * sp + kv2 * (s - sp)
+    force = contact_force(kv1, kv2, sp, s)
     for i in range(NX):
         x[i] = 0.0
     x[S1] = -force / kg1
@@ -330,18 +325,21 @@ def initial_state(p: InjectorParameters, nu: float, lh_m: float, f_open_n: float
     """
     if not (math.isfinite(lh_m) and math.isfinite(f_open_n)):
         raise InfeasibleError(f"L_h = {lh_m!r} m and F_open = {f_open_n!r} N must be finite")
-    z = np.zeros(NZ)
-    z[ZI], z[ZID], z[ZL], z[ZF], z[Z1] = current0_a, didt0_a_per_s, lh_m, f_open_n, 1.0
     if lh_m > 0.0:
+        z = np.zeros(NZ)
+        z[ZI], z[ZID], z[ZL], z[ZF], z[Z1] = current0_a, didt0_a_per_s, lh_m, f_open_n, 1.0
         return z, 0
-    x, force = precompressed_state(p, nu, lh_m)
-    if force >= f_open_n:
+    z0 = np.full((1, NZ), np.nan)
+    region0 = np.zeros(1, dtype=np.int64)
+    if not precompressed_starts(spring_constants(p), np.array([float(nu)]), np.array([float(lh_m)]),
+                                np.array([float(f_open_n)]), np.ones(NZ), z0, region0)[0]:
+        _, force = precompressed_state(p, nu, lh_m)
         raise InfeasibleError(
             f"L_h = {lh_m * 1e6:.3f} µm pre-compresses the piston with {force:.2f} N >= F_open = "
             f"{f_open_n:.2f} N: the valve would start open (Σ3), which the model excludes")
-    z[:NX] = x
-    soft = (x[S3] - lh_m) <= p.valve.sp_m
-    return z, (1 if soft else 2)
+    z = z0[0]
+    z[ZI], z[ZID] = current0_a, didt0_a_per_s
+    return z, int(region0[0])
 
 
 def min_feasible_lh_m(p: InjectorParameters, f_open_n: float) -> float:

@@ -18,6 +18,7 @@ else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 import numpy as np
+from numba import njit
 
 from estimator.errors import ParameterError
 
@@ -140,6 +141,17 @@ class PsaParameters:
         return replace(self, nu_min_n_per_v=nu_min, nu_max_n_per_v=nu_max)
 
 
+@njit(cache=True, nogil=True)
+def contact_force(kv1_n_per_m: float, kv2_n_per_m: float, sp_m: float, s: float) -> float:
+    """The contact spring F_v(s) of Fig. 11 in N at compression ``s`` (m): 0 for s <= 0, stiffness
+    k_v1 up to s_p and k_v2 beyond (compiled, for the compiled pre-compressed starts too)."""
+    if s <= 0.0:
+        return 0.0
+    if s <= sp_m:
+        return kv1_n_per_m * s
+    return kv1_n_per_m * sp_m + kv2_n_per_m * (s - sp_m)
+
+
 @dataclass(frozen=True)
 class ValveParameters:
     """Control valve mechanics, Table 2 (SI units)."""
@@ -168,12 +180,7 @@ class ValveParameters:
 
     def contact_force_n(self, compression_m: float) -> float:
         """Piecewise linear contact spring F_v(s) of Fig. 11 (0 for s <= 0), in N."""
-        s = compression_m
-        if s <= 0.0:
-            return 0.0
-        if s <= self.sp_m:
-            return self.kv1_n_per_m * s
-        return self.kv1_n_per_m * self.sp_m + self.kv2_n_per_m * (s - self.sp_m)
+        return float(contact_force(self.kv1_n_per_m, self.kv2_n_per_m, self.sp_m, float(compression_m)))
 
 
 @dataclass(frozen=True)
