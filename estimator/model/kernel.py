@@ -116,33 +116,37 @@ def _flow(a, pat, z, sigma, out, terms):
 def _state_at(c, nterms, z, u, out):
     """out = the state at the fraction u of the interval of :func:`_taylor`'s terms ``c`` (Horner)."""
     m = ZI + 1
+    # Horner per entry, the entries advanced together (term by term): each entry's operations and
+    # their order are a row-by-row Horner's, but the m chains are independent and overlap
     for i in range(m):
-        v = c[nterms - 1, i]
-        for k in range(nterms - 2, -1, -1):
-            v = v * u + c[k, i]
-        out[i] = v
+        out[i] = c[nterms - 1, i]
+    for k in range(nterms - 2, -1, -1):
+        for i in range(m):
+            out[i] = out[i] * u + c[k, i]
     for i in range(m, NZ):
         out[i] = z[i]
 
 
 @njit(cache=True, nogil=True)
-def _locate(c, nterms, g, z, rem, out):
+def _locate(c, nterms, g, z, rem, out, poly):
     """Crossing time of the guard g in (0, rem] along the flow whose Taylor terms over rem are ``c``
     (:func:`_taylor`), the guard being <= 0 at the start and > 0 at the end of the interval.
 
     The guard along the flow is a scalar polynomial in u = t / rem: its root is found by Newton's
     method kept inside the bracket (bisection when a step leaves it) to 1e-13 of the interval, and
     the event is taken ``LOCATE_MARGIN`` of the interval past it, where the guard is positive.
-    Returns that time, with the state there in ``out``.
+    Returns that time, with the state there in ``out`` (``poly``: scratch of MAX_TAYLOR_TERMS).
     """
     m = ZI + 1
-    p = np.empty(MAX_TAYLOR_TERMS)
+    p = poly
     p[0] = dot(g, z)
+    # p[k] = g . c[k], each summed over i in order; the terms advanced together (independent chains)
     for k in range(1, nterms):
-        s = 0.0
-        for i in range(m):
-            s += g[i] * c[k, i]
-        p[k] = s
+        p[k] = 0.0
+    for i in range(m):
+        gi = g[i]
+        for k in range(1, nterms):
+            p[k] += gi * c[k, i]
     lo, hi = 0.0, 1.0
     p1 = 0.0
     for k in range(nterms):
@@ -184,17 +188,25 @@ def _locate(c, nterms, g, z, rem, out):
 
 
 @njit(cache=True, nogil=True)
-def _region_phi(src, cand, b, r, z, out, const):
-    """Rows 0..NX-1 of the transition matrix of region r for candidate b (weighted table rows),
-    and ``const[r]``: the contribution of the constant inputs L_h, F_open, 1 (columns 11..13)."""
-    idx, w = cand.idx, cand.w
+def _region_phi(src, idx, w, b, r, out):
+    """Rows 0..NX-1 of the transition matrix of region r for candidate b: the table rows ``idx[b]``
+    weighted by ``w[b]``. Depends on N_u only: candidates with the same rows and weights share it."""
+    i0, i1, i2, i3 = idx[b, 0], idx[b, 1], idx[b, 2], idx[b, 3]
+    w0, w1, w2, w3 = w[b, 0], w[b, 1], w[b, 2], w[b, 3]
     for i in range(NX):
         for j in range(NZ):
-            out[r, i, j] = (w[b, 0] * src[idx[b, 0], r, i, j] + w[b, 1] * src[idx[b, 1], r, i, j]
-                            + w[b, 2] * src[idx[b, 2], r, i, j] + w[b, 3] * src[idx[b, 3], r, i, j])
+            out[r, i, j] = (w0 * src[i0, r, i, j] + w1 * src[i1, r, i, j]
+                            + w2 * src[i2, r, i, j] + w3 * src[i3, r, i, j])
+
+
+@njit(cache=True, nogil=True)
+def _region_const(phi, r, z, const):
+    """``const[r]``: the contribution of the constant inputs L_h, F_open, 1 (columns ZID + 1 ..) of
+    the state ``z`` through region r's transition rows (per candidate: L_h is its own)."""
+    for i in range(NX):
         c = 0.0
         for j in range(ZID + 1, NZ):
-            c += out[r, i, j] * z[j]
+            c += phi[r, i, j] * z[j]
         const[r, i] = c
 
 
@@ -204,15 +216,6 @@ def _region_a(model, cpl, dmp, r, out):
     for i in range(NZ):
         for j in range(NZ):
             out[i, j] = model.a_const[r, i, j] + cpl * model.a_coup[r, i, j] + dmp * model.a_damp[r, i, j]
-
-
-@njit(cache=True, nogil=True)
-def _continuous(model, cand, b, r, amat, have_a):
-    """The continuous matrix of region r for candidate b (formed at its first event in the region)."""
-    if not have_a[r]:
-        _region_a(model, cand.cpl[b], cand.dmp[b], r, amat[r])
-        have_a[r] = True
-    return amat[r]
 
 
 class Candidates(NamedTuple):
@@ -262,7 +265,7 @@ def _guard_ends(guards, open_seated, open_index, r, j, z, zn, seated):
 
 
 @njit(cache=True, nogil=True)
-def _locate_first(guards, open_seated, open_index, target, amat, pat, r, z, zn, rem, seated, zt, zb, terms):
+def _locate_first(guards, open_seated, open_index, target, amat, pat, r, z, zn, rem, seated, zt, zb, terms, poly):
     """The guard of region r that fires first between z and zn (``rem`` µs later; ``amat`` the
     region's continuous matrix). Returns (j, s): the guard (-1: none) and the time after z at which
     it is positive; the state there is left in zb. Called only when some guard crosses.
@@ -278,7 +281,7 @@ def _locate_first(guards, open_seated, open_index, target, amat, pat, r, z, zn, 
             g = open_seated[r] if spring_only else guards[r, j]
             if nterms == 0:     # the flow's terms, shared by the guards that cross in this interval
                 nterms = _taylor(amat, pat, z, rem, terms)
-            s = _locate(terms, nterms, g, z, rem, zt)
+            s = _locate(terms, nterms, g, z, rem, zt, poly)
             if s < best_s or best < 0:
                 best_s = s
                 best = j
@@ -288,25 +291,27 @@ def _locate_first(guards, open_seated, open_index, target, amat, pat, r, z, zn, 
 
 
 @njit(cache=True, nogil=True)
-def _transition(aut, r, j, z, seated, nev, t_ev, b, out):
+def _transition(guards, target, reset, open_index, open_seated, region_mode, r, j, z, seated, nev, t_ev, b,
+                t_contact, t_open):
     """Take transition j of region r at z (time t_ev µs), then any already enabled at the new state.
 
-    Records the first contact and opening times of candidate b; returns (region, seated, events).
+    Records the first contact and opening times of candidate b in ``t_contact``, ``t_open``; returns
+    (region, seated, events). Takes the automaton's arrays, not the tuple (see :func:`simulate_kernel`).
     """
     while j >= 0 and nev < MAX_EVENTS_PER_SAMPLE:
-        seated = apply_reset(z, aut.reset[r, j], seated)
-        r = aut.target[r, j]
+        seated = apply_reset(z, reset[r, j], seated)
+        r = target[r, j]
         nev += 1
-        md = aut.region_mode[r]
-        if in_contact(md) and np.isnan(out.t_contact[b]):
-            out.t_contact[b] = t_ev
-        if md == MODE_OPEN and np.isnan(out.t_open[b]):
-            out.t_open[b] = t_ev
+        md = region_mode[r]
+        if in_contact(md) and np.isnan(t_contact[b]):
+            t_contact[b] = t_ev
+        if md == MODE_OPEN and np.isnan(t_open[b]):
+            t_open[b] = t_ev
         j = -1
         for jj in range(3):
-            if aut.target[r, jj] < 0:
+            if target[r, jj] < 0:
                 continue
-            if guard_value(aut.guards, aut.open_seated, aut.open_index, r, jj, z, seated) > 0.0:
+            if guard_value(guards, open_seated, open_index, r, jj, z, seated) > 0.0:
                 j = jj
                 break
     return r, seated, nev
@@ -336,8 +341,11 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
 
     The transition matrix of region r for candidate b is ``sum_q w[b,q] src[idx[b,q], r]``
     (a 4-point interpolation in N_u, or one exact matrix with weight 1); it is formed the first
-    time the candidate enters the region. The continuous matrix, needed only to locate events, is
-    ``a_const[r] + cpl[b] a_coup[r] + dmp[b] a_damp[r]``. ``aut`` is the automaton
+    time the candidate enters the region, and kept for the next candidate if that one has the same
+    N_u (a grid column: ≈ 0.3 µs per region and point saved). The continuous matrix, needed only to
+    locate events, is ``a_const[r] + cpl[b] a_coup[r] + dmp[b] a_damp[r]`` (kept the same way).
+    Functions called on the event path take arrays, not the named tuples: with the tuples passed
+    (``_transition`` and the continuous matrix's lookup), the valve prediction took 6–11 % longer. ``aut`` is the automaton
     (:class:`automaton.Automaton`), ``cand`` the candidates, ``cur`` (N,) the current in A. Per
     sample: the step (written out), then, if a guard crosses, :func:`_locate_first` and :func:`_transition`
     and the rest of the sample from there. The :class:`Trajectories` ``out`` are written in place;
@@ -348,16 +356,19 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
     nreg = model.a_const.shape[0]
     guards, target, reset, open_index, open_seated, region_mode = aut
     cout, out_u, out_s3, out_s4, out_mode = cand.cout, out.u, out.s3, out.s4, out.mode
+    t_contact, t_open = out.t_contact, out.t_open
     z = np.empty(NZ)
     zn = np.empty(NZ)
     zt = np.empty(NZ)
     zb = np.empty(NZ)
     phi = np.empty((nreg, NX, NZ))
     const = np.empty((nreg, NX))
-    have = np.zeros(nreg, dtype=np.bool_)
+    have = np.zeros(nreg, dtype=np.bool_)     # phi[r] formed (for this candidate's N_u)
+    have_c = np.zeros(nreg, dtype=np.bool_)   # const[r] formed (for this candidate)
     amat = np.empty((nreg, NZ, NZ))
     have_a = np.zeros(nreg, dtype=np.bool_)
     terms = np.empty((MAX_TAYLOR_TERMS, ZI + 1))
+    poly = np.empty(MAX_TAYLOR_TERMS)
     nrec = zrec.shape[0]
     # the guards and output rows read few states: per sample they are summed over their non-zero
     # entries only, in index order (the dense sum's order; the skipped terms are exact zeros)
@@ -365,9 +376,16 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
     s_idx, s_cnt = _nonzeros(open_seated)
     c_idx, c_cnt = _nonzeros(cout)
     pattern = model.a_pattern
+    idx, w, cpl, dmp = cand.idx, cand.w, cand.cpl, cand.dmp
     for b in range(nb):
-        have[:] = False
-        have_a[:] = False
+        # a candidate with the previous one's N_u (the points of a grid column) keeps its matrices
+        if not (b > 0 and idx[b, 0] == idx[b - 1, 0] and idx[b, 1] == idx[b - 1, 1] and idx[b, 2] == idx[b - 1, 2]
+                and idx[b, 3] == idx[b - 1, 3] and w[b, 0] == w[b - 1, 0] and w[b, 1] == w[b - 1, 1]
+                and w[b, 2] == w[b - 1, 2] and w[b, 3] == w[b - 1, 3]):
+            have[:] = False
+        if not (b > 0 and cpl[b] == cpl[b - 1] and dmp[b] == dmp[b - 1]):
+            have_a[:] = False
+        have_c[:] = False
         seated = False
         for i in range(NZ):
             z[i] = cand.z0[b, i]
@@ -398,9 +416,12 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
             nev = 0
             while True:
                 if rem == h:
-                    if not have[r]:
-                        _region_phi(src, cand, b, r, z, phi, const)
-                        have[r] = True
+                    if not have_c[r]:
+                        if not have[r]:
+                            _region_phi(src, idx, w, b, r, phi)
+                            have[r] = True
+                        _region_const(phi, r, z, const)
+                        have_c[r] = True
                     # one full sample with the transition rows phi[r] and the constant part const[r]. The NX
                     # rows are summed in NX local accumulators, each in the order const, I, dI/dt, z_0 .. z_nx-1
                     # (a row-by-row loop's order: the same to the bit), so the processor overlaps the sums instead
@@ -444,7 +465,10 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
                         zn[V4] = s8
                     zn[ZI] = zi + h * zd
                 else:   # the rest of a sample after an event
-                    _flow(_continuous(model, cand, b, r, amat, have_a), pattern[r], z, rem, zn, terms)
+                    if not have_a[r]:    # the region's continuous matrix, formed at the candidate's first event in it
+                        _region_a(model, cpl[b], dmp[b], r, amat[r])
+                        have_a[r] = True
+                    _flow(amat[r], pattern[r], z, rem, zn, terms)
                 # does a guard cross? automaton.guard_value at both ends, written out: as an inlined
                 # call it made the whole simulation 35 % slower (speed-sim)
                 crosses = False
@@ -478,13 +502,16 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
                     for i in range(NZ):
                         z[i] = zn[i]
                     break
-                best, best_s = _locate_first(guards, open_seated, open_index, target,
-                                             _continuous(model, cand, b, r, amat, have_a), pattern[r], r, z, zn,
-                                             rem, seated, zt, zb, terms)
+                if not have_a[r]:
+                    _region_a(model, cpl[b], dmp[b], r, amat[r])
+                    have_a[r] = True
+                best, best_s = _locate_first(guards, open_seated, open_index, target, amat[r], pattern[r], r, z, zn,
+                                             rem, seated, zt, zb, terms, poly)
                 for i in range(NZ):
                     z[i] = zb[i]
                 t_ev = k * h + (h - rem) + best_s
-                r, seated, nev = _transition(aut, r, best, z, seated, nev, t_ev, b, out)
+                r, seated, nev = _transition(guards, target, reset, open_index, open_seated, region_mode, r, best, z,
+                                             seated, nev, t_ev, b, t_contact, t_open)
                 rem = rem - best_s
                 if rem <= 1e-12 * h:
                     break
@@ -656,40 +683,41 @@ def grid_voltages(model, aut, src, col_nu, col, lh, fo, cur, h, lh_free):
     u = np.empty((nb, n))
     k0 = np.zeros(nb, dtype=np.int64)
     z0 = np.full((nb, NZ), np.nan)
-    zl = np.empty(NZ)
-    zr = np.empty(NZ)
+    gend = np.empty(3)
     guards, target = aut.guards, aut.target
     f_idx, f_cnt = _nonzeros(guards[0])      # the free region's guards, as simulate_kernel sums them
     for b in range(nb):
         c = col[b]
         if outc.status[c] != STATUS_OK or not np.isnan(outc.t_contact[c]):
             continue                      # the column left the free region: simulate the point whole
-        # the first sample whose step crosses a guard of the free region, as simulate_kernel tests it
+        # the first sample whose step crosses a guard of the free region, as simulate_kernel tests it:
+        # each guard summed over its non-zero entries in index order, the recorded state with this
+        # point's own L_h; a guard's value at a sample's end is the next sample's start value
         kc = n - 1
-        for i in range(NZ):
-            zl[i] = zrec[c, 0, i]
-        zl[ZL] = lh[b] * d[ZL]
+        zl_b = lh[b] * d[ZL]
+        for j in range(3):
+            gend[j] = 0.0
+            if target[0, j] < 0:
+                continue
+            for q in range(f_cnt[j]):
+                i = f_idx[j, q]
+                gend[j] += guards[0, j, i] * (zl_b if i == ZL else zrec[c, 0, i])
         for k in range(n - 1):
-            for i in range(NZ):
-                zr[i] = zrec[c, k + 1, i]
-            zr[ZL] = zl[ZL]
             crosses = False
             for j in range(3):
                 if target[0, j] < 0:
                     continue
-                g0 = 0.0
+                g0 = gend[j]
                 g1 = 0.0
                 for q in range(f_cnt[j]):
                     i = f_idx[j, q]
-                    g0 += guards[0, j, i] * zl[i]
-                    g1 += guards[0, j, i] * zr[i]
+                    g1 += guards[0, j, i] * (zl_b if i == ZL else zrec[c, k + 1, i])
+                gend[j] = g1
                 if g0 <= 0.0 and g1 > 0.0:
                     crosses = True
             if crosses:
                 kc = k
                 break
-            for i in range(NZ):
-                zl[i] = zr[i]
         k0[b] = kc
         for i in range(NZ):
             z0[b, i] = zrec[c, kc, i]
