@@ -206,3 +206,54 @@ def test_noise_level_is_the_middle_absolute_difference(n):
     e = np.sort(np.abs(np.diff(r[::2])))                        # a strided view is read right
     assert noise_sigma_v(r[::2]) == e[e.size // 2] / MAD_PER_SIGMA / np.sqrt(2.0)
     assert noise_sigma_v(np.zeros(n)) == NOISE_FLOOR_V
+
+
+def test_valve_prediction_checks_its_inputs_in_the_same_call(sim):
+    from estimator.errors import ParameterError
+    from estimator.model.drive import StandardDrive
+    cur = np.zeros(981)
+    cur[:201] = StandardDrive().samples(100e-6)
+    assert np.isfinite(sim.valve_prediction(cur, 17.0, 3e-6, 28.0)).all()
+    for args, text in (((30.0, 3e-6, 28.0), "outside"), ((17.0, 3e-6, -1.0), "F_open"),
+                       ((17.0, float("inf"), 28.0), "finite")):
+        with pytest.raises(ParameterError, match=text):
+            sim.valve_prediction(cur, *args)
+    bad = cur.copy()
+    bad[500] = np.nan
+    with pytest.raises(ParameterError, match="finite"):
+        sim.valve_prediction(bad, 17.0, 3e-6, 28.0)
+
+
+def test_the_simulators_small_caches_stay_bounded(sim):
+    from estimator.model.fast_sim import PLATEAU_WINDOW_S
+    cur = np.zeros(1200)
+    for n in range(985, 1185):            # 200 trace lengths
+        sim.valve_prediction(cur[:n], 17.0, 3e-6, 28.0, PLATEAU_WINDOW_S)
+        sim.simulate(cur[:n // 4], 17.0, 3e-6)
+    assert len(sim._plateau) <= 64 and len(sim._t_cache) <= 64
+
+
+def test_search_box_and_noise_kept_per_simulator_weakly():
+    import gc
+    import weakref
+
+    from estimator.ident import tracker as tr
+    from estimator.ident.idle_stroke import search_box
+    from estimator.model.fast_sim import FastSimulator
+    config = TrackerConfig()
+    s = FastSimulator()
+    b1, n1 = tr._box_and_noise(config, s, 28.0)
+    b2, _ = tr._box_and_noise(config, s, 60.0)
+    assert tr._box_and_noise(config, s, 28.0)[0] is b1                     # kept
+    for f_open, box in ((28.0, b1), (60.0, b2)):                            # and what search_box gives
+        want = search_box(config.ident, s, f_open)
+        assert np.array_equal(box.lo, want.lo) and np.array_equal(box.hi, want.hi)
+    assert b2 is not b1                                                     # one per F_open (it moves the feasible L_h)
+    assert n1 == tr.process_noise(config, b1)
+    for f_open in np.linspace(20.0, 80.0, 40):                              # bounded per simulator
+        tr._box_and_noise(config, s, float(f_open))
+    assert len(tr._BOXES[s]) <= tr._BOXES_PER_SIMULATOR
+    gone = weakref.ref(s)
+    del s
+    gc.collect()
+    assert gone() is None                                                   # not held by the cache

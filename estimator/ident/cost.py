@@ -20,6 +20,8 @@ decides to use it.
 
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -111,6 +113,20 @@ def model_error_statistic(residual_v: np.ndarray, basis: np.ndarray, sigma_v: fl
     return _span_energy(np.ascontiguousarray(residual_v, dtype=float), np.ascontiguousarray(basis, dtype=float)) / sigma ** 2
 
 
+def plain_model_error(residual_v: np.ndarray, current_a: np.ndarray, dt_s: float, sigma_v: float) -> float:
+    """:func:`model_error_statistic` of a residual (V) against the raw :func:`nuisance_columns` of its
+    window's current (A, sampled every ``dt_s`` s), with the noise level ``sigma_v`` (V): one compiled
+    call (the warm update's test of the plain model)."""
+    return float(_plain_model_error(np.ascontiguousarray(residual_v, dtype=float),
+                                    np.ascontiguousarray(current_a, dtype=float), float(dt_s), _THRESHOLDS,
+                                    float(sigma_v)))
+
+
+@njit(cache=True, nogil=True)
+def _plain_model_error(r, current_a, dt_s, thresholds, sigma_v):
+    return _span_energy(r, _nuisance_columns(current_a, dt_s, thresholds)) / sigma_v ** 2
+
+
 @njit(cache=True, nogil=True)
 def _span_energy(r, b):
     """``|P r|^2`` for the projection P onto the span of the columns of ``b`` (N, K): ``|b' r|^2`` if they
@@ -133,6 +149,16 @@ def _span_energy(r, b):
             for q in range(m):
                 g[p, q] += b[k, p] * b[k, q]
     return br @ np.linalg.solve(g, br)
+
+
+@functools.lru_cache(maxsize=32)
+def trapezoid_weights(n: int, dt_s: float) -> np.ndarray:
+    """Trapezoidal-rule weights (s) of ``n`` samples ``dt_s`` apart, kept per (n, dt_s): shared by every
+    cost model of that window, so nothing may write to them (left writeable: compiled callers would
+    otherwise be compiled a second time for read-only arrays)."""
+    w = np.full(n, dt_s)
+    w[[0, -1]] *= 0.5
+    return w
 
 
 @dataclass
@@ -162,8 +188,7 @@ class CostModel:
         self.current = np.ascontiguousarray(inj.current_a[: self.n])
         self.measured = np.ascontiguousarray(inj.voltage_v[: self.n])
         self.dt = inj.dt_s
-        self.weights = np.full(self.n, self.dt)   # trapezoidal rule
-        self.weights[[0, -1]] *= 0.5
+        self.weights = trapezoid_weights(self.n, self.dt)
         self._basis: np.ndarray | None = None
         self.evaluations = 0
 

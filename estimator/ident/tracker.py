@@ -30,7 +30,9 @@ Per injection (:func:`update`, pure: state in, state out):
 
 from __future__ import annotations
 
+import copy
 import math
+import weakref
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
@@ -40,7 +42,7 @@ from estimator.errors import EstimatorError
 from estimator.ident import kalman
 from estimator.ident.config import TrackerConfig
 from estimator.ident.coords import NuLh
-from estimator.ident.cost import CostModel, model_error_statistic, nuisance_columns
+from estimator.ident.cost import CostModel, plain_model_error
 from estimator.ident.estimate import Estimate, rejected
 from estimator.ident.idle_stroke import (check_injection, effective_window_s, finish, identify, predict_valve,
                                          search_box)
@@ -279,8 +281,7 @@ def _warm_estimate(state: TrackerState, x0: np.ndarray, inj: Injection, sim: Fas
                                max_cycles=config.warm_cycles, batched=True)
     stat = float("nan")
     if fit.success and not state.robust:   # the plain residual against the nuisance span (normal equations)
-        stat = model_error_statistic(fit.residual[: model.n], nuisance_columns(model.current, model.dt),
-                                     fit.sigma_v)
+        stat = plain_model_error(fit.residual[: model.n], model.current, model.dt, fit.sigma_v)
     elif fit.success and state.updates % ROBUST_CHECK_EVERY == 0:
         # is the model error still there? the likelihood ratio of a plain fit against the robust one,
         # as at a cold start (the plain residual at the robust estimate would overstate it)
@@ -295,6 +296,27 @@ def _warm_estimate(state: TrackerState, x0: np.ndarray, inj: Injection, sim: Fas
 def _cold_estimate(state: TrackerState, inj: Injection, sim: FastSimulator, config: TrackerConfig) -> Estimate:
     mode = "on" if state.robust else config.ident.robust
     return identify(inj, sim, replace(config.ident, robust=mode))
+
+
+_BOXES: "weakref.WeakKeyDictionary[FastSimulator, dict]" = weakref.WeakKeyDictionary()
+_BOXES_PER_SIMULATOR = 16
+
+
+def _box_and_noise(config: TrackerConfig, sim: FastSimulator, f_open_n: float) -> tuple[Box, kalman.ProcessNoise]:
+    """:func:`search_box` and :func:`process_noise`, kept per simulator, configuration and F_open (N)
+    (a few per injector; they went into every update: ≈ 8 µs). Weakly keyed: a simulator that leaves
+    its pool is not held here; at most ``_BOXES_PER_SIMULATOR`` per simulator (oldest out)."""
+    memo = _BOXES.get(sim)
+    if memo is None:
+        memo = _BOXES[sim] = {}
+    key = (config, float(f_open_n))
+    hit = memo.get(key)
+    if hit is None:
+        box = search_box(config.ident, sim, f_open_n)   # shared between updates (nothing writes a Box)
+        if len(memo) >= _BOXES_PER_SIMULATOR:
+            memo.pop(next(iter(memo)))
+        hit = memo[key] = (box, process_noise(config, box))
+    return hit
 
 
 def _known(v: float) -> float | None:
@@ -321,10 +343,10 @@ def _delta_temperature(t_from: float | None, t_to: float | None) -> float | None
 def update(state: TrackerState, inj: Injection, sim: FastSimulator,
            config: TrackerConfig) -> tuple[TrackerState, TrackResult]:
     """One injection through the recursive estimator (pure: ``state`` is not modified)."""
-    st = replace(state, x=list(state.x), p=[list(r) for r in state.p])
+    st = copy.copy(state)    # dataclasses.replace without re-running __init__ (its fields as they are)
+    st.x, st.p = list(state.x), [list(r) for r in state.p]
     st.updates += 1
-    box = search_box(config.ident, sim, inj.f_open_n)
-    noise = process_noise(config, box)
+    box, noise = _box_and_noise(config, sim, inj.f_open_n)
     now, temp = _known(inj.time_s), _temperature(inj)
     held = _held(st, now, temp, config, noise)
     problem = check_injection(inj, sim, config.ident)

@@ -160,14 +160,26 @@ class TableDrive(TimeFunction):
         return np.interp(np.asarray(t_s, dtype=float), self.t_s, self.current_a, left=0.0, right=0.0)
 
     def samples(self, t_end_s: float, dt_s: float = SAMPLE_PERIOD_S) -> np.ndarray:
-        if self.dt_s is not None and abs(self.dt_s - dt_s) <= SAMPLE_PERIOD_REL_TOL * dt_s:
-            # the same grid (within the period tolerance the identifier accepts): the samples themselves
-            n = sample_count(t_end_s, dt_s)
-            out = np.zeros(n)
-            k = min(n, self.current_a.size)
-            out[:k] = self.current_a[:k]
-            return out
+        if self.dt_s is not None and same_grid(self.dt_s, dt_s):
+            return held_then_zero(self.current_a, t_end_s, dt_s)   # the samples themselves
         return self.current(sample_times(t_end_s, dt_s))
+
+
+def same_grid(sampled_dt_s: float, dt_s: float) -> bool:
+    """Whether samples ``sampled_dt_s`` apart lie on the grid of period ``dt_s`` (s), within the period
+    tolerance the identifier accepts: then they are used as they are."""
+    return abs(sampled_dt_s - dt_s) <= SAMPLE_PERIOD_REL_TOL * dt_s
+
+
+def held_then_zero(current_a: np.ndarray, t_end_s: float, dt_s: float) -> np.ndarray:
+    """Samples ``current_a`` (A, taken every ``dt_s`` from t = 0) up to ``t_end_s`` (s), zero after the
+    last one: :meth:`TableDrive.samples` of :meth:`TableDrive.sampled` on its own grid, without
+    building the drive (the per-injection valve prediction calls it)."""
+    n = sample_count(t_end_s, dt_s)
+    out = np.zeros(n)
+    k = min(n, current_a.size)
+    out[:k] = current_a[:k]
+    return out
 
 
 # Named drive shapes users can select (``--drive NAME``): name -> factory of the default instance.

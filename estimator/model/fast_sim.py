@@ -148,6 +148,8 @@ class FastSimulator:
         # a simulator dropped from a pool would then stay in memory until the cyclic GC runs
         self._exact: dict[float, np.ndarray] = {}
         self._free_shared: bool | None = None   # see _columns_share_free_run
+        self._handle: KernelHandle | None = None
+        self._plateau: dict[tuple[int, tuple[float, float]], tuple[int, int]] = {}   # see valve_prediction
 
     # ---- discretisation -------------------------------------------------------------------
     def _scaled(self, a_si: np.ndarray) -> np.ndarray:
@@ -179,8 +181,10 @@ class FastSimulator:
 
     def kernel_handle(self) -> KernelHandle:
         """The compiled model, automaton, transition table and sample period, for compiled callers
-        (the candidates' N_u must be within :attr:`nu_range`, their L_h > 0)."""
-        return KernelHandle(self._model, self.automaton, self._table(), self.dt_s * dyn.TIME_SCALE)
+        (the candidates' N_u must be within :attr:`nu_range`, their L_h > 0). Built once."""
+        if self._handle is None:
+            self._handle = KernelHandle(self._model, self.automaton, self._table(), self.dt_s * dyn.TIME_SCALE)
+        return self._handle
 
     def transition_matrices(self, nu: np.ndarray | float, exact: bool = False) -> np.ndarray:
         """One-sample transition matrices exp(A_r h), shape (B, 6, NZ, NZ), scaled units."""
@@ -205,6 +209,8 @@ class FastSimulator:
         if t is None:
             t = np.arange(n) * self.dt_s
             t.setflags(write=False)
+            if len(self._t_cache) >= 64:      # bounded: every trace length seen would stay otherwise
+                self._t_cache.pop(next(iter(self._t_cache)))
             self._t_cache[n] = t
         return t
 
@@ -273,11 +279,19 @@ class FastSimulator:
             res = self.simulate(cur, nu_n_per_v, lh_m, f_open_n)
             return float(res.t_contact_s[0]), float(res.t_open_s[0]), float(res.plateau_stroke_m(window_s)[0])
         nu, lh, fo = np.array([nu_n_per_v], dtype=float), np.array([lh_m], dtype=float), np.array([f_open_n], dtype=float)
-        self._check_inputs(cur, nu, lh, fo)
-        ks = plateau_samples(self._times(cur.size), window_s)
-        k0, k1 = ks if ks is not None else (0, 0)
+        key = (cur.size, (float(window_s[0]), float(window_s[1])))
+        ks = self._plateau.get(key)
+        if ks is None:
+            if len(self._plateau) >= 64:
+                self._plateau.pop(next(iter(self._plateau)))
+            found = plateau_samples(self._times(cur.size), window_s)
+            ks = self._plateau[key] = found if found is not None else (0, 0)
+        k0, k1 = ks
         h = self.kernel_handle()
-        tc, to, stroke = kernel.valve_prediction(h.model, h.automaton, h.table, nu, lh, fo, cur, h.h_us, k0, k1)
+        code, tc, to, stroke = kernel.valve_prediction(h.model, h.automaton, h.table, nu, lh, fo, cur, h.h_us, k0, k1,
+                                                       *self.nu_range)
+        if code != kernel.INPUTS_OK:      # the inputs are checked in the same call: raise as _check_inputs does
+            self._check_inputs(cur, nu, lh, fo)
         return float(tc), float(to), float(stroke)
 
     def _check_inputs(self, cur: np.ndarray, nu: np.ndarray, lh: np.ndarray, fo: np.ndarray) -> int:

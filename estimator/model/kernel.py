@@ -629,14 +629,18 @@ def run_from_rest(model, aut, src, nu, lh, fo, cur, h):
 
 
 @njit(cache=True, nogil=True)
-def valve_prediction(model, aut, src, nu, lh, fo, cur, h, k0, k1):
-    """Contact time, opening time (s) and the mean plunger stroke (m) over samples k0 <= k < k1
-    (NaN if k0 >= k1) of one candidate (``nu``, ``lh``, ``fo`` of size 1, L_h > 0) from rest."""
+def valve_prediction(model, aut, src, nu, lh, fo, cur, h, k0, k1, nu_min, nu_max):
+    """(code, contact time, opening time (s), mean plunger stroke (m) over samples k0 <= k < k1 (NaN if
+    k0 >= k1)) of one candidate (``nu``, ``lh``, ``fo`` of size 1, L_h > 0) from rest; ``code`` is
+    :func:`check_inputs`' (nothing is simulated unless ``INPUTS_OK``)."""
+    code, _ = check_inputs(cur, nu, lh, fo, nu_min, nu_max)
+    if code != INPUTS_OK:
+        return code, np.nan, np.nan, np.nan
     _, _, s4, _, tc, to, _, _ = run_from_rest(model, aut, src, nu, lh, fo, cur, h)
     stroke = np.nan
     if k1 > k0:
         stroke = np.mean(s4[0, k0:k1])
-    return tc[0], to[0], stroke
+    return code, tc[0], to[0], stroke
 
 
 @njit(cache=True, nogil=True)
