@@ -135,6 +135,34 @@ def _within(v: np.ndarray, tol: tuple[float, float], k: float, cov: np.ndarray |
     return True
 
 
+def _within_scaled(v: np.ndarray, tol: tuple[float, float], k: float, cov: np.ndarray) -> bool:
+    """Both |components| of ``v`` at most k max(sigma_i, tol_i) (sigma_i from ``cov``'s diagonal): the
+    numpy test ``all(v <= k * maximum(sigma, tol))`` in floats (NaN as numpy: False)."""
+    for i in range(2):
+        bound = k * _max_nan(math.sqrt(abs(float(cov[i, i]))), tol[i])
+        if not float(v[i]) <= bound:
+            return False
+    return True
+
+
+def _max_nan(a: float, b: float) -> float:
+    """np.maximum of two floats (NaN wins), without its per-call overhead."""
+    return a if (a >= b or a != a) else b
+
+
+def _next_steps(sigma_v: float, w: np.ndarray, tol: tuple[float, float]) -> np.ndarray:
+    """Step sizes along directions of Gauss–Newton eigenvalues ``w``: two standard deviations
+    (noise ``sigma_v``), between 4 min(tol) and 2; the numpy expression
+    ``min(max(2 sqrt(max(sigma^2 / max(w, 1e-300), 0)), 4 min(tol)), 2)`` in floats (NaN as numpy)."""
+    out = np.empty(2)
+    lo = 4 * min(tol)
+    for i in range(2):
+        sd = math.sqrt(_max_nan(sigma_v ** 2 / _max_nan(float(w[i]), 1e-300), 0.0))
+        v = _max_nan(2.0 * sd, lo)
+        out[i] = v if (v <= 2.0 or v != v) else 2.0
+    return out
+
+
 def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.ndarray, box: Box,
            config: IdentConfig, max_cycles: int | None = None, j0: float | None = None,
            batched: bool = False) -> tuple[LocalFit, bool, int]:
@@ -184,18 +212,15 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
             break
         d, w = fit.directions
         # next steps: two standard deviations along each direction, at least the tolerance
-        sd = np.sqrt(np.maximum(fit.sigma_v ** 2 / np.maximum(w, 1e-300), 0.0))
-        st = np.minimum(np.maximum(2.0 * sd, 4 * min(tol)), 2.0)   # np.clip, without its overhead
+        st = _next_steps(fit.sigma_v, w, tol)
         j = fit.criterion
-        sigma_x = np.sqrt(np.abs(np.diag(fit.cov_x)))
-        if batched and np.all(np.abs(fit.gn_step) <= 4.0 * np.maximum(sigma_x, tol)):
+        if batched and _within_scaled(np.abs(fit.gn_step), tol, 4.0, fit.cov_x):
             # near the minimum already: one Gauss–Newton step is cheaper than another cycle
             x_gn = box.clip(x + fit.gn_step)
             fit_gn = local_fit(model, x_gn, box)
             if fit_gn.success and fit_gn.criterion <= fit.criterion:
                 fit, x = fit_gn, x_gn
-                sigma_x = np.sqrt(np.abs(np.diag(fit.cov_x)))
-                if np.all(np.abs(fit.gn_step) <= np.maximum(tol, 0.25 * sigma_x)):
+                if _within(np.abs(fit.gn_step), tol, 0.25, fit.cov_x):
                     converged = True
                     break
             j = fit.criterion

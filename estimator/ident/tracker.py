@@ -277,7 +277,7 @@ def _warm_estimate(state: TrackerState, x0: np.ndarray, inj: Injection, sim: Fas
                    box: Box) -> Estimate:
     ic = config.ident
     model = CostModel(sim, inj, effective_window_s(ic, inj, state.robust), ic.norm, state.robust)
-    fit, converged, _ = refine(model, box.clip(x0), np.array(state.directions), np.array(state.steps), box, ic,
+    fit, converged, _ = refine(model, x0, np.array(state.directions), np.array(state.steps), box, ic,   # refine clips x0
                                max_cycles=config.warm_cycles, batched=True)
     stat = float("nan")
     if fit.success and not state.robust:   # the plain residual against the nuisance span (normal equations)
@@ -286,7 +286,7 @@ def _warm_estimate(state: TrackerState, x0: np.ndarray, inj: Injection, sim: Fas
         # is the model error still there? the likelihood ratio of a plain fit against the robust one,
         # as at a cold start (the plain residual at the robust estimate would overstate it)
         plain = CostModel(sim, inj, effective_window_s(ic, inj, False), ic.norm, False)
-        fit_p, _, _ = refine(plain, box.clip(x0), np.array(state.directions), np.array(state.steps), box, ic,
+        fit_p, _, _ = refine(plain, x0, np.array(state.directions), np.array(state.steps), box, ic,
                              max_cycles=config.warm_cycles, batched=True)
         stat = likelihood_ratio(plain, fit_p, model, fit)
     # the published prediction is made once, for the published estimate (``_publish``)

@@ -264,7 +264,7 @@ def _guard_ends(guards, open_seated, open_index, r, j, z, zn, seated):
     return g0, g1, spring_only
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _locate_first(guards, open_seated, open_index, target, amat, pat, r, z, zn, rem, seated, zt, zb, terms, poly):
     """The guard of region r that fires first between z and zn (``rem`` µs later; ``amat`` the
     region's continuous matrix). Returns (j, s): the guard (-1: none) and the time after z at which
