@@ -146,8 +146,11 @@ def _span_energy(r, b):
     g = np.zeros((m, m))
     for k in range(n):
         for p in range(m):
-            for q in range(m):
+            for q in range(p, m):
                 g[p, q] += b[k, p] * b[k, q]
+    for p in range(m):          # symmetric: the lower triangle is the upper one (a * b == b * a exactly)
+        for q in range(p):
+            g[p, q] = g[q, p]
     return br @ np.linalg.solve(g, br)
 
 
