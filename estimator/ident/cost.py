@@ -21,7 +21,6 @@ decides to use it.
 from __future__ import annotations
 
 import functools
-
 from dataclasses import dataclass
 
 import numpy as np
