@@ -56,6 +56,26 @@ def test_grid_voltages_equal_simulate_bit_for_bit(sim, f_open_n, samples):
     assert ok.sum() > nu.size // 2
 
 
+@pytest.mark.parametrize("exact", [False, True])
+def test_candidates_that_share_an_n_u_share_matrices_and_nothing_else(sim, exact):
+    """The kernel keeps a candidate's transition rows and continuous matrices for the next candidate
+    with the same N_u (a grid column); each candidate's trajectory is still the one it has alone, bit
+    for bit: pre-compressed, contact, opening and no-contact rows, in runs of equal N_u."""
+    from estimator.model.drive import StandardDrive
+    cur = np.zeros(981)
+    cur[:201] = StandardDrive().samples(100e-6, sim.dt_s)
+    nu = np.repeat([15.3, 17.0, 17.0 + 1e-9, 20.4], 5)
+    lh = np.tile([-1.5e-6, -0.2e-6, 2e-6, 6e-6, 40e-6], 4)
+    res = sim.simulate(cur, nu, lh, 28.0, exact=exact)
+    for b in range(nu.size):
+        one = sim.simulate(cur, nu[b], lh[b], 28.0, exact=exact)
+        for got, want in ((res.voltage_v[b], one.voltage_v[0]), (res.s3_m[b], one.s3_m[0]), (res.s4_m[b], one.s4_m[0]),
+                          (res.mode[b], one.mode[0]), (res.t_contact_s[b], one.t_contact_s[0]),
+                          (res.t_open_s[b], one.t_open_s[0]), (res.status[b], one.status[0])):
+            assert np.array_equal(got, want, equal_nan=True), b
+    assert np.isfinite(res.t_open_s).sum() >= 8 and np.isnan(res.t_contact_s).sum() >= 3
+
+
 def test_grid_voltages_check_their_inputs(sim):
     from estimator.errors import ParameterError
     cur = np.linspace(0.0, 10.0, 50)
