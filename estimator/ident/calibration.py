@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import least_squares, minimize
 
+from estimator.ident.cost import trapezoid_weights
 from estimator.ident.measurement import Injection
 from estimator.model.drive import sample_count
 from estimator.model.parameters import InjectorParameters, load_nominal
@@ -89,9 +90,7 @@ def calibrate(traces: list[CalibrationTrace], base: InjectorParameters | None = 
         if prob:
             raise ValueError(f"calibration trace at {tr.temperature_c} degC: {prob}")
         k = min(inj.n, sample_count(window_s, inj.dt_s))
-        w = np.full(k, inj.dt_s)
-        w[[0, -1]] *= 0.5
-        sets.append((inj.current_a[:k], inj.voltage_v[:k], tr.s3_m[:k], inj.dt_s, w))
+        sets.append((inj.current_a[:k], inj.voltage_v[:k], tr.s3_m[:k], inj.dt_s, trapezoid_weights(k, inj.dt_s)))
     evals = 0
 
     def residual_parts(theta: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:

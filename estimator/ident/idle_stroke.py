@@ -28,7 +28,7 @@ from estimator.ident.model_selection import likelihood_ratio, prefers_robust
 from estimator.ident.search import Box
 from estimator.ident.status import Status
 from estimator.model import dynamics as dyn
-from estimator.model.drive import SAMPLE_PERIOD_REL_TOL, held_then_zero, same_grid
+from estimator.model.drive import SAMPLE_PERIOD_REL_TOL, sampled_samples
 from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
 
 
@@ -73,11 +73,8 @@ def predict_valve(sim: FastSimulator, injection: Injection, nu: float, lh_m: flo
     charge) until the end of the plateau window (490 µs); the stroke is the mean plunger stroke over
     215–490 µs as in Table 3. NaN when the valve does not open with that charge.
     """
-    t_end = max(PLATEAU_WINDOW_S[1], injection.duration_s)
-    if same_grid(injection.dt_s, sim.dt_s):   # injection.drive().samples, without building the drive
-        cur = held_then_zero(injection.current_a, t_end, sim.dt_s)
-    else:
-        cur = injection.drive().samples(t_end, sim.dt_s)
+    # injection.drive().samples(...), without building the drive
+    cur = sampled_samples(injection.current_a, injection.dt_s, max(PLATEAU_WINDOW_S[1], injection.duration_s), sim.dt_s)
     return sim.valve_prediction(cur, nu, lh_m, injection.f_open_n)
 
 

@@ -128,8 +128,7 @@ def _within(v: np.ndarray, tol: tuple[float, float], k: float, cov: np.ndarray |
     for i in range(2):
         bound = tol[i]
         if cov is not None:
-            s = k * math.sqrt(abs(float(cov[i, i])))
-            bound = bound if s < bound else s       # np.maximum: NaN wins
+            bound = _max_nan(k * math.sqrt(abs(float(cov[i, i]))), bound)
         if not float(v[i]) <= bound:
             return False
     return True

@@ -160,8 +160,8 @@ class TableDrive(TimeFunction):
         return np.interp(np.asarray(t_s, dtype=float), self.t_s, self.current_a, left=0.0, right=0.0)
 
     def samples(self, t_end_s: float, dt_s: float = SAMPLE_PERIOD_S) -> np.ndarray:
-        if self.dt_s is not None and same_grid(self.dt_s, dt_s):
-            return held_then_zero(self.current_a, t_end_s, dt_s)   # the samples themselves
+        if self.dt_s is not None:
+            return sampled_samples(self.current_a, self.dt_s, t_end_s, dt_s)
         return self.current(sample_times(t_end_s, dt_s))
 
 
@@ -171,10 +171,13 @@ def same_grid(sampled_dt_s: float, dt_s: float) -> bool:
     return abs(sampled_dt_s - dt_s) <= SAMPLE_PERIOD_REL_TOL * dt_s
 
 
-def held_then_zero(current_a: np.ndarray, t_end_s: float, dt_s: float) -> np.ndarray:
-    """Samples ``current_a`` (A, taken every ``dt_s`` from t = 0) up to ``t_end_s`` (s), zero after the
-    last one: :meth:`TableDrive.samples` of :meth:`TableDrive.sampled` on its own grid, without
-    building the drive (the per-injection valve prediction calls it)."""
+def sampled_samples(current_a: np.ndarray, sampled_dt_s: float, t_end_s: float,
+                    dt_s: float = SAMPLE_PERIOD_S) -> np.ndarray:
+    """:meth:`TableDrive.samples` of ``TableDrive.sampled(current_a, sampled_dt_s)`` (A, s): on the same
+    grid (:func:`same_grid`) the samples themselves up to ``t_end_s``, zero after the last one, without
+    building the drive (the per-injection valve prediction calls it); else the drive's interpolation."""
+    if not same_grid(sampled_dt_s, dt_s):
+        return TableDrive.sampled(current_a, sampled_dt_s).current(sample_times(t_end_s, dt_s))
     n = sample_count(t_end_s, dt_s)
     out = np.zeros(n)
     k = min(n, current_a.size)
