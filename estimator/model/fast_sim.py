@@ -104,6 +104,14 @@ def plateau_mean(t_s: np.ndarray, values: np.ndarray, window_s: tuple[float, flo
     return np.mean(values[..., ks[0]:ks[1]], axis=-1)
 
 
+def _remember(cache: dict, key, value, limit: int):
+    """``cache[key] = value`` in a dict of at most ``limit`` entries (the oldest goes); returns ``value``."""
+    if len(cache) >= limit:
+        cache.pop(next(iter(cache)))
+    cache[key] = value
+    return value
+
+
 class FastSimulator:
     """Batched exact-discretisation simulator of the hybrid model (eq. 27).
 
@@ -168,9 +176,7 @@ class FastSimulator:
         """exp(A_r(N_u) h) for one N_u, cached (at most 256 values, oldest out)."""
         phi = self._exact.get(nu)
         if phi is None:
-            if len(self._exact) >= 256:
-                self._exact.pop(next(iter(self._exact)))
-            phi = self._exact[nu] = self._exact_uncached(nu)
+            phi = _remember(self._exact, nu, self._exact_uncached(nu), 256)
         return phi
 
     def _table(self) -> np.ndarray:
@@ -209,9 +215,7 @@ class FastSimulator:
         if t is None:
             t = np.arange(n) * self.dt_s
             t.setflags(write=False)
-            if len(self._t_cache) >= 64:      # bounded: every trace length seen would stay otherwise
-                self._t_cache.pop(next(iter(self._t_cache)))
-            self._t_cache[n] = t
+            _remember(self._t_cache, n, t, 64)      # bounded: every trace length seen would stay otherwise
         return t
 
     @property
@@ -282,10 +286,8 @@ class FastSimulator:
         key = (cur.size, (float(window_s[0]), float(window_s[1])))
         ks = self._plateau.get(key)
         if ks is None:
-            if len(self._plateau) >= 64:
-                self._plateau.pop(next(iter(self._plateau)))
             found = plateau_samples(self._times(cur.size), window_s)
-            ks = self._plateau[key] = found if found is not None else (0, 0)
+            ks = _remember(self._plateau, key, found if found is not None else (0, 0), 64)
         k0, k1 = ks
         h = self.kernel_handle()
         code, tc, to, stroke = kernel.valve_prediction(h.model, h.automaton, h.table, nu, lh, fo, cur, h.h_us, k0, k1,
