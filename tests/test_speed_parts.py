@@ -295,3 +295,42 @@ def test_refine_step_rules_in_floats_are_the_numpy_rules():
         sx = np.sqrt(np.abs(np.diag(cov)))
         assert _within_scaled(g, tol, 4.0, cov) == bool(np.all(g <= 4.0 * np.maximum(sx, tol)))
         assert _within(g, tol, 0.25, cov) == bool(np.all(g <= np.maximum(tol, 0.25 * sx)))
+
+
+def _cycle(x: np.ndarray, criterion: float, gn_sigmas: tuple[float, float]):
+    """A compiled cycle's outcome at ``x`` with unit variances and a Gauss–Newton step of ``gn_sigmas``."""
+    from estimator.ident.compiled_cycle import CYCLE_FIT, CycleFit
+    return CycleFit(CYCLE_FIT, 6, np.array(x, dtype=float), np.array([True, True]), np.full((2, 3), np.nan), criterion,
+                    0.0, np.eye(2), np.array(gn_sigmas, dtype=float), 1.0, np.eye(2), np.zeros(3), np.nan, np.nan, True,
+                    np.eye(2), np.ones(2))
+
+
+@pytest.mark.parametrize("gn_fit_sigmas, cycles_run", [((0.1, 0.2), 1), ((0.1, 0.3), 2)])
+def test_a_gauss_newton_point_that_confirms_the_minimum_ends_the_warm_refinement(monkeypatch, gn_fit_sigmas,
+                                                                                  cycles_run):
+    """The warm cycle's vertex is 0.3 sigma short of its Gauss–Newton minimum (not converged); the fit at
+    the Gauss–Newton point costs more than the vertex. If that fit, with its own Jacobian, puts the minimum
+    within a quarter sigma of it, the vertex is converged: no second cycle of six simulations (what set
+    the p99 of the warm update). Otherwise the second cycle runs as before."""
+    from estimator.ident import local_fit as lf
+    from estimator.ident.config import IdentConfig
+    from estimator.ident.search import Box
+
+    calls = []
+
+    def run_cycle(model, x, d, st, box):
+        calls.append(x.copy())
+        return _cycle(x + [1.0, 1.0], 10.0, (0.1, 0.3) if len(calls) == 1 else (0.0, 0.0))
+
+    def forward_fit(model, x, steps, box):
+        return _cycle(x, 10.5, gn_fit_sigmas)            # dearer than the vertex: not taken
+
+    class Model:
+        evaluations = 0
+    monkeypatch.setattr(lf, "run_cycle", run_cycle)
+    monkeypatch.setattr(lf, "run_forward_fit", forward_fit)
+    box = Box(np.array([0.0, 0.0]), np.array([100.0, 100.0]))
+    fit, converged, cycles = lf.refine(Model(), np.array([50.0, 50.0]), np.eye(2), np.ones(2), box, IdentConfig(),
+                                       max_cycles=3, batched=True)
+    assert converged and cycles == cycles_run and len(calls) == cycles_run
+    assert np.array_equal(fit.x, [51.0, 51.0] if cycles_run == 1 else [52.0, 52.0])   # the vertex, not the GN point

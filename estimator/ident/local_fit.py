@@ -222,6 +222,12 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
                 if _within(np.abs(fit.gn_step), tol, 0.25, fit.cov_x):
                     converged = True
                     break
+            elif fit_gn.success and _within(np.abs(fit_gn.gn_step), tol, 0.25, fit_gn.cov_x):
+                # the fit at the Gauss–Newton point, with its own Jacobian, puts the minimum within a
+                # quarter standard deviation of that point, and the cost here is lower still: here is
+                # as close to the minimum (another cycle from here moved 0.01-0.14 sigma, measured)
+                converged = True
+                break
             j = fit.criterion
     return fit, converged, cycles
 
