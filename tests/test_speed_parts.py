@@ -334,3 +334,29 @@ def test_a_gauss_newton_point_that_confirms_the_minimum_ends_the_warm_refinement
                                        max_cycles=3, batched=True)
     assert converged and cycles == cycles_run and len(calls) == cycles_run
     assert np.array_equal(fit.x, [51.0, 51.0] if cycles_run == 1 else [52.0, 52.0])   # the vertex, not the GN point
+
+
+def test_the_warm_model_error_test_is_the_statistic_against_the_raw_columns_to_the_bit():
+    """cost.plain_model_error (six columns summed in registers) equals model_error_statistic against
+    nuisance_columns bit for bit: simulated windows of several lengths and noise levels, a current whose
+    first column has unit norm (the orthonormal branch), and another number of thresholds (the general path)."""
+    from estimator.ident import cost
+    from estimator.model.drive import StandardDrive
+    rng = np.random.default_rng(3)
+    base = StandardDrive().samples(150e-6)
+    for _ in range(200):
+        n = int(rng.integers(20, base.size))
+        cur = base[:n] * rng.uniform(0.5, 2.0) + rng.normal(0.0, 0.05, n)
+        r = rng.normal(0.0, rng.uniform(1e-3, 1.0), n)
+        sigma = float(rng.uniform(1e-3, 0.1))
+        want = cost.model_error_statistic(r, cost.nuisance_columns(cur, 0.5e-6), sigma)
+        assert cost.plain_model_error(r, cur, 0.5e-6, sigma) == want
+    spike = np.zeros(50)
+    spike[10] = 3.0                                  # column 0 is a unit vector
+    r = rng.normal(0.0, 0.01, 50)
+    assert cost.plain_model_error(r, spike, 0.5e-6, 0.01) == cost.model_error_statistic(
+        r, cost.nuisance_columns(spike, 0.5e-6), 0.01)
+    three = np.array([0.1, 0.3, 0.6])
+    cur, r = base[:200], rng.normal(0.0, 0.01, 200)
+    assert cost._plain_model_error(r, cur, 0.5e-6, three, 0.01) == cost._span_energy(
+        r, cost._nuisance_columns(cur, 0.5e-6, three)) / 0.01 ** 2

@@ -453,7 +453,7 @@ def _robust_hysteresis(st: TrackerState, raw: Estimate, config: TrackerConfig, c
 def _held(st: TrackerState, now: float | None, temp: float | None, config: TrackerConfig,
           noise: kalman.ProcessNoise) -> tuple[np.ndarray, np.ndarray] | None:
     """The filter predicted to this injection (None before the first estimate)."""
-    if not st.initialized or not np.all(np.isfinite(st.x)):
+    if not st.initialized or not all(map(math.isfinite, st.x)):
         return None
     return kalman.predict(np.array(st.x), np.array(st.p), _interval(config, st.time_s, now),
                           _delta_temperature(st.temperature_c, temp), noise)
@@ -560,7 +560,7 @@ def _publish(filt: tuple[np.ndarray, np.ndarray] | None, raw: Estimate, status: 
     if filt is None:
         return TrackResult(raw, nan, nan, nan, nan, status, reason, raw.evaluations, outliers=outliers)
     x, p = filt
-    pt, sig = NuLh.of(x), NuLh.of(np.sqrt(np.abs(np.diag(p))))
+    pt, sig = NuLh.of(x), NuLh(math.sqrt(abs(float(p[0, 0]))), math.sqrt(abs(float(p[1, 1]))))
     tc = to = stroke = nan
     if predict and math.isfinite(pt.nu_n_per_v) and math.isfinite(pt.lh_um):
         try:
