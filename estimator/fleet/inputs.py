@@ -3,7 +3,8 @@
 Injector key (documented in the README): a trace's metadata ``serial=...`` (or ``injector_key=...``);
 traces that share a key are one injector's measurements and are processed in one task, in order of
 their ``time_s`` metadata (then file name), with the recursive estimator's state carried from one to
-the next. Everything else (traces without a key, captures) is independent: one task per input.
+the next. Everything else (traces without a key, captures) is independent: a group of its own. A Dask
+task runs one or more groups (:func:`estimator.fleet.run.task_size`), each with its own tracker.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ TRACE_SUFFIXES = (".csv",) + MDF_SUFFIXES
 
 @dataclass(frozen=True)
 class Group:
-    """One task: an injector key (None: independent) and its inputs in processing order."""
+    """One injector's inputs in processing order (key None: one independent input)."""
 
     key: str | None
     paths: tuple[str, ...]
@@ -67,7 +68,7 @@ def trace_meta(path: Path) -> dict[str, str]:
 
 
 def group(files: list[Path]) -> list[Group]:
-    """Tasks: keyed traces together in time order, every other input alone."""
+    """Groups: keyed traces together in time order, every other input alone."""
     keyed: dict[str, list[tuple[float, str]]] = {}
     alone: list[Group] = []
     for f in files:
