@@ -260,7 +260,9 @@ def cmd_fleet_bench(args: argparse.Namespace) -> int:
     os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
     from sim_bench import fleet_bench
 
-    rep = fleet_bench.run(args.out, args.injectors, tuple(args.workers), args.seed)
+    if not (1 <= args.injectors <= 100_000 and 1 <= args.injections <= 1000):
+        raise EstimatorError(f"--injectors {args.injectors} must be 1..100000 and --injections {args.injections} 1..1000")
+    rep = fleet_bench.run(args.out, args.injectors, tuple(args.workers), args.seed, args.injections)
     print(fleet_bench.format_report(rep))
     _write_json(args.json_out, rep)
     return 0
@@ -355,6 +357,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("fleet-bench", help="fleet on a synthetic lot at 1 and 2 workers: throughput, accuracy")
     s.add_argument("--injectors", type=int, default=1000)
+    s.add_argument("--injections", type=int, default=1,
+                   help="traces per injector (1: every injection a cold start; more: the first cold, the rest warm)")
     s.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     s.add_argument("--seed", type=int, default=11)
     s.add_argument("--out", type=Path, default=DEFAULT_OUT / "fleet")

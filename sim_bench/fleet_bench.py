@@ -14,18 +14,21 @@ from estimator.fleet.run import run_fleet
 from sim_bench.lot import make_lot
 
 
-def run(out: Path, injectors: int = 1000, workers: tuple[int, ...] = (1, 2), seed: int = 11) -> dict:
-    """Make the lot (once), run the fleet per worker count, score against truth.csv."""
-    lot = out / f"lot-{injectors}-{seed}"
+def run(out: Path, injectors: int = 1000, workers: tuple[int, ...] = (1, 2), seed: int = 11,
+        injections: int = 1) -> dict:
+    """Make the lot (once; ``injections`` traces per injector, carried through one tracker), run the
+    fleet per worker count, score every row against truth.csv."""
+    lot = out / (f"lot-{injectors}-{seed}" if injections == 1 else f"lot-{injectors}x{injections}-{seed}")
     if not (lot / "truth.csv").exists():
         t0 = time.perf_counter()
-        make_lot(lot, injectors, 1, seed)
-        print(f"lot of {injectors} injectors written in {time.perf_counter() - t0:.1f} s")
+        make_lot(lot, injectors, injections, seed)
+        print(f"lot of {injectors} injectors x {injections} written in {time.perf_counter() - t0:.1f} s")
     truth = {r["serial"]: r for r in csv.DictReader(open(lot / "truth.csv"))}
-    report: dict = {"benchmark": "fleet", "injectors": injectors, "runs": []}
+    report: dict = {"benchmark": "fleet", "injectors": injectors, "injections_per_injector": injections, "runs": []}
     for n in workers:
         t0 = time.perf_counter()
-        res = run_fleet([str(lot / "traces")], out / f"fleet-{n}w.parquet", workers=n)
+        res = run_fleet([str(lot / "traces")], out / f"fleet-{n}w{'' if injections == 1 else f'-x{injections}'}.parquet",
+                        workers=n)
         wall = time.perf_counter() - t0
         rows = [r for r in res.rows if r.get("status") != "error"]
         e_lh, e_nu, flagged_bad, flagged_good, bad = [], [], 0, 0, 0
@@ -57,7 +60,10 @@ def run(out: Path, injectors: int = 1000, workers: tuple[int, ...] = (1, 2), see
 
 def format_report(rep: dict) -> str:
     """The table."""
-    lines = [f"fleet-bench: {rep['injectors']} injectors, one trace each (cold start per injection)",
+    per = rep.get("injections_per_injector", 1)
+    head = ("one trace each (cold start per injection)" if per == 1 else
+            f"{per} traces each (the first a cold start, the rest warm updates)")
+    lines = [f"fleet-bench: {rep['injectors']} injectors, {head}",
              f"  {'workers':>7} {'inj/s':>8} {'per worker':>10} {'ms/inj':>7} {'scaling':>7} {'L_h rms/max [µm]':>17} "
              f"{'N_u rms [%]':>11} {'bad flagged':>11} {'good flagged':>12}"]
     for r in rep["runs"]:

@@ -124,3 +124,16 @@ def test_a_worker_reuses_freed_memory_despite_the_nannys_trim_threshold():
     before, ok, after = r.stdout.split()
     assert ok == "True"
     assert int(before) > 100 * 200 and int(after) < 2000, r.stdout     # ≈ 128 faults per array before, ≈ 0 after
+
+
+def test_fleet_bench_scores_a_lot_with_several_traces_per_injector(tmp_path):
+    """fleet-bench's lot with two traces per injector: every row scored against the truth, and the
+    second trace of each injector a warm update (its own lot directory, beside the one-trace lot)."""
+    from sim_bench import fleet_bench
+    rep = fleet_bench.run(tmp_path, injectors=3, workers=(1,), seed=4, injections=2)
+    run = rep["runs"][0]
+    assert rep["injections_per_injector"] == 2 and run["injections"] == 6 and run["errors"] == 0
+    assert run["rms_lh_um"] < 0.5 and (tmp_path / "lot-3x2-4" / "truth.csv").exists()
+    rows = pd.read_parquet(tmp_path / "fleet-1w-x2.parquet")
+    assert (rows[rows.source.str.endswith("_001.csv")].evaluations < 200).all()      # warm
+    assert "2 traces each" in fleet_bench.format_report(rep)
