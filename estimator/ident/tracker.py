@@ -52,7 +52,7 @@ from estimator.ident.model_selection import likelihood_ratio
 from estimator.ident.search import Box
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.status import Status
-from estimator.model.fast_sim import FastSimulator
+from estimator.model.fast_sim import FastSimulator, remember
 from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters
 
 STATE_VERSION = 2
@@ -313,9 +313,7 @@ def _box_and_noise(config: TrackerConfig, sim: FastSimulator, f_open_n: float) -
     hit = memo.get(key)
     if hit is None:
         box = search_box(config.ident, sim, f_open_n)   # shared between updates (nothing writes a Box)
-        if len(memo) >= _BOXES_PER_SIMULATOR:
-            memo.pop(next(iter(memo)))
-        hit = memo[key] = (box, process_noise(config, box))
+        hit = remember(memo, key, (box, process_noise(config, box)), _BOXES_PER_SIMULATOR)
     return hit
 
 

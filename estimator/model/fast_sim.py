@@ -104,7 +104,7 @@ def plateau_mean(t_s: np.ndarray, values: np.ndarray, window_s: tuple[float, flo
     return np.mean(values[..., ks[0]:ks[1]], axis=-1)
 
 
-def _remember(cache: dict, key, value, limit: int):
+def remember(cache: dict, key, value, limit: int):
     """``cache[key] = value`` in a dict of at most ``limit`` entries (the oldest goes); returns ``value``."""
     if len(cache) >= limit:
         cache.pop(next(iter(cache)))
@@ -176,7 +176,7 @@ class FastSimulator:
         """exp(A_r(N_u) h) for one N_u, cached (at most 256 values, oldest out)."""
         phi = self._exact.get(nu)
         if phi is None:
-            phi = _remember(self._exact, nu, self._exact_uncached(nu), 256)
+            phi = remember(self._exact, nu, self._exact_uncached(nu), 256)
         return phi
 
     def _table(self) -> np.ndarray:
@@ -215,7 +215,7 @@ class FastSimulator:
         if t is None:
             t = np.arange(n) * self.dt_s
             t.setflags(write=False)
-            _remember(self._t_cache, n, t, 64)      # bounded: every trace length seen would stay otherwise
+            remember(self._t_cache, n, t, 64)      # bounded: every trace length seen would stay otherwise
         return t
 
     @property
@@ -287,7 +287,7 @@ class FastSimulator:
         ks = self._plateau.get(key)
         if ks is None:
             found = plateau_samples(self._times(cur.size), window_s)
-            ks = _remember(self._plateau, key, found if found is not None else (0, 0), 64)
+            ks = remember(self._plateau, key, found if found is not None else (0, 0), 64)
         k0, k1 = ks
         h = self.kernel_handle()
         code, tc, to, stroke = kernel.valve_prediction(h.model, h.automaton, h.table, nu, lh, fo, cur, h.h_us, k0, k1,
