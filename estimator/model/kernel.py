@@ -46,7 +46,7 @@ class KernelModel(NamedTuple):
     a_pattern: np.ndarray   # (6, ZI + 1, NZ + 2) uint64: the non-zero columns of the region matrices (sparsity)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _taylor(a, pat, z, sigma, c):
     """The Taylor series of exp(a sigma) z (a: (NZ, NZ) per time unit, |a| sigma < 1): row k of ``c``
     holds (a sigma)^k z / k!, k = 0 .. K - 1, until a term is below 1e-17 of the state; returns K.
@@ -105,14 +105,16 @@ def sparsity(a_const, a_coup, a_damp):
     return pat
 
 
-@njit(cache=True, nogil=True)
-def _flow(a, pat, z, sigma, out, terms):
-    """out = exp(a * sigma) @ z (a: (NZ, NZ) per time unit, |a| sigma < 1, its pattern ``pat``): the
-    Taylor series of :func:`_taylor`, its terms kept in ``terms``, summed by :func:`_state_at`."""
-    _state_at(terms, _taylor(a, pat, z, sigma, terms), z, 1.0, out)
+@njit(cache=True, nogil=True, _nrt=False)
+def _flow(amat, pattern, r, z, sigma, out, terms):
+    """out = exp(a * sigma) @ z for region r's continuous matrix a = ``amat[r]`` (per time unit,
+    |a| sigma < 1) and its pattern ``pattern[r]``: the Taylor series of :func:`_taylor`, its terms
+    kept in ``terms``, summed by :func:`_state_at`. Takes the whole arrays and r, not the region's
+    slices: a slice taken in the caller costs two reference-count calls (the note above :func:`_guard_ends`)."""
+    _state_at(terms, _taylor(amat[r], pattern[r], z, sigma, terms), z, 1.0, out)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _state_at(c, nterms, z, u, out):
     """out = the state at the fraction u of the interval of :func:`_taylor`'s terms ``c`` (Horner)."""
     m = ZI + 1
@@ -127,7 +129,7 @@ def _state_at(c, nterms, z, u, out):
         out[i] = z[i]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _locate(c, nterms, g, z, rem, out, poly):
     """Crossing time of the guard g in (0, rem] along the flow whose Taylor terms over rem are ``c``
     (:func:`_taylor`), the guard being <= 0 at the start and > 0 at the end of the interval.
@@ -187,7 +189,7 @@ def _locate(c, nterms, g, z, rem, out, poly):
     return u * rem
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _region_phi(src, idx, w, b, r, out):
     """Rows 0..NX-1 of the transition matrix of region r for candidate b: the table rows ``idx[b]``
     weighted by ``w[b]``. Depends on N_u only: candidates with the same rows and weights share it."""
@@ -199,7 +201,7 @@ def _region_phi(src, idx, w, b, r, out):
                             + w2 * src[i2, r, i, j] + w3 * src[i3, r, i, j])
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _region_const(phi, r, z, const):
     """``const[r]``: the contribution of the constant inputs L_h, F_open, 1 (columns ZID + 1 ..) of
     the state ``z`` through region r's transition rows (per candidate: L_h is its own)."""
@@ -210,12 +212,12 @@ def _region_const(phi, r, z, const):
         const[r, i] = c
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _region_a(model, cpl, dmp, r, out):
-    """The continuous matrix of region r: a_const + cpl a_coup + dmp a_damp (scaled, per µs)."""
+    """``out[r]`` = the continuous matrix of region r: a_const + cpl a_coup + dmp a_damp (scaled, per µs)."""
     for i in range(NZ):
         for j in range(NZ):
-            out[i, j] = model.a_const[r, i, j] + cpl * model.a_coup[r, i, j] + dmp * model.a_damp[r, i, j]
+            out[r, i, j] = model.a_const[r, i, j] + cpl * model.a_coup[r, i, j] + dmp * model.a_damp[r, i, j]
 
 
 class Candidates(NamedTuple):
@@ -244,6 +246,11 @@ class Trajectories(NamedTuple):
 
 # The per-sample code takes plain arrays: a call, or an array taken out of a named tuple, costs
 # ~30 ns per sample, as much as the step itself; the step is written out in simulate_kernel.
+#
+# The functions of the event path (locating a crossing, the reset, the rest of a sample) are compiled
+# without numba's reference counting (``_nrt=False``; they allocate nothing and keep no array): with
+# it, every array they take or slice cost an atomic increment and decrement, ~26 calls per event and
+# 8 per partial sample, 4,300 calls in one valve prediction (37 events); without, 81 -> 75 µs.
 
 @njit(cache=True, nogil=True, inline="always")
 def _guard_ends(guards, open_seated, open_index, r, j, z, zn, seated):
@@ -264,10 +271,10 @@ def _guard_ends(guards, open_seated, open_index, r, j, z, zn, seated):
     return g0, g1, spring_only
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, _nrt=False)
 def _locate_first(guards, open_seated, open_index, target, amat, pat, r, z, zn, rem, seated, zt, zb, terms, poly):
-    """The guard of region r that fires first between z and zn (``rem`` µs later; ``amat`` the
-    region's continuous matrix). Returns (j, s): the guard (-1: none) and the time after z at which
+    """The guard of region r that fires first between z and zn (``rem`` µs later; ``amat[r]`` the
+    region's continuous matrix, ``pat[r]`` its pattern). Returns (j, s): the guard (-1: none) and the time after z at which
     it is positive; the state there is left in zb. Called only when some guard crosses.
     """
     best = -1
@@ -280,7 +287,7 @@ def _locate_first(guards, open_seated, open_index, target, amat, pat, r, z, zn, 
         if g0 <= 0.0 and g1 > 0.0:
             g = open_seated[r] if spring_only else guards[r, j]
             if nterms == 0:     # the flow's terms, shared by the guards that cross in this interval
-                nterms = _taylor(amat, pat, z, rem, terms)
+                nterms = _taylor(amat[r], pat[r], z, rem, terms)
             s = _locate(terms, nterms, g, z, rem, zt, poly)
             if s < best_s or best < 0:
                 best_s = s
@@ -290,7 +297,7 @@ def _locate_first(guards, open_seated, open_index, target, amat, pat, r, z, zn, 
     return best, best_s
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _transition(guards, target, reset, open_index, open_seated, region_mode, r, j, z, seated, nev, t_ev, b,
                 t_contact, t_open):
     """Take transition j of region r at z (time t_ev µs), then any already enabled at the new state.
@@ -466,9 +473,9 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
                     zn[ZI] = zi + h * zd
                 else:   # the rest of a sample after an event
                     if not have_a[r]:    # the region's continuous matrix, formed at the candidate's first event in it
-                        _region_a(model, cpl[b], dmp[b], r, amat[r])
+                        _region_a(model, cpl[b], dmp[b], r, amat)
                         have_a[r] = True
-                    _flow(amat[r], pattern[r], z, rem, zn, terms)
+                    _flow(amat, pattern, r, z, rem, zn, terms)
                 # does a guard cross? automaton.guard_value at both ends, written out: as an inlined
                 # call it made the whole simulation 35 % slower (speed-sim)
                 crosses = False
@@ -503,9 +510,9 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
                         z[i] = zn[i]
                     break
                 if not have_a[r]:
-                    _region_a(model, cpl[b], dmp[b], r, amat[r])
+                    _region_a(model, cpl[b], dmp[b], r, amat)
                     have_a[r] = True
-                best, best_s = _locate_first(guards, open_seated, open_index, target, amat[r], pattern[r], r, z, zn,
+                best, best_s = _locate_first(guards, open_seated, open_index, target, amat, pattern, r, z, zn,
                                              rem, seated, zt, zb, terms, poly)
                 for i in range(NZ):
                     z[i] = zb[i]
