@@ -338,7 +338,7 @@ def _nonzeros(rows):
     return idx, cnt
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, fastmath={"contract"})
 def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
     """Advance B candidates over the samples of ``cur`` (all arrays in scaled units, time in µs).
 
@@ -355,7 +355,10 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
     (``_transition`` and the continuous matrix's lookup), the valve prediction took 6–11 % longer. ``aut`` is the automaton
     (:class:`automaton.Automaton`), ``cand`` the candidates, ``cur`` (N,) the current in A. Per
     sample: the step (written out), then, if a guard crosses, :func:`_locate_first` and :func:`_transition`
-    and the rest of the sample from there. The :class:`Trajectories` ``out`` are written in place;
+    and the rest of the sample from there. Multiply-adds may be fused (``fastmath={"contract"}``, the only
+    relaxation: no reassociation, no finite-math assumptions): each product-sum of the step is then
+    rounded once instead of twice, 4-5 % faster (valve prediction 76 -> 72 µs) and different from
+    the unfused sums in the last bits only. The :class:`Trajectories` ``out`` are written in place;
     t_contact/t_open in µs (NaN: none).
     """
     nb = cand.z0.shape[0]
