@@ -8,12 +8,17 @@ import estimator  # noqa: F401  (first: it limits BLAS to one thread before nump
 
 import pytest
 
+from estimator.model.direct_call import verify_types
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import InjectorParameters, load_nominal
 from sim_bench.hub import Hub
 from sim_bench.procs import BusMonitor
 
 REPO = Path(__file__).resolve().parents[1]
+
+# every DirectCall checks its argument types against its overload in the tests (a caller that passes
+# another dtype or layout fails instead of being read as the first call's types)
+verify_types(True)
 
 
 @pytest.fixture(scope="session")

@@ -360,3 +360,29 @@ def test_the_warm_model_error_test_is_the_statistic_against_the_raw_columns_to_t
     cur, r = base[:200], rng.normal(0.0, 0.01, 200)
     assert cost._plain_model_error(r, cur, 0.5e-6, three, 0.01) == cost._span_energy(
         r, cost._nuisance_columns(cur, 0.5e-6, three)) / 0.01 ** 2
+
+
+def test_direct_call_runs_the_dispatchers_overload_and_refuses_other_types():
+    """DirectCall: the first call through the dispatcher, later ones straight to that overload (the
+    same results); with type checks on (as in the whole suite), another dtype or layout is refused."""
+    from numba import njit
+
+    from estimator.model import direct_call
+
+    @njit
+    def weighted_sum(x, w, scale):
+        s = 0.0
+        for k in range(x.shape[0]):
+            s += x[k] * w[k]
+        return s * scale
+
+    call = direct_call.DirectCall(weighted_sum)
+    x, w = np.arange(5.0), np.linspace(0.5, 1.5, 5)
+    assert call(x, w, 2.0) == weighted_sum(x, w, 2.0)
+    assert call(x + 1.0, w, 3.0) == weighted_sum(x + 1.0, w, 3.0)   # the direct path
+    assert direct_call._verify, "tests/conftest.py turns the type checks on"
+    with pytest.raises(TypeError, match="argument"):
+        call(x.astype(np.float32), w, 2.0)
+    with pytest.raises(TypeError, match="argument"):
+        call(np.arange(10.0)[::2], w, 2.0)          # not contiguous
+    assert len(weighted_sum.overloads) == 1         # refused before anything was compiled for them

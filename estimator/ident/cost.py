@@ -27,6 +27,7 @@ import numpy as np
 from numba import njit
 
 from estimator.ident.measurement import Injection
+from estimator.model.direct_call import DirectCall
 from estimator.model.drive import sample_count
 from estimator.model.fast_sim import BatchResult, FastSimulator
 
@@ -57,7 +58,7 @@ def nuisance_columns(current_a: np.ndarray, dt_s: float) -> np.ndarray:
     return _nuisance_columns(np.ascontiguousarray(current_a, dtype=float), float(dt_s), _THRESHOLDS)
 
 
-_THRESHOLDS = np.array(NUISANCE_THRESHOLDS)
+_THRESHOLDS = np.array(NUISANCE_THRESHOLDS, dtype=float)
 
 
 @njit(cache=True, nogil=True)
@@ -116,7 +117,7 @@ def plain_model_error(residual_v: np.ndarray, current_a: np.ndarray, dt_s: float
     """:func:`model_error_statistic` of a residual (V) against the raw :func:`nuisance_columns` of its
     window's current (A, sampled every ``dt_s`` s), with the noise level ``sigma_v`` (V): one compiled
     call (the warm update's test of the plain model)."""
-    return float(_plain_model_error(np.ascontiguousarray(residual_v, dtype=float),
+    return float(_PLAIN_MODEL_ERROR(np.ascontiguousarray(residual_v, dtype=float),
                                     np.ascontiguousarray(current_a, dtype=float), float(dt_s), _THRESHOLDS,
                                     float(sigma_v)))
 
@@ -239,8 +240,8 @@ class CostModel:
             raise ValueError(f"norm must be 'l1' or 'l2', not {self.norm!r}")
         inj = self.injection
         self.n = min(inj.n, sample_count(self.window_s, inj.dt_s))
-        self.current = np.ascontiguousarray(inj.current_a[: self.n])
-        self.measured = np.ascontiguousarray(inj.voltage_v[: self.n])
+        self.current = np.ascontiguousarray(inj.current_a[: self.n], dtype=float)
+        self.measured = np.ascontiguousarray(inj.voltage_v[: self.n], dtype=float)
         self.dt = inj.dt_s
         self.weights = trapezoid_weights(self.n, self.dt)
         self._basis: np.ndarray | None = None
@@ -291,3 +292,6 @@ class CostModel:
     def paper_cost_vs(self, res: BatchResult) -> np.ndarray:
         """The paper's J = ∫|U_m − U_sim| dt in V*s, unprojected (eq. 28)."""
         return np.abs(self.measured[None, :] - res.voltage_v[:, : self.n]) @ self.weights
+
+
+_PLAIN_MODEL_ERROR = DirectCall(_plain_model_error)   # its argument types are fixed in plain_model_error

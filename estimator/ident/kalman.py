@@ -23,6 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from estimator.model.direct_call import DirectCall
+
 N_STATE = 4
 NU, LH, RATE, SLOPE = range(N_STATE)
 CHI2_1DOF_1E4 = 15.14           # P(chi2(1) > 15.14) = 1e-4: a one-component jump explains the innovation
@@ -50,9 +52,9 @@ def predict(x: np.ndarray, p: np.ndarray, dt_s: float, d_temp_c: float | None,
     known = d_temp_c is not None     # a measured temperature explains most drift: less left to chase
     q_rate = noise.rate_per_sqrt_s_known_t if known else noise.rate_per_sqrt_s
     q_nu = noise.nu_per_sqrt_s_known_t if known else noise.nu_per_sqrt_s
-    return _predict(np.asarray(x, dtype=float), np.asarray(p, dtype=float), float(dt_s), float(d_temp_c or 0.0),
-                    noise.rate_tau_s, noise.nu_per_injection, q_nu, q_rate, noise.lh_per_injection_um,
-                    noise.lh_per_sqrt_s_um, noise.slope_per_sqrt_s, np.asarray(noise.max_var, dtype=float))
+    return _PREDICT(_c(x), _c(p), float(dt_s), float(d_temp_c or 0.0), float(noise.rate_tau_s),
+                    float(noise.nu_per_injection), float(q_nu), float(q_rate), float(noise.lh_per_injection_um),
+                    float(noise.lh_per_sqrt_s_um), float(noise.slope_per_sqrt_s), _c(noise.max_var))
 
 
 @njit(cache=True, nogil=True)
@@ -114,8 +116,7 @@ class Innovation:
 
 def innovation(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> Innovation:
     """The innovation of measurement ``z`` (covariance ``r``) against the state."""
-    e, s, d2 = _innovation(np.asarray(x, dtype=float), np.asarray(p, dtype=float), np.asarray(z, dtype=float),
-                           np.asarray(r, dtype=float))
+    e, s, d2 = _INNOVATION(_c(x), _c(p), _c(z), _c(r))
     return Innovation(e, s, d2)
 
 
@@ -135,8 +136,7 @@ def _innovation(x, p, z, r):
 
 def update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Kalman update with ``z`` (Joseph form: stays symmetric positive definite)."""
-    return _update(np.asarray(x, dtype=float), np.asarray(p, dtype=float), np.asarray(z, dtype=float),
-                   np.asarray(r, dtype=float))
+    return _UPDATE(_c(x), _c(p), _c(z), _c(r))
 
 
 @njit(cache=True, nogil=True)
@@ -222,3 +222,11 @@ def initial(z: np.ndarray, r: np.ndarray, rate_var: float, slope: float, slope_v
     p[RATE, RATE] = rate_var
     p[SLOPE, SLOPE] = slope_var
     return x, p
+
+
+def _c(a: np.ndarray) -> np.ndarray:
+    """A C-contiguous float64 array (the compiled steps are DirectCalls: their argument types are fixed)."""
+    return np.ascontiguousarray(a, dtype=float)
+
+
+_PREDICT, _INNOVATION, _UPDATE = DirectCall(_predict), DirectCall(_innovation), DirectCall(_update)

@@ -30,7 +30,6 @@ Per injection (:func:`update`, pure: state in, state out):
 
 from __future__ import annotations
 
-import copy
 import math
 import weakref
 from dataclasses import asdict, dataclass, field, replace
@@ -341,7 +340,8 @@ def _delta_temperature(t_from: float | None, t_to: float | None) -> float | None
 def update(state: TrackerState, inj: Injection, sim: FastSimulator,
            config: TrackerConfig) -> tuple[TrackerState, TrackResult]:
     """One injection through the recursive estimator (pure: ``state`` is not modified)."""
-    st = copy.copy(state)    # dataclasses.replace without re-running __init__ (its fields as they are)
+    st = object.__new__(TrackerState)    # copy.copy(state) in 0.45 instead of 1.9 µs: the fields as they are
+    st.__dict__.update(state.__dict__)
     st.x, st.p = list(state.x), [list(r) for r in state.p]
     st.updates += 1
     box, noise = _box_and_noise(config, sim, inj.f_open_n)

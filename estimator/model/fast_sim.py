@@ -18,6 +18,7 @@ from estimator.errors import ParameterError
 from estimator.model import dynamics as dyn
 from estimator.model import kernel
 from estimator.model.automaton import build_automaton
+from estimator.model.direct_call import DirectCall
 from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.model.dynamics import STATUS_INFEASIBLE, STATUS_TEXT
 from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters, check_nu_in, load_nominal
@@ -27,6 +28,9 @@ FREE_RUN_LH_M = 1.0   # L_h of a grid column's free run (m): a gap no actuator c
 
 
 BAD_CURRENT_TEXT = "current must be a 1-D array of at least 2 finite samples (A)"
+
+
+_VALVE_PREDICTION = DirectCall(kernel.valve_prediction)
 
 
 def _current(current_a: np.ndarray) -> np.ndarray:
@@ -290,8 +294,10 @@ class FastSimulator:
             ks = remember(self._plateau, key, found if found is not None else (0, 0), 64)
         k0, k1 = ks
         h = self.kernel_handle()
-        code, tc, to, stroke = kernel.valve_prediction(h.model, h.automaton, h.table, nu, lh, fo, cur, h.h_us, k0, k1,
-                                                       *self.nu_range)
+        lo, hi = self.nu_range
+        # the argument types are fixed here (_VALVE_PREDICTION is a DirectCall): float64 arrays, floats, ints
+        code, tc, to, stroke = _VALVE_PREDICTION(h.model, h.automaton, h.table, nu, lh, fo, cur, float(h.h_us),
+                                                 int(k0), int(k1), float(lo), float(hi))
         if code != kernel.INPUTS_OK:      # the inputs are checked in the same call: raise as _check_inputs does
             self._check_inputs(cur, nu, lh, fo)
         return float(tc), float(to), float(stroke)
