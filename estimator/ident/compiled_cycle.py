@@ -28,7 +28,7 @@ from estimator.ident.coords import UM_PER_M
 from estimator.ident.cost import CostModel, noise_sigma
 from estimator.ident.search import TRUST_STEPS, Box, parabola_vertex
 from estimator.model import kernel
-from estimator.model.direct_call import DirectCall
+from estimator.model.direct_call import DirectCall, c_float
 
 CYCLE_FIT, CYCLE_PARTIAL, CYCLE_FALLBACK = 0, 1, 2
 """Outcomes: the fit at the vertex is done; the vertex is known but a direction or the fit needs
@@ -283,7 +283,7 @@ def _model_args(model: CostModel) -> tuple:
     """The compiled functions' arguments that come from the cost model and its simulator."""
     sim = model.sim
     handle = sim.kernel_handle()
-    basis = np.ascontiguousarray(model.basis, dtype=float) if model.robust else _NO_BASIS   # one compiled layout
+    basis = c_float(model.basis) if model.robust else _NO_BASIS   # one compiled layout
     lo, hi = sim.nu_range
     # the types are fixed here (DirectCall): C-contiguous float64 arrays (the cost model's current and
     # voltage are made so in CostModel), Python floats and bools
@@ -296,19 +296,16 @@ _forward_fit = DirectCall(forward_fit)
 _warm_cycle = DirectCall(warm_cycle)
 
 
-def _vec(x: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(x, dtype=float)
-
-
 def run_forward_fit(model: CostModel, x: np.ndarray, fd: np.ndarray, box: Box) -> CycleFit:
     """:func:`forward_fit` for a cost model (its evaluations counted)."""
-    out = CycleFit(*_forward_fit(*_model_args(model), _vec(x), _vec(fd), _vec(box.hi)))
+    out = CycleFit(*_forward_fit(*_model_args(model), c_float(x), c_float(fd), c_float(box.hi)))
     model.evaluations += out.evaluations
     return out
 
 
 def run_cycle(model: CostModel, x0: np.ndarray, d: np.ndarray, st: np.ndarray, box: Box) -> CycleFit:
     """:func:`warm_cycle` for a cost model (its evaluations counted) from ``x0`` along ``d``, ``st``."""
-    out = CycleFit(*_warm_cycle(*_model_args(model), _vec(x0), _vec(d), _vec(st), _vec(box.lo), _vec(box.hi)))
+    out = CycleFit(*_warm_cycle(*_model_args(model), c_float(x0), c_float(d), c_float(st), c_float(box.lo),
+                                c_float(box.hi)))
     model.evaluations += out.evaluations
     return out

@@ -27,7 +27,7 @@ import numpy as np
 from numba import njit
 
 from estimator.ident.measurement import Injection
-from estimator.model.direct_call import DirectCall
+from estimator.model.direct_call import DirectCall, c_float
 from estimator.model.drive import sample_count
 from estimator.model.fast_sim import BatchResult, FastSimulator
 
@@ -117,8 +117,7 @@ def plain_model_error(residual_v: np.ndarray, current_a: np.ndarray, dt_s: float
     """:func:`model_error_statistic` of a residual (V) against the raw :func:`nuisance_columns` of its
     window's current (A, sampled every ``dt_s`` s), with the noise level ``sigma_v`` (V): one compiled
     call (the warm update's test of the plain model)."""
-    return float(_PLAIN_MODEL_ERROR(np.ascontiguousarray(residual_v, dtype=float),
-                                    np.ascontiguousarray(current_a, dtype=float), float(dt_s), _THRESHOLDS,
+    return float(_PLAIN_MODEL_ERROR(c_float(residual_v), c_float(current_a), float(dt_s), _THRESHOLDS,
                                     float(sigma_v)))
 
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from estimator.model.direct_call import DirectCall
+from estimator.model.direct_call import DirectCall, c_float
 
 N_STATE = 4
 NU, LH, RATE, SLOPE = range(N_STATE)
@@ -52,9 +52,9 @@ def predict(x: np.ndarray, p: np.ndarray, dt_s: float, d_temp_c: float | None,
     known = d_temp_c is not None     # a measured temperature explains most drift: less left to chase
     q_rate = noise.rate_per_sqrt_s_known_t if known else noise.rate_per_sqrt_s
     q_nu = noise.nu_per_sqrt_s_known_t if known else noise.nu_per_sqrt_s
-    return _PREDICT(_c(x), _c(p), float(dt_s), float(d_temp_c or 0.0), float(noise.rate_tau_s),
+    return _PREDICT(c_float(x), c_float(p), float(dt_s), float(d_temp_c or 0.0), float(noise.rate_tau_s),
                     float(noise.nu_per_injection), float(q_nu), float(q_rate), float(noise.lh_per_injection_um),
-                    float(noise.lh_per_sqrt_s_um), float(noise.slope_per_sqrt_s), _c(noise.max_var))
+                    float(noise.lh_per_sqrt_s_um), float(noise.slope_per_sqrt_s), c_float(noise.max_var))
 
 
 @njit(cache=True, nogil=True)
@@ -116,7 +116,7 @@ class Innovation:
 
 def innovation(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> Innovation:
     """The innovation of measurement ``z`` (covariance ``r``) against the state."""
-    e, s, d2 = _INNOVATION(_c(x), _c(p), _c(z), _c(r))
+    e, s, d2 = _INNOVATION(c_float(x), c_float(p), c_float(z), c_float(r))
     return Innovation(e, s, d2)
 
 
@@ -136,7 +136,7 @@ def _innovation(x, p, z, r):
 
 def update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Kalman update with ``z`` (Joseph form: stays symmetric positive definite)."""
-    return _UPDATE(_c(x), _c(p), _c(z), _c(r))
+    return _UPDATE(c_float(x), c_float(p), c_float(z), c_float(r))
 
 
 @njit(cache=True, nogil=True)
@@ -222,11 +222,6 @@ def initial(z: np.ndarray, r: np.ndarray, rate_var: float, slope: float, slope_v
     p[RATE, RATE] = rate_var
     p[SLOPE, SLOPE] = slope_var
     return x, p
-
-
-def _c(a: np.ndarray) -> np.ndarray:
-    """A C-contiguous float64 array (the compiled steps are DirectCalls: their argument types are fixed)."""
-    return np.ascontiguousarray(a, dtype=float)
 
 
 _PREDICT, _INNOVATION, _UPDATE = DirectCall(_predict), DirectCall(_innovation), DirectCall(_update)

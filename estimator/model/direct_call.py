@@ -18,7 +18,14 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 _verify = False
+
+
+def c_float(a: Any) -> np.ndarray:
+    """``a`` as a C-contiguous float64 array (no copy if it is one): the array form of a DirectCall's arguments."""
+    return np.ascontiguousarray(a, dtype=float)
 
 
 def verify_types(on: bool) -> None:
