@@ -57,5 +57,6 @@ class DirectCall:
             if got != self._types:
                 bad = [i for i, (a, b) in enumerate(zip(got, self._types)) if a != b]
                 raise TypeError(f"{self._dispatcher.__name__}: argument(s) {bad} have types "
-                                f"{[str(got[i]) for i in bad]}, the overload takes {[str(self._types[i]) for i in bad]}")
+                                f"{[str(got[i]) for i in bad]}, the overload takes "
+                                f"{[str(self._types[i]) for i in bad]}")
         return entry(*args)
