@@ -386,3 +386,27 @@ def test_direct_call_runs_the_dispatchers_overload_and_refuses_other_types():
     with pytest.raises(TypeError, match="argument"):
         call(np.arange(10.0)[::2], w, 2.0)          # not contiguous
     assert len(weighted_sum.overloads) == 1         # refused before anything was compiled for them
+
+
+def test_direct_calls_work_with_numbas_jit_switched_off():
+    """NUMBA_DISABLE_JIT=1 (how one debugs the kernel in Python) makes every @njit function a plain
+    Python function: the DirectCalls on the warm path then call it as it is. The valve prediction,
+    run that way in a fresh process, gives the compiled numbers (to the rounding of fused multiply-adds)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from estimator.model.drive import StandardDrive
+    from estimator.model.fast_sim import FastSimulator
+
+    code = ("import json; from estimator.model.fast_sim import FastSimulator; "
+            "from estimator.model.drive import StandardDrive; "
+            "print(json.dumps(FastSimulator().valve_prediction(StandardDrive().samples(490e-6), 17.0, 4e-6, 28.0)))")
+    env = dict(os.environ, NUMBA_DISABLE_JIT="1")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    python_run = json.loads(out.stdout)
+    compiled = FastSimulator().valve_prediction(StandardDrive().samples(490e-6), 17.0, 4e-6, 28.0)
+    assert all(np.isfinite(compiled))
+    np.testing.assert_allclose(python_run, compiled, rtol=1e-9)

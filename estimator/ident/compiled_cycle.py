@@ -284,10 +284,9 @@ def _model_args(model: CostModel) -> tuple:
     sim = model.sim
     handle = sim.kernel_handle()
     basis = c_float(model.basis) if model.robust else _NO_BASIS   # one compiled layout
-    lo, hi = sim.nu_range
     # the types are fixed here (DirectCall): C-contiguous float64 arrays (the cost model's current and
-    # voltage are made so in CostModel), Python floats and bools
-    return (handle.model, handle.automaton, handle.table, float(handle.h_us), float(lo), float(hi), model.current,
+    # voltage are made so in CostModel), Python floats (the handle's) and bools
+    return (handle.model, handle.automaton, handle.table, handle.h_us, handle.nu_lo, handle.nu_hi, model.current,
             float(model.injection.f_open_n), model.measured, model.weights, basis, bool(model.robust),
             model.norm == "l1")
 

@@ -17,6 +17,7 @@ the components that jumped.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -45,16 +46,24 @@ class ProcessNoise:
     rate_tau_s: float                  # s
     max_var: tuple[float, float, float, float]   # caps of the diagonal: (N/V)^2, µm^2, (N/V/s)^2, (N/V/degC)^2
 
+    @functools.cached_property
+    def _predict_args(self) -> tuple[tuple, tuple]:
+        """:func:`_predict`'s noise arguments with the temperature change unknown and known: floats, and
+        the caps as a float64 array (built once per noise, not per injection)."""
+        caps = c_float(self.max_var)
+
+        def args(q_nu: float, q_rate: float) -> tuple:
+            return (float(self.rate_tau_s), float(self.nu_per_injection), float(q_nu), float(q_rate),
+                    float(self.lh_per_injection_um), float(self.lh_per_sqrt_s_um), float(self.slope_per_sqrt_s), caps)
+        return (args(self.nu_per_sqrt_s, self.rate_per_sqrt_s),
+                args(self.nu_per_sqrt_s_known_t, self.rate_per_sqrt_s_known_t))
+
 
 def predict(x: np.ndarray, p: np.ndarray, dt_s: float, d_temp_c: float | None,
             noise: ProcessNoise) -> tuple[np.ndarray, np.ndarray]:
     """State and covariance ``dt_s`` seconds and ``d_temp_c`` degC (None: not measured) later."""
     known = d_temp_c is not None     # a measured temperature explains most drift: less left to chase
-    q_rate = noise.rate_per_sqrt_s_known_t if known else noise.rate_per_sqrt_s
-    q_nu = noise.nu_per_sqrt_s_known_t if known else noise.nu_per_sqrt_s
-    return _PREDICT(c_float(x), c_float(p), float(dt_s), float(d_temp_c or 0.0), float(noise.rate_tau_s),
-                    float(noise.nu_per_injection), float(q_nu), float(q_rate), float(noise.lh_per_injection_um),
-                    float(noise.lh_per_sqrt_s_um), float(noise.slope_per_sqrt_s), c_float(noise.max_var))
+    return _PREDICT(c_float(x), c_float(p), float(dt_s), float(d_temp_c or 0.0), *noise._predict_args[known])
 
 
 @njit(cache=True, nogil=True)

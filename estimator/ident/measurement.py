@@ -87,7 +87,7 @@ class Injection:
         i, u = self.current_a, self.voltage_v
         if i.ndim != 1 or u.shape != i.shape:
             return "current and voltage differ in length"
-        if not (np.isfinite(self.dt_s) and self.dt_s > 0):
+        if not (math.isfinite(self.dt_s) and self.dt_s > 0):
             return "invalid sample period"
         if i.size == 0:
             return "too short (no samples)"
@@ -95,7 +95,7 @@ class Injection:
                                                np.ascontiguousarray(u, dtype=float))
         if not all(map(math.isfinite, (i_max, i_min, u_max, u_min))):   # NaN propagates into them
             return "NaN or infinite samples"
-        if not np.isfinite(self.f_open_n) or not (0.0 <= self.f_open_n <= 5000.0):
+        if not math.isfinite(self.f_open_n) or not (0.0 <= self.f_open_n <= 5000.0):
             return "preload force out of range"
         if self.duration_s < MIN_WINDOW_S - 1e-12:
             return f"too short ({self.duration_s * 1e6:.1f} µs < {MIN_WINDOW_S * 1e6:.0f} µs)"

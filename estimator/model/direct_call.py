@@ -11,7 +11,9 @@ types cannot change: every array argument built by the caller itself as a C-cont
 array of fixed dimensions, and floats, ints and bools passed as such. Another array layout or
 dtype would be read as if it had the first call's type. :func:`verify_types` makes every call check
 its types against the overload's and raise ``TypeError`` on a mismatch; the test suite turns it
-on (``tests/conftest.py``), so a caller that breaks the rule fails its tests.
+on (``tests/conftest.py``), so a caller that breaks the rule fails its tests. With numba's JIT
+switched off (``NUMBA_DISABLE_JIT=1``, for debugging) the "dispatcher" is the plain Python function,
+and a DirectCall simply calls it.
 """
 
 from __future__ import annotations
@@ -49,10 +51,13 @@ class DirectCall:
         entry = self._entry
         if entry is None:
             out = self._dispatcher(*args)            # compiles or loads the overload
+            if not hasattr(self._dispatcher, "compile"):   # NUMBA_DISABLE_JIT: a plain function, no overloads
+                self._entry = self._dispatcher
+                return out
             self._types = self._types_of(args)
             self._entry = self._dispatcher.compile(self._types)   # that overload's entry point
             return out
-        if _verify:
+        if _verify and entry is not self._dispatcher:
             got = self._types_of(args)
             if got != self._types:
                 bad = [i for i, (a, b) in enumerate(zip(got, self._types)) if a != b]

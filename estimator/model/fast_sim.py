@@ -49,6 +49,8 @@ class KernelHandle(NamedTuple):
     automaton: tuple
     table: np.ndarray      # interpolation table of the transition matrices (scaled units)
     h_us: float            # sample period in the kernel's time unit (µs)
+    nu_lo: float           # the simulator's N_u range (N/V), :attr:`FastSimulator.nu_range`
+    nu_hi: float
 
 
 @dataclass(frozen=True)
@@ -193,7 +195,9 @@ class FastSimulator:
         """The compiled model, automaton, transition table and sample period, for compiled callers
         (the candidates' N_u must be within :attr:`nu_range`, their L_h > 0). Built once."""
         if self._handle is None:
-            self._handle = KernelHandle(self._model, self.automaton, self._table(), self.dt_s * dyn.TIME_SCALE)
+            lo, hi = self.nu_range
+            self._handle = KernelHandle(self._model, self.automaton, self._table(), float(self.dt_s * dyn.TIME_SCALE),
+                                        float(lo), float(hi))
         return self._handle
 
     def transition_matrices(self, nu: np.ndarray | float, exact: bool = False) -> np.ndarray:
@@ -294,10 +298,9 @@ class FastSimulator:
             ks = remember(self._plateau, key, found if found is not None else (0, 0), 64)
         k0, k1 = ks
         h = self.kernel_handle()
-        lo, hi = self.nu_range
         # the argument types are fixed here (_VALVE_PREDICTION is a DirectCall): float64 arrays, floats, ints
-        code, tc, to, stroke = _VALVE_PREDICTION(h.model, h.automaton, h.table, nu, lh, fo, cur, float(h.h_us),
-                                                 int(k0), int(k1), float(lo), float(hi))
+        code, tc, to, stroke = _VALVE_PREDICTION(h.model, h.automaton, h.table, nu, lh, fo, cur, h.h_us,
+                                                 int(k0), int(k1), h.nu_lo, h.nu_hi)
         if code != kernel.INPUTS_OK:      # the inputs are checked in the same call: raise as _check_inputs does
             self._check_inputs(cur, nu, lh, fo)
         return float(tc), float(to), float(stroke)
