@@ -282,7 +282,7 @@ def test_search_box_and_noise_kept_per_simulator_weakly():
 def test_refine_step_rules_in_floats_are_the_numpy_rules():
     """refine's step sizes and Gauss–Newton tests, written in floats for speed, give what the numpy
     expressions they replace give, NaN, inf, zero and negative variances included."""
-    from estimator.ident.local_fit import _next_steps, _within, _within_scaled
+    from estimator.ident.local_fit import _next_steps, _within
     rng = np.random.default_rng(0)
     tol = (2e-4, 2e-3)
     for _ in range(5000):
@@ -293,7 +293,8 @@ def test_refine_step_rules_in_floats_are_the_numpy_rules():
         cov = np.diag(rng.choice([rng.uniform(0, 1e-3), np.nan, np.inf, 0.0, -1e-6], 2))
         g = np.abs(rng.choice([rng.uniform(-0.01, 0.01), np.nan, 0.0], 2))
         sx = np.sqrt(np.abs(np.diag(cov)))
-        assert _within_scaled(g, tol, 4.0, cov) == bool(np.all(g <= 4.0 * np.maximum(sx, tol)))
+        # refine's near-minimum test: 4 max(sigma, tol) as _within with the tolerances scaled
+        assert _within(g, (4.0 * tol[0], 4.0 * tol[1]), 4.0, cov) == bool(np.all(g <= 4.0 * np.maximum(sx, tol)))
         assert _within(g, tol, 0.25, cov) == bool(np.all(g <= np.maximum(tol, 0.25 * sx)))
 
 

@@ -134,16 +134,6 @@ def _within(v: np.ndarray, tol: tuple[float, float], k: float, cov: np.ndarray |
     return True
 
 
-def _within_scaled(v: np.ndarray, tol: tuple[float, float], k: float, cov: np.ndarray) -> bool:
-    """Both |components| of ``v`` at most k max(sigma_i, tol_i) (sigma_i from ``cov``'s diagonal): the
-    numpy test ``all(v <= k * maximum(sigma, tol))`` in floats (NaN as numpy: False)."""
-    for i in range(2):
-        bound = k * _max_nan(math.sqrt(abs(float(cov[i, i]))), tol[i])
-        if not float(v[i]) <= bound:
-            return False
-    return True
-
-
 def _max_nan(a: float, b: float) -> float:
     """np.maximum of two floats (NaN wins), without its per-call overhead."""
     return a if (a >= b or a != a) else b
@@ -213,7 +203,8 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
         # next steps: two standard deviations along each direction, at least the tolerance
         st = _next_steps(fit.sigma_v, w, tol)
         j = fit.criterion
-        if batched and _within_scaled(np.abs(fit.gn_step), tol, 4.0, fit.cov_x):
+        # |GN step| <= 4 max(sigma, tol): _within with the tolerances scaled too (times 4 is exact)
+        if batched and _within(np.abs(fit.gn_step), (4.0 * tol[0], 4.0 * tol[1]), 4.0, fit.cov_x):
             # near the minimum already: one Gauss–Newton step is cheaper than another cycle
             x_gn = box.clip(x + fit.gn_step)
             fit_gn = local_fit(model, x_gn, box)
