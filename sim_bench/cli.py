@@ -261,7 +261,8 @@ def cmd_fleet_bench(args: argparse.Namespace) -> int:
     from sim_bench import fleet_bench
 
     try:
-        rep = fleet_bench.run(args.out, args.injectors, tuple(args.workers), args.seed, args.injections)
+        rep = fleet_bench.run(args.out, args.injectors, tuple(args.workers), args.seed, args.injections,
+                              args.captures)
     except ValueError as exc:    # make_lot's own check of --injectors and --injections, as in `lot`
         raise EstimatorError(str(exc)) from None
     print(fleet_bench.format_report(rep))
@@ -274,10 +275,12 @@ def cmd_lot(args: argparse.Namespace) -> int:
     from sim_bench.lot import make_lot
 
     try:
-        truth = make_lot(args.out, args.injectors, args.injections, args.seed, drive=_drive(args))
+        truth = make_lot(args.out, args.injectors, args.injections, args.seed, drive=_drive(args), captures=args.captures)
     except ValueError as exc:
         raise EstimatorError(str(exc)) from None
-    print(f"wrote {args.injectors * args.injections} traces of {args.injectors} injectors and {truth}")
+    what = f"captures ({args.injectors * args.injections} injections)" if args.captures else \
+        f"{args.injectors * args.injections} traces"
+    print(f"wrote {what} of {args.injectors} injectors and {truth}")
     return 0
 
 
@@ -360,6 +363,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--injectors", type=int, default=1000)
     s.add_argument("--injections", type=int, default=1,
                    help="traces per injector (1: every injection a cold start; more: the first cold, the rest warm)")
+    s.add_argument("--captures", action="store_true",
+                   help="one BLF capture per injector (its injections as bus frames) instead of CSV traces")
     s.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     s.add_argument("--seed", type=int, default=11)
     s.add_argument("--out", type=Path, default=DEFAULT_OUT / "fleet")
@@ -369,6 +374,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("lot", help="a seeded synthetic production lot (traces with serial numbers + truth)")
     s.add_argument("--injectors", type=int, default=100)
     s.add_argument("--injections", type=int, default=1, help="traces per injector (1 s apart)")
+    s.add_argument("--captures", action="store_true",
+                   help="one BLF capture per injector (captures/SERIAL.blf) instead of CSV traces")
     _add_drive_argument(s, "standard")
     s.add_argument("--seed", type=int, default=11)
     s.add_argument("--out", type=Path, required=True)

@@ -14,27 +14,37 @@ from estimator.fleet.run import run_fleet
 from sim_bench.lot import make_lot
 
 
+def _serial(key: str | None, source: str) -> str:
+    """The lot serial of a row or summary entry: the trace's key, else the capture's file name."""
+    return key or Path(source).stem
+
+
 def run(out: Path, injectors: int = 1000, workers: tuple[int, ...] = (1, 2), seed: int = 11,
-        injections: int = 1) -> dict:
-    """Make the lot (once; ``injections`` traces per injector, carried through one tracker), run the
-    fleet per worker count, score every row against truth.csv."""
-    lot = out / (f"lot-{injectors}-{seed}" if injections == 1 else f"lot-{injectors}x{injections}-{seed}")
+        injections: int = 1, captures: bool = False) -> dict:
+    """Make the lot (once; ``injections`` traces per injector, carried through one tracker, or with
+    ``captures`` one BLF capture per injector through the replay pipeline), run the fleet per worker
+    count, score every row against truth.csv."""
+    name = f"lot-{injectors}-{seed}" if injections == 1 else f"lot-{injectors}x{injections}-{seed}"
+    lot = out / (name + ("-blf" if captures else ""))
     if not (lot / "truth.csv").exists():
         t0 = time.perf_counter()
-        make_lot(lot, injectors, injections, seed)
+        make_lot(lot, injectors, injections, seed, captures=captures)
         print(f"lot of {injectors} injectors x {injections} written in {time.perf_counter() - t0:.1f} s")
     truth = {r["serial"]: r for r in csv.DictReader(open(lot / "truth.csv"))}
-    report: dict = {"benchmark": "fleet", "injectors": injectors, "injections_per_injector": injections, "runs": []}
+    report: dict = {"benchmark": "fleet", "injectors": injectors, "injections_per_injector": injections,
+                    "inputs": "captures" if captures else "traces", "runs": []}
     for n in workers:
         t0 = time.perf_counter()
-        res = run_fleet([str(lot / "traces")], out / f"fleet-{n}w{'' if injections == 1 else f'-x{injections}'}.parquet",
+        tag = ("" if injections == 1 else f"-x{injections}") + ("-blf" if captures else "")
+        res = run_fleet([str(lot / ("captures" if captures else "traces"))], out / f"fleet-{n}w{tag}.parquet",
                         workers=n)
         wall = time.perf_counter() - t0
         rows = [r for r in res.rows if r.get("status") != "error"]
         e_lh, e_nu, flagged_bad, flagged_good, bad = [], [], 0, 0, 0
-        flags = {s["injector"]: s["outlier"] for s in res.summary}
+        flags = {(s["injector"] if s["injector"] in truth else _serial(None, s["injector"])): s["outlier"]
+                 for s in res.summary}
         for r in rows:
-            t = truth.get(r.get("injector_key") or "")
+            t = truth.get(_serial(r.get("injector_key"), r["source"]))
             if t is None or r.get("lh_um") is None or t["mismatch"] == "1":
                 continue
             e_lh.append(r["lh_um"] - float(t["lh_um"]))
@@ -61,8 +71,12 @@ def run(out: Path, injectors: int = 1000, workers: tuple[int, ...] = (1, 2), see
 def format_report(rep: dict) -> str:
     """The table."""
     per = rep.get("injections_per_injector", 1)
-    head = ("one trace each (cold start per injection)" if per == 1 else
-            f"{per} traces each (the first a cold start, the rest warm updates)")
+    if rep.get("inputs") == "captures":
+        head = (f"a BLF capture of {per} injection{'s' if per > 1 else ''} each (the first a cold start"
+                f"{', the rest warm updates' if per > 1 else ''})")
+    else:
+        head = ("one trace each (cold start per injection)" if per == 1 else
+                f"{per} traces each (the first a cold start, the rest warm updates)")
     lines = [f"fleet-bench: {rep['injectors']} injectors, {head}",
              f"  {'workers':>7} {'inj/s':>8} {'per worker':>10} {'ms/inj':>7} {'scaling':>7} {'L_h rms/max [µm]':>17} "
              f"{'N_u rms [%]':>11} {'bad flagged':>11} {'good flagged':>12}"]

@@ -4,8 +4,10 @@ Series spread (documented here and in the README): N_u ~ 17.5 ± 0.3 N/V at the 
 L_h ~ 3.5 ± 0.6 µm (1 sigma), preload 28 N + up to 10 N rail share. About 2 % of the injectors are bad
 (L_h 2.5-3.5 µm above the spread: a worn or mis-set valve) and 10 % are measured on the hysteresis plant
 (model mismatch). Each injector gets ``injections`` CSV traces one second apart in ``traces/``
-(``serial``, ``time_s`` metadata: the fleet command carries its state across them); ``truth.csv``
-beside that folder holds the truth.
+(``serial``, ``time_s`` metadata: the fleet command carries its state across them), or with
+``captures`` one BLF capture ``captures/<serial>.blf`` of its injections one second apart (the frames
+the injector node sends, at 0.2 ms intervals: a HIL campaign's or a test-fleet's log, replayed with
+the daemon's pipeline); ``truth.csv`` beside that folder holds the truth.
 """
 
 from __future__ import annotations
@@ -13,26 +15,34 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
+import can
 import numpy as np
 
+from estimator.codec.injection_frames import injection_frames
+from estimator.codec.records import Codec
 from estimator.model.drive import Drive, StandardDrive
+from estimator.service.bus import to_message
 from estimator.trace_io import write_trace
 from sim_bench.plant import Plant, PlantConfig
 
 NU_MEAN, NU_SD = 17.5, 0.3
 LH_MEAN, LH_SD = 3.5, 0.6
 BAD_FRACTION, MISMATCH_FRACTION = 0.02, 0.10
+CAPTURE_FRAME_DT_S = 2e-4     # between the frames of one injection in a capture
+CAPTURE_SLOTS = 8             # injector ids 0..7 on the bus (the daemon's max_injectors); serial i uses i % 8
 
 
 def make_lot(out: Path, injectors: int, injections: int = 1, seed: int = 11, window_s: float = 100e-6,
-             drive: Drive | None = None) -> Path:
-    """Write the lot's traces into ``out`` (one file per injection) and ``truth.csv``; returns the truth path.
-    Every injector is driven with ``drive`` (default the standard drive)."""
+             drive: Drive | None = None, captures: bool = False) -> Path:
+    """Write the lot's traces into ``out`` (one file per injection; with ``captures`` one BLF capture per
+    injector) and ``truth.csv``; returns the truth path. Every injector is driven with ``drive``
+    (default the standard drive). The truth and the measurements do not depend on ``captures``."""
     if not (1 <= injectors <= 100_000 and 1 <= injections <= 1000):
         raise ValueError(f"--injectors {injectors} must be 1..100000 and --injections {injections} 1..1000")
     rng = np.random.default_rng(seed)
-    traces = out / "traces"
-    traces.mkdir(parents=True, exist_ok=True)
+    folder = out / ("captures" if captures else "traces")
+    folder.mkdir(parents=True, exist_ok=True)
+    codec = Codec() if captures else None
     drive = drive or StandardDrive()
     plants = {m: Plant(PlantConfig(drive=drive, window_s=window_s, mismatch=m)) for m in (False, True)}
     truth_path = out / "truth.csv"
@@ -46,11 +56,23 @@ def make_lot(out: Path, injectors: int, injections: int = 1, seed: int = 11, win
             lh = float(np.clip(rng.normal(LH_MEAN, LH_SD), 0.5, 7.0)) + (float(rng.uniform(2.5, 3.5)) if bad else 0.0)
             mismatch = bool(rng.random() < MISMATCH_FRACTION)
             w.writerow([serial, f"{nu:.4f}", f"{lh:.4f}", int(bad), int(mismatch)])
-            for k in range(injections):
-                f_open = 28.0 + float(rng.uniform(0, 10))
-                m = plants[mismatch].measure(nu, lh * 1e-6, f_open, rng)
-                t = np.arange(m.current_a.size) * m.dt_s
-                write_trace(traces / f"{serial}_{k:03d}.csv", {"t_s": t, "current_A": m.current_a, "voltage_V": m.voltage_v},
-                            {"serial": serial, "time_s": float(k), "counter": k, "preload_force_n": round(f_open, 4),
-                             "true_nu_n_per_v": round(nu, 6), "true_lh_um": round(lh, 6)})
+            writer = can.Logger(str(folder / f"{serial}.blf")) if captures else None
+            try:
+                for k in range(injections):
+                    f_open = 28.0 + float(rng.uniform(0, 10))
+                    m = plants[mismatch].measure(nu, lh * 1e-6, f_open, rng)
+                    if writer is not None:
+                        t = 1000.0 + k
+                        for fr in injection_frames(codec, i % CAPTURE_SLOTS, k, m.dt_s, m.current_a, m.voltage_v,
+                                                   preload_force_n=f_open):
+                            t += CAPTURE_FRAME_DT_S
+                            writer.on_message_received(to_message(fr, timestamp=t))
+                        continue
+                    t = np.arange(m.current_a.size) * m.dt_s
+                    write_trace(folder / f"{serial}_{k:03d}.csv", {"t_s": t, "current_A": m.current_a, "voltage_V": m.voltage_v},
+                                {"serial": serial, "time_s": float(k), "counter": k, "preload_force_n": round(f_open, 4),
+                                 "true_nu_n_per_v": round(nu, 6), "true_lh_um": round(lh, 6)})
+            finally:
+                if writer is not None:
+                    writer.stop()
     return truth_path

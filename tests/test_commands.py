@@ -69,3 +69,33 @@ def test_counters_roll_at_their_signal_width():
     p.counters.accepted = 2 ** 32 + 7
     hb = heartbeat(p)
     assert hb.commands_refused == 5 and hb.accepted == 7
+
+
+def test_output_frames_are_encoded_when_asked_for_and_equal_the_eager_encoding():
+    """A Published injection encodes its frames on first access (rows do not need them), once, and they
+    are the frames output_frames gives."""
+    from estimator.codec.injection_frames import injection_frames
+    from estimator.service.daemon import build_pipeline
+    from estimator.service.config import DaemonConfig
+    from estimator.service.processor import output_frames
+    from sim_bench.plant import Plant, PlantConfig
+    import numpy as np
+
+    codec, ingest, processor, clock = build_pipeline(DaemonConfig())
+    m = Plant(PlantConfig(window_s=100e-6)).measure(17.0, 3e-6, 30.0, np.random.default_rng(1))
+    pubs = []
+    for k, fr in enumerate(injection_frames(codec, 2, 7, m.dt_s, m.current_a, m.voltage_v)):
+        pubs += processor.handle(ingest.feed(fr, clock.on_frame(1.0 + 1e-4 * k)))
+    assert len(pubs) == 1
+    pub = pubs[0]
+    assert "frames" not in vars(pub)                  # not encoded yet
+    calls = []
+    encode = codec.encode
+    codec.encode = lambda rec: calls.append(rec) or encode(rec)
+    frames = pub.frames
+    assert pub.frames is frames and len(calls) == 3   # encoded once, cached
+    codec.encode = encode
+    assert [f.data for f in frames] == [f.data for f in output_frames(codec, 2, 7, pub.result)]
+    from estimator.codec.records import EstimateQuality, EstimateState, ValvePrediction
+    assert [f.arbitration_id for f in frames] == [codec.frame_id(r) for r in (EstimateState, EstimateQuality,
+                                                                             ValvePrediction)]

@@ -137,3 +137,24 @@ def test_fleet_bench_scores_a_lot_with_several_traces_per_injector(tmp_path):
     rows = pd.read_parquet(tmp_path / "fleet-1w-x2.parquet")
     assert (rows[rows.source.str.endswith("_001.csv")].evaluations < 200).all()      # warm
     assert "2 traces each" in fleet_bench.format_report(rep)
+
+
+def test_fleet_bench_scores_a_lot_of_captures(tmp_path):
+    """fleet-bench's capture lot (one BLF per injector, its injections as the node's frames): every
+    injection scored against the truth, the rows of a capture equal its replay (the worker's shared
+    codec and simulator pool carry no state between captures), later injections warm updates."""
+    from sim_bench import fleet_bench
+    rep = fleet_bench.run(tmp_path, injectors=3, workers=(1,), seed=4, injections=3, captures=True)
+    run = rep["runs"][0]
+    assert rep["inputs"] == "captures" and run["injections"] == 9 and run["errors"] == 0
+    assert run["rms_lh_um"] < 0.5
+    caps = sorted((tmp_path / "lot-3x3-4-blf" / "captures").glob("*.blf"))
+    assert [c.stem for c in caps] == ["INJ-00000", "INJ-00001", "INJ-00002"]
+    rows = pd.read_parquet(tmp_path / "fleet-1w-x3-blf.parquet")
+    for cap in caps:
+        got = rows[rows.source == str(cap)].sort_values("counter")
+        want = list(iter_estimates(cap, DaemonConfig()))
+        assert list(got.counter) == [w["counter"] for w in want] == [0, 1, 2]
+        assert list(got.lh_um) == [w["lh_um"] for w in want] and list(got.status) == [w["status"] for w in want]
+        assert (got.evaluations.iloc[1:] < 200).all()                                   # warm
+    assert "a BLF capture of 3 injections each" in fleet_bench.format_report(rep)

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 _POOLS: dict = {}   # per worker process: the simulator pool of each parameter file (tables built once)
+_CODECS: dict = {}  # per worker process: the codec of each DBC file (parsed once)
 
 WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
               "MKL_NUM_THREADS": "1"}
@@ -52,6 +53,7 @@ def process_group(key: str | None, paths: tuple[str, ...], cfg: Any, trace_optio
     for k, v in WORKER_ENV.items():
         os.environ.setdefault(k, v)
     keep_heap()
+    from estimator.codec.records import Codec, load_database
     from estimator.errors import EstimatorError
     from estimator.ident.tracker import Tracker
     from estimator.service.daemon import build_pool
@@ -61,14 +63,17 @@ def process_group(key: str | None, paths: tuple[str, ...], cfg: Any, trace_optio
     if pool_key not in _POOLS:
         _POOLS[pool_key] = build_pool(cfg)
     pool = _POOLS[pool_key]
+    if cfg.dbc not in _CODECS:
+        _CODECS[cfg.dbc] = Codec(load_database(cfg.dbc))
+    codec = _CODECS[cfg.dbc]
     tracker = Tracker(cfg.tracker_config(), pool=pool)   # one per task: state per injector key
-    pipeline = None    # built for the first capture of a keyed group (a DBC parse: ~10 ms a task)
+    pipeline = None    # a keyed group's captures continue one pipeline; an unkeyed capture gets its own
     rows: list[dict] = []
     for path in paths:
         try:
             kind = source_kind(Path(path))
-            if key is not None and kind == "capture" and pipeline is None:
-                pipeline = new_pipeline(cfg, pool)
+            if kind == "capture" and (pipeline is None or key is None):
+                pipeline = new_pipeline(cfg, pool, codec)
             for row in iter_estimates(Path(path), cfg, kind=kind, trace_options=trace_options, tracker=tracker,
                                       pipeline=pipeline):
                 row["injector_key"] = key

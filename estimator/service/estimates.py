@@ -16,6 +16,7 @@ import math
 from pathlib import Path
 from typing import Any, Iterator
 
+from estimator.codec.records import Codec
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.tracker import Tracker
 from estimator.mdf_io import is_mdf, read_any_trace
@@ -65,7 +66,7 @@ def iter_estimates(source: Path, cfg: DaemonConfig | None = None, *, kind: str |
     yield {"source": str(source), **result_row(res, inj.injector_id, counter, t)}
 
 
-def new_pipeline(cfg: DaemonConfig | None = None, pool: SimulatorPool | None = None) -> tuple:
+def new_pipeline(cfg: DaemonConfig | None = None, pool: SimulatorPool | None = None, codec: Codec | None = None) -> tuple:
     """A fresh pipeline for :func:`iter_estimates` (captures of one injector in time order), on
-    ``pool`` if given."""
-    return build_pipeline(cfg or DaemonConfig(), pool)
+    ``pool`` and ``codec`` if given (shared, stateless parts: see :func:`build_pipeline`)."""
+    return build_pipeline(cfg or DaemonConfig(), pool, codec)

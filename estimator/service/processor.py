@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property
 
 from estimator.codec.assembler import Completed, RejectReason, Rejected
 from estimator.codec.ingest import Counters, Event, Malformed
@@ -41,6 +42,19 @@ def result_row(res: TrackResult, injector_id: int, counter: int, time_s: float) 
     return row
 
 
+def output_frames(codec: Codec, injector_id: int, counter: int, res: TrackResult) -> list:
+    """EstimateState, EstimateQuality and ValvePrediction of one result (the frames the daemon sends)."""
+    have = math.isfinite(res.nu_n_per_v) and math.isfinite(res.lh_m)
+    status = res.status.code if have else Status.NO_ESTIMATE.code
+    enc = codec.encode
+    return [
+        enc(EstimateState(injector_id, counter, res.nu_n_per_v, res.lh_m * 1e6, status)),
+        enc(EstimateQuality(injector_id, counter, res.raw.cost_vs * 1e6, res.sigma_nu, res.sigma_lh_m * 1e6,
+                            res.evaluations, int(res.raw.robust))),
+        enc(ValvePrediction(injector_id, counter, res.t_contact_s * 1e6, res.t_open_s * 1e6, res.stroke_m * 1e6)),
+    ]
+
+
 @dataclass(frozen=True)
 class Published:
     """One processed injection: its identification, the result and the frames sent for it."""
@@ -49,7 +63,14 @@ class Published:
     counter: int
     t_last: float
     result: TrackResult
-    frames: list
+    codec: Codec = field(repr=False, compare=False)
+
+    @cached_property
+    def frames(self) -> list:
+        """The output frames (:func:`output_frames`), encoded when first asked for: the daemon and a
+        replay with an output log send them; rows (``replay --csv``, the fleet) do not need them
+        (≈ 0.2 ms an injection)."""
+        return output_frames(self.codec, self.injector_id, self.counter, self.result)
 
     def to_row(self, time_s: float) -> dict:
         """One table row (replay ``--csv``, fleet): see :func:`result_row`."""
@@ -155,19 +176,7 @@ class Processor:
             self.counters.reject(RejectReason.INVALID)
             self.rlog.log(logging.WARNING, "reject-estimator", "injector %d counter %d rejected: %s",
                           h.injector_id, h.counter, res.reason)
-        return Published(h.injector_id, h.counter, e.t_last, res, self.frames_for(h.injector_id, h.counter, res))
-
-    def frames_for(self, injector_id: int, counter: int, res: TrackResult) -> list:
-        """EstimateState, EstimateQuality and ValvePrediction of one result."""
-        have = math.isfinite(res.nu_n_per_v) and math.isfinite(res.lh_m)
-        status = res.status.code if have else Status.NO_ESTIMATE.code
-        enc = self.codec.encode
-        return [
-            enc(EstimateState(injector_id, counter, res.nu_n_per_v, res.lh_m * 1e6, status)),
-            enc(EstimateQuality(injector_id, counter, res.raw.cost_vs * 1e6, res.sigma_nu, res.sigma_lh_m * 1e6,
-                                res.evaluations, int(res.raw.robust))),
-            enc(ValvePrediction(injector_id, counter, res.t_contact_s * 1e6, res.t_open_s * 1e6, res.stroke_m * 1e6)),
-        ]
+        return Published(h.injector_id, h.counter, e.t_last, res, self.codec)
 
     def status_frame(self, queue_depth: int, latency_p99_ms: float, uptime_s: float,
                      stage_p99_ms: dict[str, float] | None = None):
