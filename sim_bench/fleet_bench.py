@@ -14,9 +14,10 @@ from estimator.fleet.run import run_fleet
 from sim_bench.lot import make_lot
 
 
-def _serial(key: str | None, source: str) -> str:
-    """The lot serial of a row or summary entry: the trace's key, else the capture's file name."""
-    return key or Path(source).stem
+def _serial(ident: str, truth: dict) -> str:
+    """The lot serial of a row's or a summary's injector (a trace's key, or a capture's path): the key
+    itself, else the capture's file name."""
+    return ident if ident in truth else Path(ident).stem
 
 
 def run(out: Path, injectors: int = 1000, workers: tuple[int, ...] = (1, 2), seed: int = 11,
@@ -41,10 +42,9 @@ def run(out: Path, injectors: int = 1000, workers: tuple[int, ...] = (1, 2), see
         wall = time.perf_counter() - t0
         rows = [r for r in res.rows if r.get("status") != "error"]
         e_lh, e_nu, flagged_bad, flagged_good, bad = [], [], 0, 0, 0
-        flags = {(s["injector"] if s["injector"] in truth else _serial(None, s["injector"])): s["outlier"]
-                 for s in res.summary}
+        flags = {_serial(s["injector"], truth): s["outlier"] for s in res.summary}
         for r in rows:
-            t = truth.get(_serial(r.get("injector_key"), r["source"]))
+            t = truth.get(_serial(r.get("injector_key") or r["source"], truth))
             if t is None or r.get("lh_um") is None or t["mismatch"] == "1":
                 continue
             e_lh.append(r["lh_um"] - float(t["lh_um"]))

@@ -22,6 +22,7 @@ from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec
 from estimator.model.drive import Drive, StandardDrive
 from estimator.service.bus import to_message
+from estimator.service.config import DaemonConfig
 from estimator.trace_io import write_trace
 from sim_bench.plant import Plant, PlantConfig
 
@@ -29,7 +30,7 @@ NU_MEAN, NU_SD = 17.5, 0.3
 LH_MEAN, LH_SD = 3.5, 0.6
 BAD_FRACTION, MISMATCH_FRACTION = 0.02, 0.10
 CAPTURE_FRAME_DT_S = 2e-4     # between the frames of one injection in a capture
-CAPTURE_SLOTS = 8             # injector ids 0..7 on the bus (the daemon's max_injectors); serial i uses i % 8
+CAPTURE_SLOTS = DaemonConfig.max_injectors   # injector ids on the bus the daemon accepts by default; serial i uses i % slots
 
 
 def make_lot(out: Path, injectors: int, injections: int = 1, seed: int = 11, window_s: float = 100e-6,
@@ -62,16 +63,19 @@ def make_lot(out: Path, injectors: int, injections: int = 1, seed: int = 11, win
                     f_open = 28.0 + float(rng.uniform(0, 10))
                     m = plants[mismatch].measure(nu, lh * 1e-6, f_open, rng)
                     if writer is not None:
-                        t = 1000.0 + k
-                        for fr in injection_frames(codec, i % CAPTURE_SLOTS, k, m.dt_s, m.current_a, m.voltage_v,
-                                                   preload_force_n=f_open):
-                            t += CAPTURE_FRAME_DT_S
-                            writer.on_message_received(to_message(fr, timestamp=t))
-                        continue
-                    t = np.arange(m.current_a.size) * m.dt_s
-                    write_trace(folder / f"{serial}_{k:03d}.csv", {"t_s": t, "current_A": m.current_a, "voltage_V": m.voltage_v},
-                                {"serial": serial, "time_s": float(k), "counter": k, "preload_force_n": round(f_open, 4),
-                                 "true_nu_n_per_v": round(nu, 6), "true_lh_um": round(lh, 6)})
+                        frames = injection_frames(codec, i % CAPTURE_SLOTS, k, m.dt_s, m.current_a, m.voltage_v,
+                                                  preload_force_n=f_open)
+                        t_bus = 1000.0 + k                          # s; then a frame every 0.2 ms
+                        for fr in frames:
+                            t_bus += CAPTURE_FRAME_DT_S
+                            writer.on_message_received(to_message(fr, timestamp=t_bus))
+                    else:
+                        t_s = np.arange(m.current_a.size) * m.dt_s
+                        write_trace(folder / f"{serial}_{k:03d}.csv",
+                                    {"t_s": t_s, "current_A": m.current_a, "voltage_V": m.voltage_v},
+                                    {"serial": serial, "time_s": float(k), "counter": k,
+                                     "preload_force_n": round(f_open, 4), "true_nu_n_per_v": round(nu, 6),
+                                     "true_lh_um": round(lh, 6)})
             finally:
                 if writer is not None:
                     writer.stop()

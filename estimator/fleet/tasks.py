@@ -53,10 +53,9 @@ def process_group(key: str | None, paths: tuple[str, ...], cfg: Any, trace_optio
     for k, v in WORKER_ENV.items():
         os.environ.setdefault(k, v)
     keep_heap()
-    from estimator.codec.records import Codec, load_database
     from estimator.errors import EstimatorError
     from estimator.ident.tracker import Tracker
-    from estimator.service.daemon import build_pool
+    from estimator.service.daemon import build_codec, build_pool
     from estimator.service.estimates import iter_estimates, new_pipeline, source_kind
 
     pool_key = (cfg.params, cfg.max_sample_periods, cfg.sample_periods_ns)
@@ -64,7 +63,7 @@ def process_group(key: str | None, paths: tuple[str, ...], cfg: Any, trace_optio
         _POOLS[pool_key] = build_pool(cfg)
     pool = _POOLS[pool_key]
     if cfg.dbc not in _CODECS:
-        _CODECS[cfg.dbc] = Codec(load_database(cfg.dbc))
+        _CODECS[cfg.dbc] = build_codec(cfg)
     codec = _CODECS[cfg.dbc]
     tracker = Tracker(cfg.tracker_config(), pool=pool)   # one per task: state per injector key
     pipeline = None    # a keyed group's captures continue one pipeline; an unkeyed capture gets its own

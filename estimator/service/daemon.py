@@ -146,12 +146,17 @@ def build_tracker(cfg: DaemonConfig, pool: SimulatorPool | None = None) -> Track
     return Tracker(cfg.tracker_config(), pool=pool if pool is not None else build_pool(cfg))
 
 
+def build_codec(cfg: DaemonConfig) -> Codec:
+    """The codec of the configured DBC (``cfg.dbc``, else the packaged one)."""
+    return Codec(load_database(cfg.dbc))
+
+
 def build_pipeline(cfg: DaemonConfig, pool: SimulatorPool | None = None,
                    codec: Codec | None = None) -> tuple[Codec, Ingest, Processor, BusClock]:
     """Codec, ingest, processor and bus clock: the same in the live daemon and in the replay. ``pool``
     and ``codec`` (built from ``cfg`` when not given) hold no state of a run: a fleet worker shares them
     between its inputs (the simulator tables and the DBC parse cost ≈ 35 ms each)."""
-    codec = codec or Codec(load_database(cfg.dbc))
+    codec = codec or build_codec(cfg)
     ingest = Ingest(codec, cfg.assembly_timeout_ms * 1e-3, cfg.max_injectors)
     processor = Processor(codec, build_tracker(cfg, pool), ingest.counters, cfg.commands)
     return codec, ingest, processor, BusClock(cfg.silent_bus_s)
