@@ -116,4 +116,4 @@ def test_reset_command_and_bad_frames_do_not_stop_it(running):
         bus.send(to_message(fr))
     got = collect(bus, codec, lambda g: any(isinstance(r, EstimateQuality) for r in g))
     q = [r for r in got if isinstance(r, EstimateQuality)][-1]
-    assert q.evaluations > 100        # a cold start after the reset
+    assert q.evaluations > 60         # a cold start after the reset (warm updates: < 40)

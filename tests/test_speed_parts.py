@@ -282,14 +282,14 @@ def test_search_box_and_noise_kept_per_simulator_weakly():
 def test_refine_step_rules_in_floats_are_the_numpy_rules():
     """refine's step sizes and Gauss–Newton tests, written in floats for speed, give what the numpy
     expressions they replace give, NaN, inf, zero and negative variances included."""
-    from estimator.ident.local_fit import _next_steps, _within
+    from estimator.ident.local_fit import next_steps, _within
     rng = np.random.default_rng(0)
     tol = (2e-4, 2e-3)
     for _ in range(5000):
         w = rng.choice([rng.uniform(-1, 10), 0.0, 1e-320, np.nan, np.inf, 1e-12, 1e6], 2)
         sv = float(rng.choice([rng.uniform(0, 0.1), np.nan, 0.0, 1e3]))
         want = np.minimum(np.maximum(2.0 * np.sqrt(np.maximum(sv ** 2 / np.maximum(w, 1e-300), 0.0)), 4 * min(tol)), 2.0)
-        assert np.array_equal(_next_steps(sv, w, tol), want, equal_nan=True)
+        assert np.array_equal(next_steps(sv, w, tol), want, equal_nan=True)
         cov = np.diag(rng.choice([rng.uniform(0, 1e-3), np.nan, np.inf, 0.0, -1e-6], 2))
         g = np.abs(rng.choice([rng.uniform(-0.01, 0.01), np.nan, 0.0], 2))
         sx = np.sqrt(np.abs(np.diag(cov)))

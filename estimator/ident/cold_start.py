@@ -13,6 +13,14 @@ is a smooth, unimodal function of N_u. So the search is
    the same start point where a column's cost has one minimum near the valley);
 3. conjugate-direction refinement (:func:`estimator.ident.local_fit.refine`) from the best point.
 
+That global search costs 450–630 simulations. A *local-first* cold start (the default,
+``IdentConfig.cold_start``) first refines from a start point (``start_point``: the type's nominal
+values, or the injector's last estimate) with ≈ 20–40 simulations and keeps that fit only if it is
+checked to be the answer (:func:`local_first_fit`, :func:`excess_residual_z`): converged, inside the
+box, and a residual no larger than white noise allows. A fit in another valley, or one whose model
+error the cost does not absorb, fails the check and the global search runs as before; so the check
+can only cost time, never the global search's answer where the local fit is not the minimum.
+
 A :class:`SharedGrid` simulates each grid point once per injection: the plain and the robust cost
 of an automatic cold start search the same first grid (and the same zooms where their valleys share
 a column), and a zoom's outer columns are columns of the grid before. Points are simulated over the
@@ -27,10 +35,14 @@ import numpy as np
 
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M
-from estimator.ident.cost import CostModel
-from estimator.ident.local_fit import LocalFit, cost_fn, refine
+from estimator.ident.cost import CostModel, noise_sigma_v
+from estimator.ident.local_fit import LocalFit, cost_fn, next_steps, refine
 from estimator.ident.search import Box, CostFn
 
+START_STEPS = (0.3, 0.5)   # N/V, µm: first line-search steps of a local-first fit (about a lot's series spread)
+_COMPASS = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [-1, -1], [1, -1], [-1, 1]], dtype=float)
+RESCANS = 3   # refinements from a lower ring point at most
+RING = np.concatenate([_COMPASS, 2 * _COMPASS])   # probes of valley_scan, in standard deviations (N_u, L_h)
 ZOOM_ROW_MARGIN = 2   # rows (of the first grid's L_h spacing) a zoom column simulates either side of its predicted minimum
 
 
@@ -138,3 +150,70 @@ def cold_fit(model: CostModel, box: Box, config: IdentConfig,
     x, steps = profile_start(shared.cost_fn(model) if shared else cost_fn(model), box, config)
     fit, converged, _ = refine(model, x, np.eye(2), steps, box, config)
     return fit, converged
+
+
+def bound_tolerance(config: IdentConfig) -> tuple[float, float]:
+    """How close (N/V, µm) to a search bound an estimate counts as at the bound."""
+    return config.tol[0] * 5, config.tol[1] * 5
+
+
+def local_first_fit(model: CostModel, start: np.ndarray, box: Box, config: IdentConfig,
+                    directions: np.ndarray | None = None, steps: np.ndarray | None = None) -> LocalFit | None:
+    """Conjugate-direction refinement from ``start`` (N/V, µm; clipped into the box) along ``directions``
+    (default the axes) with first ``steps`` (default :data:`START_STEPS`), then :func:`valley_scan`
+    (refined again from a lower point it finds); the fit if it converged inside the box, else None.
+    Whether its residual is that of the minimum is the caller's check (:func:`excess_residual_z`)."""
+    d = np.eye(2) if directions is None else directions
+    st = np.array(START_STEPS) if steps is None else steps
+    fit, converged, _ = refine(model, box.clip(np.asarray(start, dtype=float)), d, st, box, config)
+    for _ in range(RESCANS):
+        lower = valley_scan(model, fit, box) if fit.success and converged else None
+        if lower is None:
+            break
+        d2, w2 = fit.directions
+        fit2, converged2, _ = refine(model, lower, d2, next_steps(fit.sigma_v, w2, tuple(config.tol)), box, config)
+        if not (fit2.success and fit2.criterion < fit.criterion):
+            break
+        fit, converged = fit2, converged2
+    if not (fit.success and converged) or box.at_bound(fit.x, bound_tolerance(config)):
+        return None
+    return fit
+
+
+def valley_scan(model: CostModel, fit: LocalFit, box: Box) -> np.ndarray | None:
+    """The lowest of :data:`RING` points around the fit (its standard deviations of N_u and L_h as
+    the units, at least the tolerance) if it is lower than the fit: the fit stopped short.
+
+    Near L_h = 0 (contact with the first samples) the cost has kinks: the forward-difference
+    Jacobian there can put the valley a few degrees off, and the refinement stops a standard
+    deviation or two short of the minimum with its Gauss–Newton step small. Probing the axes and
+    the diagonals does not rely on that Jacobian."""
+    sd = np.sqrt(np.maximum(np.diag(fit.cov_x), 0.0))
+    if not np.all(np.isfinite(sd)):
+        return None
+    sd = np.maximum(sd, [0.002, 0.02])
+    pts = box.clip(fit.x[None, :] + RING * sd[None, :])
+    j = cost_fn(model)(pts)
+    k = int(np.argmin(j))
+    return pts[k] if j[k] < fit.criterion else None
+
+
+def excess_residual_z(model: CostModel, fit: LocalFit) -> float:
+    """How far the fit's residual energy lies above white noise, in standard deviations (chi-square).
+
+    ``(RSS / sigma^2 - dof) / sqrt(2 dof)`` over the model's window: the residual projected off the
+    nuisance span in robust mode, ``sigma`` the residual's own noise level from its first differences
+    (:func:`noise_sigma_v`, which a smooth misfit hardly raises), ``dof`` the samples less the two
+    parameters and the nuisance columns. At the minimum of a correct model it scatters by about 2 (the
+    noise estimate's own scatter included); a fit in a wrong valley, or a model error the cost does not
+    absorb, leaves a residual far above the noise (0.05 N/V off the valley is fifteen times the minimum).
+    """
+    n = model.n
+    r = fit.residual[:n]
+    k = 2
+    if model.robust:
+        r = r - model.basis @ (model.basis.T @ r)
+        k += model.basis.shape[1]
+    dof = max(n - k, 1)
+    sigma = noise_sigma_v(r)
+    return float((r @ r / sigma ** 2 - dof) / np.sqrt(2.0 * dof))

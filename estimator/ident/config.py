@@ -36,13 +36,22 @@ class IdentConfig:
     tol: tuple[float, float] = (2e-4, 2e-3)  # convergence: N/V, µm
     max_cycles: int = 10
     sigma_limit_lh_um: float = 0.25        # above this sigma(L_h) the status is "uncertain", not "ok"
+    cold_start: str = "local-first"        # "local-first": a checked local fit, the global search if it fails; "global"
+    start_point: tuple[float, float] = (18.0, 4.0)   # N/V, µm: where a local-first cold start begins (a lot's nominal)
+    local_accept_z: float = 6.0            # a local fit is kept if its residual exceeds white noise by <= z standard deviations
 
     def __post_init__(self) -> None:
         if self.robust not in ("auto", "on", "off"):
             raise ValueError(f"robust must be auto, on or off, not {self.robust!r}")
+        if self.cold_start not in ("local-first", "global"):
+            raise ValueError(f"cold_start must be local-first or global, not {self.cold_start!r}")
+        if not (isinstance(self.start_point, tuple) and len(self.start_point) == 2
+                and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                        for v in self.start_point)):
+            raise ValueError(f"start_point {self.start_point!r} must be two numbers (N/V, µm)")
         if self.norm not in ("l1", "l2"):
             raise ValueError(f"norm must be l1 or l2, not {self.norm!r}")
-        _positive(self, "window_s", "robust_window_s", "model_error_threshold", "sigma_limit_lh_um")
+        _positive(self, "window_s", "robust_window_s", "model_error_threshold", "sigma_limit_lh_um", "local_accept_z")
         if not (20e-6 <= self.window_s <= 2e-3):
             raise ValueError(f"window {self.window_s * 1e6:.1f} µs must be within 20..2000 µs")
         lo, hi = self.nu_bounds_n_per_v

@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimator.ident.cold_start import SharedGrid, cold_fit
+from estimator.ident.cold_start import SharedGrid, bound_tolerance, cold_fit, excess_residual_z, local_first_fit
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M, cov_to_si
 from estimator.ident.cost import CostModel
 from estimator.ident.estimate import Estimate, rejected
-from estimator.ident.local_fit import LocalFit
+from estimator.ident.local_fit import LocalFit, next_steps
 from estimator.ident.measurement import Injection
 from estimator.ident.model_selection import likelihood_ratio, prefers_robust
 from estimator.ident.search import Box
@@ -82,8 +82,13 @@ def _cost_model(sim: FastSimulator, inj: Injection, config: IdentConfig, robust:
     return CostModel(sim, inj, effective_window_s(config, inj, robust), config.norm, robust)
 
 
-def identify(injection: Injection, sim: FastSimulator | None = None, config: IdentConfig | None = None) -> Estimate:
-    """Identify (N_u, L_h) of one injection from a cold start (eq. 28). Never raises for bad data."""
+def identify(injection: Injection, sim: FastSimulator | None = None, config: IdentConfig | None = None,
+             start: np.ndarray | None = None) -> Estimate:
+    """Identify (N_u, L_h) of one injection from a cold start (eq. 28). Never raises for bad data.
+
+    With ``config.cold_start == "local-first"`` a checked local fit from ``start`` (N/V, µm; default
+    ``config.start_point``) comes first and the global search runs only where it fails the check
+    (:mod:`estimator.ident.cold_start`); ``evaluations`` counts the simulations of both."""
     config = config or IdentConfig()
     problem = injection.problem()
     if problem:
@@ -93,13 +98,22 @@ def identify(injection: Injection, sim: FastSimulator | None = None, config: Ide
     if problem:
         return rejected(problem)
     box = search_box(config, sim, injection.f_open_n)
+    x0 = np.asarray(config.start_point if start is None else start, dtype=float)
+    local = config.cold_start == "local-first" and bool(np.all(np.isfinite(x0)))
     if config.robust != "auto":
         robust = config.robust == "on"
         model = _cost_model(sim, injection, config, robust)
+        fit = local_first_fit(model, x0, box, config) if local else None
+        if fit is not None and excess_residual_z(model, fit) <= config.local_accept_z:
+            return finish(sim, injection, fit, True, model.evaluations, box, robust, float("nan"), config)
         fit, converged = cold_fit(model, box, config, SharedGrid([model]))
         return finish(sim, injection, fit, converged, model.evaluations, box, robust, float("nan"), config)
-    # both costs search the same first grid (and the same zooms where their valleys share a column)
     m_plain, m_rob = _cost_model(sim, injection, config, False), _cost_model(sim, injection, config, True)
+    if local:
+        est = _local_first_auto(sim, injection, m_plain, m_rob, x0, box, config)
+        if est is not None:
+            return est
+    # both costs search the same first grid (and the same zooms where their valleys share a column)
     shared = SharedGrid([m_plain, m_rob])
     f_plain, c_plain = cold_fit(m_plain, box, config, shared)
     f_rob, c_rob = cold_fit(m_rob, box, config, shared)
@@ -108,6 +122,26 @@ def identify(injection: Injection, sim: FastSimulator | None = None, config: Ide
     if prefers_robust(stat, config.model_error_threshold):
         return finish(sim, injection, f_rob, c_rob, evaluations, box, True, stat, config)
     return finish(sim, injection, f_plain, c_plain, evaluations, box, False, stat, config)
+
+
+def _local_first_auto(sim: FastSimulator, injection: Injection, m_plain: CostModel, m_rob: CostModel,
+                      x0: np.ndarray, box: Box, config: IdentConfig) -> Estimate | None:
+    """The automatic cold start's choice made from local fits: the plain fit from ``x0``, the robust
+    fit from the plain optimum (along its conjugate directions), the same likelihood-ratio rule as
+    the global search; the chosen fit kept only if its residual passes :func:`excess_residual_z`."""
+    f_plain = local_first_fit(m_plain, x0, box, config)
+    if f_plain is None:
+        return None
+    d, w = f_plain.directions
+    f_rob = local_first_fit(m_rob, f_plain.x, box, config, d, next_steps(f_plain.sigma_v, w, tuple(config.tol)))
+    if f_rob is None:
+        return None
+    stat = likelihood_ratio(m_plain, f_plain, m_rob, f_rob)
+    robust = prefers_robust(stat, config.model_error_threshold)
+    model, fit = (m_rob, f_rob) if robust else (m_plain, f_plain)
+    if not excess_residual_z(model, fit) <= config.local_accept_z:
+        return None
+    return finish(sim, injection, fit, True, m_plain.evaluations + m_rob.evaluations, box, robust, stat, config)
 
 
 def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: bool, evaluations: int, box: Box,
@@ -119,8 +153,7 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
     if not fit.success:
         return rejected("simulation failed at the optimum", evaluations)
     x = fit.x
-    tol = (config.tol[0] * 5, config.tol[1] * 5)
-    if box.at_bound(x, tol):
+    if box.at_bound(x, bound_tolerance(config)):
         status, msg = Status.AT_BOUND, "estimate at a search bound"
     elif not converged:
         status, msg = Status.NOT_CONVERGED, "line searches did not converge"

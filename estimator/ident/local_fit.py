@@ -139,7 +139,7 @@ def _max_nan(a: float, b: float) -> float:
     return a if (a >= b or a != a) else b
 
 
-def _next_steps(sigma_v: float, w: np.ndarray, tol: tuple[float, float]) -> np.ndarray:
+def next_steps(sigma_v: float, w: np.ndarray, tol: tuple[float, float]) -> np.ndarray:
     """Step sizes along directions of Gauss–Newton eigenvalues ``w``: two standard deviations
     (noise ``sigma_v``), between 4 min(tol) and 2; the numpy expression
     ``min(max(2 sqrt(max(sigma^2 / max(w, 1e-300), 0)), 4 min(tol)), 2)`` in floats (NaN as numpy)."""
@@ -201,7 +201,7 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
             break
         d, w = fit.directions
         # next steps: two standard deviations along each direction, at least the tolerance
-        st = _next_steps(fit.sigma_v, w, tol)
+        st = next_steps(fit.sigma_v, w, tol)
         j = fit.criterion
         # |GN step| <= 4 max(sigma, tol): _within with the tolerances scaled too (times 4 is exact)
         if batched and _within(np.abs(fit.gn_step), (4.0 * tol[0], 4.0 * tol[1]), 4.0, fit.cov_x):

@@ -112,6 +112,9 @@ class DaemonConfig:
     q_nu_n_per_v: float = 0.003         # N_u random walk per injection (floor; per-second terms on top)
     q_lh_um: float = 0.003              # L_h random walk per injection (floor)
     sigma_limit_lh_um: float = 0.25     # sigma(L_h) above this: status "uncertain", not "ok"
+    cold_start: str = IdentConfig.cold_start   # local-first (a checked local fit, the global search where it fails) | global
+    start_nu_n_per_v: float = IdentConfig.start_point[0]   # where a local-first cold start begins: the type's nominal N_u
+    start_lh_um: float = IdentConfig.start_point[1]        # ... and L_h
     log_level: str = "INFO"
 
     def __post_init__(self) -> None:
@@ -138,7 +141,8 @@ class DaemonConfig:
 
     def tracker_config(self) -> TrackerConfig:
         """The tracker <- identification part of the tree."""
-        ident = IdentConfig(window_s=self.window_us * 1e-6, robust=self.robust, sigma_limit_lh_um=self.sigma_limit_lh_um)
+        ident = IdentConfig(window_s=self.window_us * 1e-6, robust=self.robust, sigma_limit_lh_um=self.sigma_limit_lh_um,
+                            cold_start=self.cold_start, start_point=(self.start_nu_n_per_v, self.start_lh_um))
         return TrackerConfig(ident=ident, q_nu_n_per_v=self.q_nu_n_per_v, q_lh_um=self.q_lh_um)
 
     @property
@@ -228,6 +232,9 @@ _RULES: dict[str, Callable[[Any], str | None]] = {
     "q_nu_n_per_v": _number(0.0, 1.0, lo_open=True),
     "q_lh_um": _number(0.0, 10.0, lo_open=True),
     "sigma_limit_lh_um": _number(0.0, 100.0, lo_open=True),
+    "cold_start": _choice("local-first", "global"),
+    "start_nu_n_per_v": _number(1.0, 100.0),
+    "start_lh_um": _number(-100.0, 100.0),
     "log_level": _choice(*LOG_LEVELS),
 }
 assert set(_RULES) == {f.name for f in fields(DaemonConfig)}, "every config key needs a rule"
