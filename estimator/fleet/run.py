@@ -17,7 +17,7 @@ from typing import Any
 
 from estimator.errors import EstimatorError
 from estimator.fleet.inputs import Group, expand, group
-from estimator.fleet.tasks import WORKER_ENV, process_groups
+from estimator.fleet.tasks import WORKER_ENV, process_groups, warm_worker
 from estimator.service.config import DaemonConfig
 from estimator.service.estimates import FIELDS
 
@@ -36,7 +36,8 @@ class FleetResult:
     files: list[Path] = field(default_factory=list)
     missing: list[str] = field(default_factory=list)
     errors: int = 0
-    seconds: float = 0.0
+    seconds: float = 0.0         # the whole run: the cluster's start, the workers' warm-up and the work
+    seconds_start: float = 0.0   # of that, until every worker was ready (started, kernels loaded)
     workers: int = 0
 
 
@@ -54,12 +55,12 @@ def run_fleet(inputs: list[str], out: Path, cfg: DaemonConfig | None = None, wor
     groups = group(files)
     cfg = cfg or DaemonConfig()
     t0 = time.perf_counter()
-    rows, n_workers = _compute(groups, cfg, trace_options or {}, workers, scheduler, progress, groups_per_task)
+    rows, n_workers, ready = _compute(groups, cfg, trace_options or {}, workers, scheduler, progress, groups_per_task)
     seconds = time.perf_counter() - t0
     rows.sort(key=lambda r: (r.get("injector_key") or "", r["source"], _num(r.get("time_s")), r.get("counter") or 0))
     summary = summarise(rows)
     res = FleetResult(rows, summary, missing=missing, errors=sum(r.get("status") == "error" for r in rows),
-                      seconds=seconds, workers=n_workers)
+                      seconds=seconds, seconds_start=ready - t0, workers=n_workers)
     res.files = write(res, out)
     return res
 
@@ -73,7 +74,9 @@ def task_size(n_groups: int, n_workers: int) -> int:
 
 
 def _compute(groups: list[Group], cfg: DaemonConfig, trace_options: dict, workers: int | None,
-             scheduler: str | None, progress: bool, groups_per_task: int | None = None) -> tuple[list[dict], int]:
+             scheduler: str | None, progress: bool, groups_per_task: int | None = None
+             ) -> tuple[list[dict], int, float]:
+    """The rows, the number of workers and when (``perf_counter``) every worker was ready."""
     from dask.distributed import Client, LocalCluster, as_completed
 
     for k, v in WORKER_ENV.items():   # inherited by the local cluster's worker processes
@@ -90,6 +93,8 @@ def _compute(groups: list[Group], cfg: DaemonConfig, trace_options: dict, worker
         client = Client(cluster)
     try:
         n_workers = len(client.scheduler_info()["workers"])
+        client.run(warm_worker, cfg)   # every worker: pool, codec, kernels (else its first task pays for them)
+        ready = time.perf_counter()
         size = groups_per_task or task_size(len(groups), n_workers)
         if not 1 <= size <= 10_000:
             raise EstimatorError(f"groups per task {size} must be within 1..10000")
@@ -112,7 +117,7 @@ def _compute(groups: list[Group], cfg: DaemonConfig, trace_options: dict, worker
                 print(f"\r[{done}/{total}] inputs, {len(rows)} injections", end="", file=sys.stderr, flush=True)
         if progress:
             print(file=sys.stderr)
-        return rows, n_workers
+        return rows, n_workers, ready
     finally:
         client.close()
         if cluster is not None:

@@ -47,24 +47,41 @@ def keep_heap() -> bool:
     return _heap_set
 
 
-def process_group(key: str | None, paths: tuple[str, ...], cfg: Any, trace_options: dict[str, Any]) -> list[dict]:
-    """Rows of every injection in ``paths`` (state carried across them when ``key`` is set); an input
-    that cannot be read gives one row with status ``error`` and the reason, and the others go on."""
+def _worker_parts(cfg: Any) -> tuple[Any, Any]:
+    """This worker's simulator pool and codec for ``cfg`` (built on first use, then shared), with the
+    worker's environment and heap settings applied."""
     for k, v in WORKER_ENV.items():
         os.environ.setdefault(k, v)
     keep_heap()
-    from estimator.errors import EstimatorError
-    from estimator.ident.tracker import Tracker
     from estimator.service.daemon import build_codec, build_pool
-    from estimator.service.estimates import iter_estimates, new_pipeline, source_kind
 
     pool_key = (cfg.params, cfg.max_sample_periods, cfg.sample_periods_ns)
     if pool_key not in _POOLS:
         _POOLS[pool_key] = build_pool(cfg)
-    pool = _POOLS[pool_key]
     if cfg.dbc not in _CODECS:
         _CODECS[cfg.dbc] = build_codec(cfg)
-    codec = _CODECS[cfg.dbc]
+    return _POOLS[pool_key], _CODECS[cfg.dbc]
+
+
+def warm_worker(cfg: Any) -> bool:
+    """Get a worker ready before its first task: its pool and codec built and every compiled kernel
+    loaded from numba's cache (:meth:`Tracker.warm_up`), so the run's time splits into the cluster's
+    start and the work (``FleetResult.seconds_start``). Returns True (for ``Client.run``)."""
+    from estimator.ident.tracker import Tracker
+
+    pool, _ = _worker_parts(cfg)
+    Tracker(cfg.tracker_config(), pool=pool).warm_up()
+    return True
+
+
+def process_group(key: str | None, paths: tuple[str, ...], cfg: Any, trace_options: dict[str, Any]) -> list[dict]:
+    """Rows of every injection in ``paths`` (state carried across them when ``key`` is set); an input
+    that cannot be read gives one row with status ``error`` and the reason, and the others go on."""
+    from estimator.errors import EstimatorError
+    from estimator.ident.tracker import Tracker
+    from estimator.service.estimates import iter_estimates, new_pipeline, source_kind
+
+    pool, codec = _worker_parts(cfg)
     tracker = Tracker(cfg.tracker_config(), pool=pool)   # one per task: state per injector key
     pipeline = None    # a keyed group's captures continue one pipeline; an unkeyed capture gets its own
     rows: list[dict] = []
