@@ -14,12 +14,14 @@ is a smooth, unimodal function of N_u. So the search is
 3. conjugate-direction refinement (:func:`estimator.ident.local_fit.refine`) from the best point.
 
 That global search costs 450–630 simulations. A *local-first* cold start (the default,
-``IdentConfig.cold_start``) first refines from a start point (``start_point``: the type's nominal
-values, or the injector's last estimate) with ≈ 20–40 simulations and keeps that fit only if it is
-checked to be the answer (:func:`local_first_fit`, :func:`excess_residual_z`): converged, inside the
-box, and a residual no larger than white noise allows. A fit in another valley, or one whose model
-error the cost does not absorb, fails the check and the global search runs as before; so the check
-can only cost time, never the global search's answer where the local fit is not the minimum.
+``IdentConfig.cold_start``) first refines from a start point (``start_point``, the type's nominal
+values, or the caller's) and keeps that fit only if it passes a check (:func:`local_first_fit`,
+:func:`probe_ring`, :func:`excess_residual_z`): converged, inside the box, no lower point on a ring
+around it, and a residual no larger than white noise allows; 66–110 simulations for both costs of an
+automatic start. A fit in another valley, or one whose model error the cost does not absorb, fails
+the check and the global search runs as before (the same estimate, bit for bit). Where the cost has
+two minima within the noise (near L_h = 0 at 0.3 V noise, 1 in 100 measured) the local fit can keep
+the other one, with its own standard deviation.
 
 A :class:`SharedGrid` simulates each grid point once per injection: the plain and the robust cost
 of an automatic cold start search the same first grid (and the same zooms where their valleys share
@@ -42,7 +44,7 @@ from estimator.ident.search import Box, CostFn
 START_STEPS = (0.3, 0.5)   # N/V, µm: first line-search steps of a local-first fit (about a lot's series spread)
 _COMPASS = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [-1, -1], [1, -1], [-1, 1]], dtype=float)
 RESCANS = 3   # refinements from a lower ring point at most
-RING = np.concatenate([_COMPASS, 2 * _COMPASS])   # probes of valley_scan, in standard deviations (N_u, L_h)
+RING = np.concatenate([_COMPASS, 2 * _COMPASS])   # probes of probe_ring, in standard deviations (N_u, L_h)
 ZOOM_ROW_MARGIN = 2   # rows (of the first grid's L_h spacing) a zoom column simulates either side of its predicted minimum
 
 
@@ -160,14 +162,14 @@ def bound_tolerance(config: IdentConfig) -> tuple[float, float]:
 def local_first_fit(model: CostModel, start: np.ndarray, box: Box, config: IdentConfig,
                     directions: np.ndarray | None = None, steps: np.ndarray | None = None) -> LocalFit | None:
     """Conjugate-direction refinement from ``start`` (N/V, µm; clipped into the box) along ``directions``
-    (default the axes) with first ``steps`` (default :data:`START_STEPS`), then :func:`valley_scan`
+    (default the axes) with first ``steps`` (default :data:`START_STEPS`), then :func:`probe_ring`
     (refined again from a lower point it finds); the fit if it converged inside the box, else None.
     Whether its residual is that of the minimum is the caller's check (:func:`excess_residual_z`)."""
     d = np.eye(2) if directions is None else directions
     st = np.array(START_STEPS) if steps is None else steps
     fit, converged, _ = refine(model, box.clip(np.asarray(start, dtype=float)), d, st, box, config)
     for _ in range(RESCANS):
-        lower = valley_scan(model, fit, box) if fit.success and converged else None
+        lower = probe_ring(model, fit, box) if fit.success and converged else None
         if lower is None:
             break
         d2, w2 = fit.directions
@@ -180,9 +182,9 @@ def local_first_fit(model: CostModel, start: np.ndarray, box: Box, config: Ident
     return fit
 
 
-def valley_scan(model: CostModel, fit: LocalFit, box: Box) -> np.ndarray | None:
+def probe_ring(model: CostModel, fit: LocalFit, box: Box) -> np.ndarray | None:
     """The lowest of :data:`RING` points around the fit (its standard deviations of N_u and L_h as
-    the units, at least the tolerance) if it is lower than the fit: the fit stopped short.
+    the units, at least 0.002 N/V and 0.02 µm) if it is lower than the fit: the fit stopped short.
 
     Near L_h = 0 (contact with the first samples) the cost has kinks: the forward-difference
     Jacobian there can put the valley a few degrees off, and the refinement stops a standard
