@@ -171,7 +171,7 @@ def test_daemon_node_candump_cansend_replay(tmp_path):
     # 2. the reset sent with cansend was obeyed: injector 0's next injection is a cold start again
     recs = decode_log(capture, codec)
     quality0 = [r for r in recs if isinstance(r, EstimateQuality) and r.injector_id == 0]
-    assert len(quality0) == 6 and quality0[4].evaluations < 60 and quality0[5].evaluations > 150
+    assert len(quality0) == 6 and quality0[4].evaluations < 40 and quality0[5].evaluations > 60   # warm; cold (>= 66)
 
     # 3. the bad frames were counted, not fatal
     status = [r for r in recs if isinstance(r, EstimatorStatus)][-1]
