@@ -87,8 +87,8 @@ def format_report(rep: dict) -> str:
              f"{'scaling':>7} {'L_h rms/max [µm]':>17} {'N_u rms [%]':>11} {'bad flagged':>11} {'good flagged':>12}"]
     for r in rep["runs"]:
         lines.append(f"  {r['workers']:>7} {r['injections_per_s']:>8.1f} {r['per_worker_per_s']:>10.1f} "
-                     f"{r['ms_per_injection_per_worker']:>7.1f} {r.get('seconds_start', math.nan):>8.2f} "
-                     f"{r.get('work_per_worker_per_s', math.nan):>12.1f} {r['scaling_efficiency']:>7.2f} "
+                     f"{r['ms_per_injection_per_worker']:>7.1f} {r['seconds_start']:>8.2f} "
+                     f"{r['work_per_worker_per_s']:>12.1f} {r['scaling_efficiency']:>7.2f} "
                      f"{r['rms_lh_um']:>8.3f}/{r['max_abs_lh_um']:<8.3f} {r['rms_nu_pct']:>11.3f} "
                      f"{r['bad_flagged']:>5}/{r['bad_injectors']:<5} {r['good_flagged']:>12}")
     return "\n".join(lines)

@@ -214,7 +214,7 @@ def excess_residual_z(model: CostModel, fit: LocalFit) -> float:
     r = fit.residual[:n]
     k = 2
     if model.robust:
-        r = r - model.basis @ (model.basis.T @ r)
+        r = model.without_nuisance(r)
         k += model.basis.shape[1]
     dof = max(n - k, 1)
     sigma = noise_sigma_v(r)

@@ -264,6 +264,10 @@ class CostModel:
         robust. NaN rows for failed candidates."""
         return self.residuals_of(res.voltage_v, robust)
 
+    def without_nuisance(self, r: np.ndarray) -> np.ndarray:
+        """One residual (N,) in V with this window's nuisance span projected out."""
+        return r - self.basis @ (self.basis.T @ r)
+
     def residuals_of(self, voltage_v: np.ndarray, robust: bool | None = None) -> np.ndarray:
         """:meth:`residuals` of simulated voltages (B, >= N) in V."""
         r = self.measured[None, :] - voltage_v[:, : self.n]

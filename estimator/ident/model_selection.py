@@ -25,7 +25,7 @@ def likelihood_ratio(m_plain: CostModel, f_plain: LocalFit, m_rob: CostModel, f_
     n = m_plain.n
     r_plain = f_plain.residual[:n]
     r_rob = f_rob.residual[:n]
-    r_rob = r_rob - m_plain.basis @ (m_plain.basis.T @ r_rob)
+    r_rob = m_plain.without_nuisance(r_rob)
     sigma = noise_sigma_v(r_rob)
     return float(r_plain @ r_plain - r_rob @ r_rob) / sigma ** 2
 
