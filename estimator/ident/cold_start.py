@@ -14,14 +14,15 @@ is a smooth, unimodal function of N_u. So the search is
 3. conjugate-direction refinement (:func:`estimator.ident.local_fit.refine`) from the best point.
 
 That global search costs 450–630 simulations. A *local-first* cold start (the default,
-``IdentConfig.cold_start``) first refines from a start point (``start_point``, the type's nominal
-values, or the caller's) and keeps that fit only if it passes a check (:func:`local_first_fit`,
-:func:`probe_ring`, :func:`excess_residual_z`): converged, inside the box, no lower point on a ring
-around it, and a residual no larger than white noise allows; 66–110 simulations for both costs of an
-automatic start. A fit in another valley, or one whose model error the cost does not absorb, fails
-the check and the global search runs as before (the same estimate, bit for bit). Where the cost has
-two minima within the noise (near L_h = 0 at 0.3 V noise, 1 in 100 measured) the local fit can keep
-the other one, with its own standard deviation.
+``IdentConfig.cold_start``) first fits from a start point (``start_point``, the type's nominal
+values, or the caller's) by Gauss–Newton steps in a trust region (:func:`gauss_newton_fit`; the line
+searches of :func:`~estimator.ident.local_fit.refine` where those stall) and keeps that fit only if it
+passes a check (:func:`local_first_fit`, :func:`probe_ring`, :func:`excess_residual_z`): converged,
+inside the box, no lower point on a ring around it, and a residual no larger than white noise allows;
+a median of 60 simulations for both costs of an automatic start (90 on the hysteresis plant). A fit
+in another valley, or one whose model error the cost does not absorb, fails the check and the global
+search runs as before (the same estimate, bit for bit). In the accuracy bench's 400 injections the
+kept fit's cost was never more than 0.09 (in chi-square units) above the global search's.
 
 A :class:`SharedGrid` simulates each grid point once per injection: the plain and the robust cost
 of an automatic cold start search the same first grid (and the same zooms where their valleys share
@@ -38,10 +39,16 @@ import numpy as np
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M
 from estimator.ident.cost import CostModel, noise_sigma_v
-from estimator.ident.local_fit import LocalFit, cost_fn, next_steps, refine
+from estimator.ident.local_fit import LocalFit, cost_fn, local_fit, refine
 from estimator.ident.search import Box, CostFn
 
-START_STEPS = (0.3, 0.5)   # N/V, µm: first line-search steps of a local-first fit (about a lot's series spread)
+START_STEPS = (0.3, 0.5)   # N/V, µm: first line-search steps where Gauss–Newton stalls (about a lot's series spread)
+START_RADIUS = (1.0, 2.0)   # N/V, µm: first trust region of a local-first fit (a few times a lot's series spread)
+SHRINK = 0.3       # a Gauss–Newton step that did not lower the cost: the next trust region, times that step
+GN_MAX_STEPS = 12  # Gauss–Newton steps of a local-first fit at most (then the global search)
+GN_CONVERGED_SD = 0.1   # converged: the Gauss–Newton step within this many standard deviations (or the tolerance)
+GN_CLOSE_SD = 0.25      # ... or within this many and taking it did not lower the cost (refine's criterion)
+RING_MIN_SD = np.array([0.002, 0.02])   # N/V, µm: the smallest standard deviations probe_ring scales by
 _COMPASS = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [-1, -1], [1, -1], [-1, 1]], dtype=float)
 RESCANS = 3   # refinements from a lower ring point at most
 RING = np.concatenate([_COMPASS, 2 * _COMPASS])   # probes of probe_ring, in standard deviations (N_u, L_h)
@@ -159,21 +166,62 @@ def bound_tolerance(config: IdentConfig) -> tuple[float, float]:
     return config.tol[0] * 5, config.tol[1] * 5
 
 
+def gauss_newton_fit(model: CostModel, start: np.ndarray, box: Box, config: IdentConfig,
+                     radius: np.ndarray | None = None) -> tuple[LocalFit, bool]:
+    """Gauss–Newton steps from ``start`` (N/V, µm; clipped into the box) in a trust region; (fit, converged).
+
+    Each step is one :func:`local_fit` (the point and its two forward-difference neighbours, one
+    compiled call): the step is the Gauss–Newton step, shortened to fit ``radius`` (N/V, µm; default
+    :data:`START_RADIUS`). A step that lowers the cost is taken and the radius doubles; one that does
+    not shrinks the radius to :data:`SHRINK` times that step. Converged, as :func:`refine`, when the
+    Gauss–Newton step is within a quarter standard deviation (or the tolerance) of the point; not
+    converged after :data:`GN_MAX_STEPS` steps, when a step no longer moves the point (a bound), or
+    when a simulation fails. In the narrow valley of eq. 28 the residual's Jacobian knows the valley's
+    direction where the cost's one-dimensional sections do not: from the nominal start a lot's
+    injector converges in 2–5 steps (6–15 simulations) where the line searches took 40."""
+    x = box.clip(np.asarray(start, dtype=float))
+    fit = local_fit(model, x, box)
+    rad = np.array(START_RADIUS if radius is None else radius, dtype=float)
+    tol = np.asarray(config.tol, dtype=float)
+    for _ in range(GN_MAX_STEPS):
+        if not fit.success:
+            return fit, False
+        step = fit.gn_step
+        sd = np.sqrt(np.abs(np.diag(fit.cov_x)))
+        if np.all(np.abs(step) <= np.maximum(tol, GN_CONVERGED_SD * sd)):
+            return fit, True
+        scale = min(1.0, float(np.min(rad / np.maximum(np.abs(step), 1e-300))))
+        x_new = box.clip(x + scale * step)
+        moved = np.abs(x_new - x)
+        if np.all(moved <= tol):
+            return fit, False
+        fit_new = local_fit(model, x_new, box)
+        if fit_new.success and fit_new.criterion < fit.criterion:
+            x, fit, rad = x_new, fit_new, 2.0 * rad
+        elif scale == 1.0 and np.all(np.abs(step) <= np.maximum(tol, GN_CLOSE_SD * sd)):
+            return fit, True   # the minimum is this close, and the step to it did not lower the cost (noise)
+        else:
+            rad = SHRINK * moved + tol
+    return fit, False
+
+
 def local_first_fit(model: CostModel, start: np.ndarray, box: Box, config: IdentConfig,
-                    directions: np.ndarray | None = None, steps: np.ndarray | None = None) -> LocalFit | None:
-    """Conjugate-direction refinement from ``start`` (N/V, µm; clipped into the box) along ``directions``
-    (default the axes) with first ``steps`` (default :data:`START_STEPS`), then :func:`probe_ring`
-    (refined again from a lower point it finds); the fit if it converged inside the box, else None.
-    Whether its residual is that of the minimum is the caller's check (:func:`excess_residual_z`)."""
-    d = np.eye(2) if directions is None else directions
-    st = np.array(START_STEPS) if steps is None else steps
-    fit, converged, _ = refine(model, box.clip(np.asarray(start, dtype=float)), d, st, box, config)
+                    radius: np.ndarray | None = None) -> LocalFit | None:
+    """:func:`gauss_newton_fit` from ``start`` (N/V, µm) in a trust region of ``radius``, then
+    :func:`probe_ring` (fitted again from a lower point it finds); the fit if it converged inside the
+    box, else None. Whether its residual is that of the minimum is the caller's check
+    (:func:`excess_residual_z`)."""
+    fit, converged = gauss_newton_fit(model, start, box, config, radius)
+    if fit.success and not converged:
+        # Gauss–Newton stalled (a Jacobian the cost's kinks or a model error mislead): the line searches,
+        # which need no Jacobian, from the best point it reached
+        fit, converged, _ = refine(model, fit.x, np.eye(2), np.array(START_STEPS), box, config)
     for _ in range(RESCANS):
         lower = probe_ring(model, fit, box) if fit.success and converged else None
         if lower is None:
             break
-        d2, w2 = fit.directions
-        fit2, converged2, _ = refine(model, lower, d2, next_steps(fit.sigma_v, w2, tuple(config.tol)), box, config)
+        sd = np.sqrt(np.abs(np.diag(fit.cov_x)))
+        fit2, converged2 = gauss_newton_fit(model, lower, box, config, 2.0 * np.maximum(sd, RING_MIN_SD))
         if not (fit2.success and fit2.criterion < fit.criterion):
             break
         fit, converged = fit2, converged2
@@ -193,7 +241,7 @@ def probe_ring(model: CostModel, fit: LocalFit, box: Box) -> np.ndarray | None:
     sd = np.sqrt(np.maximum(np.diag(fit.cov_x), 0.0))
     if not np.all(np.isfinite(sd)):
         return None
-    sd = np.maximum(sd, [0.002, 0.02])
+    sd = np.maximum(sd, RING_MIN_SD)
     pts = box.clip(fit.x[None, :] + RING * sd[None, :])
     j = cost_fn(model)(pts)
     k = int(np.argmin(j))

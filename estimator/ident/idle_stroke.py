@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimator.ident.cold_start import SharedGrid, bound_tolerance, cold_fit, excess_residual_z, local_first_fit
+from estimator.ident.cold_start import (RING_MIN_SD, SharedGrid, bound_tolerance, cold_fit, excess_residual_z,
+                                        local_first_fit)
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M, cov_to_si
 from estimator.ident.cost import CostModel
 from estimator.ident.estimate import Estimate, rejected
-from estimator.ident.local_fit import LocalFit, next_steps
+from estimator.ident.local_fit import LocalFit
 from estimator.ident.measurement import Injection
 from estimator.ident.model_selection import likelihood_ratio, prefers_robust
 from estimator.ident.search import Box
@@ -127,13 +128,14 @@ def identify(injection: Injection, sim: FastSimulator | None = None, config: Ide
 def _local_first_auto(sim: FastSimulator, injection: Injection, m_plain: CostModel, m_rob: CostModel,
                       x0: np.ndarray, box: Box, config: IdentConfig) -> Estimate | None:
     """The automatic cold start's choice made from local fits: the plain fit from ``x0``, the robust
-    fit from the plain optimum (along its conjugate directions), the same likelihood-ratio rule as
-    the global search; the chosen fit kept only if its residual passes :func:`excess_residual_z`."""
+    fit from the plain optimum (its first trust region four of the plain fit's standard deviations),
+    the same likelihood-ratio rule as the global search; the chosen fit kept only if its residual
+    passes :func:`excess_residual_z`."""
     f_plain = local_first_fit(m_plain, x0, box, config)
     if f_plain is None:
         return None
-    d, w = f_plain.directions
-    f_rob = local_first_fit(m_rob, f_plain.x, box, config, d, next_steps(f_plain.sigma_v, w, tuple(config.tol)))
+    sd = np.sqrt(np.abs(np.diag(f_plain.cov_x)))
+    f_rob = local_first_fit(m_rob, f_plain.x, box, config, 4.0 * np.maximum(sd, RING_MIN_SD))
     if f_rob is None:
         return None
     stat = likelihood_ratio(m_plain, f_plain, m_rob, f_rob)

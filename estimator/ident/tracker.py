@@ -363,7 +363,8 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
         # model ran into a bound, which is how it absorbs a model error: decide afresh
         raw = _cold_estimate(st, inj, sim, config)
 
-    restart = cold or _robust_hysteresis(st, raw, config, cold)
+    # the hysteresis sees a cold estimate too: one that chose the robust cost switches the mode at once
+    restart = _robust_hysteresis(st, raw, config, cold) or cold
     if restart and raw.robust != st.robust:
         raw = _cold_estimate(st, inj, sim, config)
     z = raw.point.array()
