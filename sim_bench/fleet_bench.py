@@ -54,9 +54,10 @@ def run(out: Path, injectors: int = 1000, workers: tuple[int, ...] = (1, 2), see
             if flags.get(serial):
                 flagged_bad += t["bad"] == "1"
                 flagged_good += t["bad"] != "1"
-        work = max(res.seconds - res.seconds_start, 1e-9)   # once every worker was ready
+        # from every worker ready to the last result (the cluster's start and its closing apart)
+        work = max(res.seconds - res.seconds_start - res.seconds_stop, 1e-9)
         run_ = {"workers": n, "seconds_tasks": res.seconds, "seconds_wall": wall, "injections": len(rows),
-                "seconds_start": res.seconds_start, "seconds_work": work,
+                "seconds_start": res.seconds_start, "seconds_stop": res.seconds_stop, "seconds_work": work,
                 "work_per_worker_per_s": len(rows) / work / n,
                 "errors": res.errors, "injections_per_s": len(rows) / res.seconds,
                 "per_worker_per_s": len(rows) / res.seconds / n, "ms_per_injection_per_worker": 1e3 * res.seconds * n /
@@ -81,13 +82,13 @@ def format_report(rep: dict) -> str:
         head = ("one trace each (cold start per injection)" if per == 1 else
                 f"{per} traces each (the first a cold start, the rest warm updates)")
     lines = [f"fleet-bench: {rep['injectors']} injectors, {head}",
-             "  (inj/s over the whole run; 'start': cluster start and worker warm-up, once per run;"
-             " 'ready/worker': injections/s per worker once ready)",
-             f"  {'workers':>7} {'inj/s':>8} {'per worker':>10} {'ms/inj':>7} {'start[s]':>8} {'ready/worker':>12} "
+             "  (inj/s over the whole run; 'start': cluster start and worker warm-up, 'stop': closing it, once"
+             " per run; 'ready/worker': injections/s per worker from ready to the last result)",
+             f"  {'workers':>7} {'inj/s':>8} {'per worker':>10} {'ms/inj':>7} {'start[s]':>8} {'stop[s]':>7} {'ready/worker':>12} "
              f"{'scaling':>7} {'L_h rms/max [µm]':>17} {'N_u rms [%]':>11} {'bad flagged':>11} {'good flagged':>12}"]
     for r in rep["runs"]:
         lines.append(f"  {r['workers']:>7} {r['injections_per_s']:>8.1f} {r['per_worker_per_s']:>10.1f} "
-                     f"{r['ms_per_injection_per_worker']:>7.1f} {r['seconds_start']:>8.2f} "
+                     f"{r['ms_per_injection_per_worker']:>7.1f} {r['seconds_start']:>8.2f} {r['seconds_stop']:>7.2f} "
                      f"{r['work_per_worker_per_s']:>12.1f} {r['scaling_efficiency']:>7.2f} "
                      f"{r['rms_lh_um']:>8.3f}/{r['max_abs_lh_um']:<8.3f} {r['rms_nu_pct']:>11.3f} "
                      f"{r['bad_flagged']:>5}/{r['bad_injectors']:<5} {r['good_flagged']:>12}")

@@ -38,6 +38,7 @@ class FleetResult:
     errors: int = 0
     seconds: float = 0.0         # the whole run: the cluster's start, the workers' warm-up and the work
     seconds_start: float = 0.0   # of that, until every worker was ready (started, kernels loaded)
+    seconds_stop: float = 0.0    # of that, closing the client and the local cluster after the last result
     workers: int = 0
 
 
@@ -55,12 +56,13 @@ def run_fleet(inputs: list[str], out: Path, cfg: DaemonConfig | None = None, wor
     groups = group(files)
     cfg = cfg or DaemonConfig()
     t0 = time.perf_counter()
-    rows, n_workers, ready = _compute(groups, cfg, trace_options or {}, workers, scheduler, progress, groups_per_task)
+    rows, n_workers, ready, finished = _compute(groups, cfg, trace_options or {}, workers, scheduler, progress,
+                                                groups_per_task)
     seconds = time.perf_counter() - t0
     rows.sort(key=lambda r: (r.get("injector_key") or "", r["source"], _num(r.get("time_s")), r.get("counter") or 0))
     summary = summarise(rows)
     res = FleetResult(rows, summary, missing=missing, errors=sum(r.get("status") == "error" for r in rows),
-                      seconds=seconds, seconds_start=ready - t0, workers=n_workers)
+                      seconds=seconds, seconds_start=ready - t0, seconds_stop=t0 + seconds - finished, workers=n_workers)
     res.files = write(res, out)
     return res
 
@@ -75,8 +77,9 @@ def task_size(n_groups: int, n_workers: int) -> int:
 
 def _compute(groups: list[Group], cfg: DaemonConfig, trace_options: dict, workers: int | None,
              scheduler: str | None, progress: bool, groups_per_task: int | None = None
-             ) -> tuple[list[dict], int, float]:
-    """The rows, the number of workers and when (``perf_counter``) every worker was ready."""
+             ) -> tuple[list[dict], int, float, float]:
+    """The rows, the number of workers, and when (``perf_counter``) every worker was ready and the last
+    result had come (before the client and the local cluster are closed)."""
     from dask.distributed import Client, LocalCluster, as_completed
 
     for k, v in WORKER_ENV.items():   # inherited by the local cluster's worker processes
@@ -117,7 +120,7 @@ def _compute(groups: list[Group], cfg: DaemonConfig, trace_options: dict, worker
                 print(f"\r[{done}/{total}] inputs, {len(rows)} injections", end="", file=sys.stderr, flush=True)
         if progress:
             print(file=sys.stderr)
-        return rows, n_workers, ready
+        return rows, n_workers, ready, time.perf_counter()
     finally:
         client.close()
         if cluster is not None:
