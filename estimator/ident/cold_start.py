@@ -173,8 +173,9 @@ def gauss_newton_fit(model: CostModel, start: np.ndarray, box: Box, config: Iden
     Each step is one :func:`local_fit` (the point and its two forward-difference neighbours, one
     compiled call): the step is the Gauss–Newton step, shortened to fit ``radius`` (N/V, µm; default
     :data:`START_RADIUS`). A step that lowers the cost is taken and the radius doubles; one that does
-    not shrinks the radius to :data:`SHRINK` times that step. Converged, as :func:`refine`, when the
-    Gauss–Newton step is within a quarter standard deviation (or the tolerance) of the point; not
+    not shrinks the radius to :data:`SHRINK` times that step. Converged when the Gauss–Newton step is
+    within :data:`GN_CONVERGED_SD` standard deviations (or the tolerance) of the point, or within
+    :data:`GN_CLOSE_SD` (:func:`refine`'s criterion) and taking it did not lower the cost; not
     converged after :data:`GN_MAX_STEPS` steps, when a step no longer moves the point (a bound), or
     when a simulation fails. In the narrow valley of eq. 28 the residual's Jacobian knows the valley's
     direction where the cost's one-dimensional sections do not: from the nominal start a lot's
