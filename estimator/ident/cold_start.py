@@ -188,7 +188,7 @@ def gauss_newton_fit(model: CostModel, start: np.ndarray, box: Box, config: Iden
         if not fit.success:
             return fit, False
         step = fit.gn_step
-        sd = np.sqrt(np.abs(np.diag(fit.cov_x)))
+        sd = fit.sd_x
         if np.all(np.abs(step) <= np.maximum(tol, GN_CONVERGED_SD * sd)):
             return fit, True
         scale = min(1.0, float(np.min(rad / np.maximum(np.abs(step), 1e-300))))
@@ -206,6 +206,11 @@ def gauss_newton_fit(model: CostModel, start: np.ndarray, box: Box, config: Iden
     return fit, False
 
 
+def sd_radius(fit: LocalFit, k: float) -> np.ndarray:
+    """A trust region of ``k`` of the fit's standard deviations (N/V, µm), each at least :data:`RING_MIN_SD`."""
+    return k * np.maximum(fit.sd_x, RING_MIN_SD)
+
+
 def local_first_fit(model: CostModel, start: np.ndarray, box: Box, config: IdentConfig,
                     radius: np.ndarray | None = None) -> LocalFit | None:
     """:func:`gauss_newton_fit` from ``start`` (N/V, µm) in a trust region of ``radius``, then
@@ -221,8 +226,7 @@ def local_first_fit(model: CostModel, start: np.ndarray, box: Box, config: Ident
         lower = probe_ring(model, fit, box) if fit.success and converged else None
         if lower is None:
             break
-        sd = np.sqrt(np.abs(np.diag(fit.cov_x)))
-        fit2, converged2 = gauss_newton_fit(model, lower, box, config, 2.0 * np.maximum(sd, RING_MIN_SD))
+        fit2, converged2 = gauss_newton_fit(model, lower, box, config, sd_radius(fit, 2.0))
         if not (fit2.success and fit2.criterion < fit.criterion):
             break
         fit, converged = fit2, converged2

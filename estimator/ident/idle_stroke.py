@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimator.ident.cold_start import (RING_MIN_SD, SharedGrid, bound_tolerance, cold_fit, excess_residual_z,
-                                        local_first_fit)
+from estimator.ident.cold_start import (SharedGrid, bound_tolerance, cold_fit, excess_residual_z, local_first_fit,
+                                        sd_radius)
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M, cov_to_si
 from estimator.ident.cost import CostModel
@@ -134,8 +134,7 @@ def _local_first_auto(sim: FastSimulator, injection: Injection, m_plain: CostMod
     f_plain = local_first_fit(m_plain, x0, box, config)
     if f_plain is None:
         return None
-    sd = np.sqrt(np.abs(np.diag(f_plain.cov_x)))
-    f_rob = local_first_fit(m_rob, f_plain.x, box, config, 4.0 * np.maximum(sd, RING_MIN_SD))
+    f_rob = local_first_fit(m_rob, f_plain.x, box, config, sd_radius(f_plain, 4.0))
     if f_rob is None:
         return None
     stat = likelihood_ratio(m_plain, f_plain, m_rob, f_rob)

@@ -51,6 +51,11 @@ class LocalFit:
     success: bool
 
     @cached_property
+    def sd_x(self) -> np.ndarray:
+        """Standard deviations of (N_u, L_h) in (N/V, µm): the square roots of ``cov_x``'s diagonal."""
+        return np.sqrt(np.abs(np.diag(self.cov_x)))
+
+    @cached_property
     def directions(self) -> tuple[np.ndarray, np.ndarray]:
         """Conjugate directions (columns) and eigenvalues of ``jtj``, weakest first (computed once)."""
         return conjugate_directions(self.jtj)
