@@ -20,11 +20,28 @@ def _serial(ident: str, truth: dict) -> str:
     return ident if ident in truth else Path(ident).stem
 
 
+def simulation_floor(rows: list[dict], kernel_seconds: float = 1.0) -> dict:
+    """How much of a worker's time the simulations alone must take: the simulations per injection
+    (the rows' ``evaluations``: every candidate simulated, the valve prediction as one) times the
+    simulator's best cost per candidate (:func:`sim_bench.speed.measure` at batch 256, 100 µs window,
+    timed for ``kernel_seconds``), and the injections/s per core that leaves at most, whatever the
+    rest of the pipeline costs and however the candidates of several injectors were batched."""
+    from sim_bench.speed import measure
+
+    ev = np.array([r["evaluations"] for r in rows if isinstance(r.get("evaluations"), (int, float))], dtype=float)
+    us = measure((256,), seconds=kernel_seconds)["results"][0]["us_per_candidate"]
+    mean = float(ev.mean()) if ev.size else math.nan
+    return {"simulations_per_injection_mean": mean,
+            "simulations_per_injection_median": float(np.median(ev)) if ev.size else math.nan,
+            "kernel_us_per_simulation_batch256": us, "simulation_ms_per_injection": mean * us / 1e3,
+            "simulation_bound_per_core_per_s": 1e6 / (mean * us) if ev.size else math.nan}
+
+
 def run(out: Path, injectors: int = 1000, workers: tuple[int, ...] = (1, 2), seed: int = 11,
         injections: int = 1, captures: bool = False) -> dict:
     """Make the lot (once; ``injections`` traces per injector, carried through one tracker, or with
     ``captures`` one BLF capture per injector through the replay pipeline), run the fleet per worker
-    count, score every row against truth.csv."""
+    count, score every row against truth.csv; ``simulation_floor`` of the last run's rows."""
     name = f"lot-{injectors}-{seed}" if injections == 1 else f"lot-{injectors}x{injections}-{seed}"
     lot = out / (name + ("-blf" if captures else ""))
     if not (lot / "truth.csv").exists():
@@ -66,6 +83,7 @@ def run(out: Path, injectors: int = 1000, workers: tuple[int, ...] = (1, 2), see
                 "rms_nu_pct": float(np.sqrt(np.mean(np.square(e_nu)))) if e_nu else math.nan,
                 "bad_injectors": bad, "bad_flagged": flagged_bad, "good_flagged": flagged_good}
         report["runs"].append(run_)
+    report["simulation_floor"] = simulation_floor(rows)
     r1 = next((r for r in report["runs"] if r["workers"] == 1), None)
     for r in report["runs"]:
         r["scaling_efficiency"] = (r["injections_per_s"] / r1["injections_per_s"] / r["workers"]) if r1 else math.nan
@@ -94,4 +112,11 @@ def format_report(rep: dict) -> str:
                      f"{r['work_per_worker_per_s']:>12.1f} {r['scaling_efficiency']:>7.2f} {r['scaling_efficiency_ready']:>5.2f} "
                      f"{r['rms_lh_um']:>8.3f}/{r['max_abs_lh_um']:<8.3f} {r['rms_nu_pct']:>11.3f} "
                      f"{r['bad_flagged']:>5}/{r['bad_injectors']:<5} {r['good_flagged']:>12}")
+    fl = rep.get("simulation_floor")
+    if fl:
+        lines.append(f"  simulations per injection: mean {fl['simulations_per_injection_mean']:.1f}, median "
+                     f"{fl['simulations_per_injection_median']:.0f}; at the simulator's best "
+                     f"{fl['kernel_us_per_simulation_batch256']:.1f} µs each (batch 256) that alone is "
+                     f"{fl['simulation_ms_per_injection']:.2f} ms per injection: at most "
+                     f"{fl['simulation_bound_per_core_per_s']:.0f} injections/s per core")
     return "\n".join(lines)

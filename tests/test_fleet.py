@@ -137,6 +137,11 @@ def test_fleet_bench_scores_a_lot_with_several_traces_per_injector(tmp_path):
     rows = pd.read_parquet(tmp_path / "fleet-1w-x2.parquet")
     assert (rows[rows.source.str.endswith("_001.csv")].evaluations < 40).all()       # warm (cold: 48-131)
     assert "2 traces each" in fleet_bench.format_report(rep)
+    fl = rep["simulation_floor"]      # the mean of a cold start (48-131) and a warm update (< 40)
+    assert 20 < fl["simulations_per_injection_mean"] < 90 and 1 < fl["kernel_us_per_simulation_batch256"] < 200
+    assert fl["simulation_bound_per_core_per_s"] == pytest.approx(
+        1e6 / (fl["simulations_per_injection_mean"] * fl["kernel_us_per_simulation_batch256"]))
+    assert "simulations per injection: mean" in fleet_bench.format_report(rep)
 
 
 def test_fleet_bench_scores_a_lot_of_captures(tmp_path):

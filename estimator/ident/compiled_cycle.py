@@ -279,6 +279,94 @@ def forward_fit(sim_model, aut, src, h, nu_lo, nu_hi, cur, fo, measured, weights
     return (CYCLE_FIT, 3, x.copy(), ok, jac, crit, paper, jtj, step, sigma, cov, raw, tc[0], to[0], fine, dirs, eig)
 
 
+GN_DONE, GN_FIRST_FIT, GN_STEP_FIT = 0, 1, 2
+"""Outcomes of :func:`gauss_newton`: finished (fit and converged flag final); the fit at the start
+point, or at a step's new point, needs Python (a pre-compressed start): go on from the state returned."""
+
+
+@njit(cache=True, nogil=True)
+def _max_nan(a, b):
+    """np.maximum of two floats (NaN wins)."""
+    return a if (a >= b or a != a) else b
+
+
+@njit(cache=True, nogil=True)
+def gauss_newton(sim_model, aut, src, h, nu_lo, nu_hi, cur, fo, measured, weights, basis, project, l1, x, fd,
+                 lo, hi, rad, tol, max_steps, converged_sd, close_sd, shrink):
+    """cold_start.gauss_newton_fit's loop compiled: Gauss–Newton steps from ``x`` (inside the box ``lo``,
+    ``hi``) in a trust region of first radius ``rad`` (N/V, µm), each step one :func:`forward_fit`
+    (steps ``fd``), the same decisions in the same float operations. Returns (code, converged,
+    evaluations, steps done, x, pending point, its scale, radius, the fit at x as :class:`CycleFit`
+    fields): ``GN_DONE``, or where :func:`forward_fit` cannot simulate a point (L_h <= 0), the state to
+    continue from in Python (``GN_FIRST_FIT``: the fit at ``x``; ``GN_STEP_FIT``: at the pending point)."""
+    args = (sim_model, aut, src, h, nu_lo, nu_hi, cur, fo, measured, weights, basis, project, l1)
+    fit = forward_fit(*args, x, fd, hi)
+    evaluations = fit[1]
+    if fit[0] != CYCLE_FIT:
+        return GN_FIRST_FIT, False, evaluations, 0, x, x.copy(), 1.0, rad, fit
+    rad = rad.copy()
+    for k in range(max_steps):
+        if not fit[14]:
+            return GN_DONE, False, evaluations, k, x, x.copy(), 1.0, rad, fit
+        step, cov = fit[8], fit[10]
+        sd0, sd1 = np.sqrt(abs(cov[0, 0])), np.sqrt(abs(cov[1, 1]))
+        if (abs(step[0]) <= _max_nan(tol[0], converged_sd * sd0)
+                and abs(step[1]) <= _max_nan(tol[1], converged_sd * sd1)):
+            return GN_DONE, True, evaluations, k, x, x.copy(), 1.0, rad, fit
+        q0 = rad[0] / _max_nan(abs(step[0]), 1e-300)
+        q1 = rad[1] / _max_nan(abs(step[1]), 1e-300)
+        q = np.nan if (q0 != q0 or q1 != q1) else min(q0, q1)
+        scale = q if q < 1.0 else 1.0     # min(1.0, np.min(...)) in Python: NaN gives 1.0
+        x_new = np.empty(2)
+        moved = np.empty(2)
+        for i in range(2):
+            x_new[i] = min(max(x[i] + scale * step[i], lo[i]), hi[i])
+            moved[i] = abs(x_new[i] - x[i])
+        if moved[0] <= tol[0] and moved[1] <= tol[1]:
+            return GN_DONE, False, evaluations, k, x, x_new, scale, rad, fit
+        fit_new = forward_fit(*args, x_new, fd, hi)
+        evaluations += fit_new[1]
+        if fit_new[0] != CYCLE_FIT:
+            return GN_STEP_FIT, False, evaluations, k, x, x_new, scale, rad, fit
+        if fit_new[14] and fit_new[5] < fit[5]:
+            x, fit = x_new, fit_new
+            rad = 2.0 * rad
+        elif (scale == 1.0 and abs(step[0]) <= _max_nan(tol[0], close_sd * sd0)
+              and abs(step[1]) <= _max_nan(tol[1], close_sd * sd1)):
+            return GN_DONE, True, evaluations, k, x, x_new, scale, rad, fit
+        else:
+            for i in range(2):
+                rad[i] = shrink * moved[i] + tol[i]
+    return GN_DONE, False, evaluations, max_steps, x, x.copy(), 1.0, rad, fit
+
+
+@njit(cache=True, nogil=True)
+def point_costs(sim_model, aut, src, h, nu_lo, nu_hi, cur, fo, measured, weights, basis, project, l1, pts):
+    """The cost model's costs of the points (B, 2) in (N/V, µm) (:meth:`cost.CostModel.cost_of` of
+    their simulations, +inf where one failed), and whether they were simulated here (False: a point
+    needs a pre-compressed start, nothing simulated)."""
+    nb = pts.shape[0]
+    if not _simulable(pts, fo, cur, nu_lo, nu_hi):
+        return False, np.full(nb, np.nan)
+    u, success, _, _ = _simulate(sim_model, aut, src, h, pts, fo, cur)
+    r = np.empty((nb, cur.shape[0]))
+    _residuals(measured, u, basis, project, r)
+    return True, _costs(r, weights, l1, success)
+
+
+class GaussNewtonRun(NamedTuple):
+    """What :func:`run_gauss_newton` returns (see :func:`gauss_newton`)."""
+
+    code: int
+    converged: bool
+    steps: int
+    x: np.ndarray
+    x_new: np.ndarray
+    scale: float
+    radius: np.ndarray
+    fit: CycleFit
+
+
 def _model_args(model: CostModel) -> tuple:
     """The compiled functions' arguments that come from the cost model and its simulator."""
     sim = model.sim
@@ -293,6 +381,8 @@ def _model_args(model: CostModel) -> tuple:
 
 _forward_fit = DirectCall(forward_fit)
 _warm_cycle = DirectCall(warm_cycle)
+_gauss_newton_loop = DirectCall(gauss_newton)
+_point_costs = DirectCall(point_costs)
 
 
 def run_forward_fit(model: CostModel, x: np.ndarray, fd: np.ndarray, box: Box) -> CycleFit:
@@ -308,3 +398,23 @@ def run_cycle(model: CostModel, x0: np.ndarray, d: np.ndarray, st: np.ndarray, b
                                 c_float(box.hi)))
     model.evaluations += out.evaluations
     return out
+
+
+def run_gauss_newton(model: CostModel, x: np.ndarray, fd: np.ndarray, box: Box, radius: np.ndarray,
+                     tol: np.ndarray, max_steps: int, converged_sd: float, close_sd: float,
+                     shrink: float) -> GaussNewtonRun:
+    """:func:`gauss_newton` for a cost model (its evaluations counted) from ``x`` (inside the box)."""
+    code, converged, evaluations, steps, x, x_new, scale, rad, fit = _gauss_newton_loop(
+        *_model_args(model), c_float(x), c_float(fd), c_float(box.lo), c_float(box.hi), c_float(radius),
+        c_float(tol), int(max_steps), float(converged_sd), float(close_sd), float(shrink))
+    model.evaluations += int(evaluations)
+    return GaussNewtonRun(int(code), bool(converged), int(steps), x, x_new, float(scale), rad, CycleFit(*fit))
+
+
+def run_point_costs(model: CostModel, pts: np.ndarray) -> np.ndarray | None:
+    """:func:`point_costs` for a cost model (its evaluations counted); None where a point needs Python."""
+    simulated, j = _point_costs(*_model_args(model), c_float(pts))
+    if not simulated:
+        return None
+    model.evaluations += int(j.shape[0])
+    return j

@@ -65,7 +65,7 @@ def local_fit(model: CostModel, x: np.ndarray, box: Box) -> LocalFit:
     """Simulate x and two forward-difference neighbours in one batch (steps toward the box inside);
     compiled (:func:`compiled_cycle.forward_fit`) unless a point needs a pre-compressed start."""
     cf = run_forward_fit(model, x, FD_STEP, box)
-    return _compiled_fit(cf) if cf.code == CYCLE_FIT else _forward_fit(model, x, box)
+    return from_cycle_fit(cf) if cf.code == CYCLE_FIT else _forward_fit(model, x, box)
 
 
 def _forward_fit(model: CostModel, x: np.ndarray, box: Box) -> LocalFit:
@@ -118,7 +118,7 @@ def _stencil_cycle(model: CostModel, x: np.ndarray, d: np.ndarray, st: np.ndarra
     return xv, ok, d @ jac_a
 
 
-def _compiled_fit(cf: CycleFit) -> LocalFit:
+def from_cycle_fit(cf: CycleFit) -> LocalFit:
     """The LocalFit of a compiled cycle (its conjugate directions already computed)."""
     fit = LocalFit(cf.x.copy(), float(cf.criterion), float(cf.paper_cost_vs), cf.jtj, cf.gn_step, float(cf.sigma_v),
                    cf.cov_x, cf.residual, float(cf.t_contact_s), float(cf.t_open_s), bool(cf.success))
@@ -186,7 +186,7 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
                 x, ok = cf.x, cf.ok
                 jac = cf.jac if np.isfinite(cf.jac[0, 0]) else None
                 if cf.code == CYCLE_FIT:
-                    fit = _compiled_fit(cf)
+                    fit = from_cycle_fit(cf)
             todo = [i for i in range(2) if not ok[i]]
             j = None
         for i in todo:

@@ -561,7 +561,10 @@ def _publish(filt: tuple[np.ndarray, np.ndarray] | None, raw: Estimate, status: 
     x, p = filt
     pt, sig = NuLh.of(x), NuLh(math.sqrt(abs(float(p[0, 0]))), math.sqrt(abs(float(p[1, 1]))))
     tc = to = stroke = nan
-    if predict and math.isfinite(pt.nu_n_per_v) and math.isfinite(pt.lh_um):
+    if (predict and pt.nu_n_per_v == raw.nu_n_per_v and pt.lh_m == raw.lh_m and math.isfinite(raw.stroke_m)):
+        # a cold start's own prediction (only a predicted Estimate has a finite stroke), at this very point
+        tc, to, stroke = raw.t_contact_s, raw.t_open_s, raw.stroke_m
+    elif predict and math.isfinite(pt.nu_n_per_v) and math.isfinite(pt.lh_um):
         try:
             tc, to, stroke = predict_valve(sim, inj, pt.nu_n_per_v, pt.lh_m)
         except EstimatorError:   # e.g. a prior outside the simulator's N_u range: no prediction
