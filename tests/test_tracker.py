@@ -146,6 +146,24 @@ def test_a_cold_start_that_chose_the_robust_cost_switches_the_mode_at_once(sim, 
     assert abs(results[-1].lh_m * 1e6 - 4.2) < 0.15
 
 
+def test_a_cold_starts_valve_prediction_is_published_not_made_again(sim, monkeypatch):
+    """The first injection's published contact, opening and stroke are its cold start's own prediction
+    (one prediction simulated, not two, the numbers a prediction at the published point gives); a warm
+    update's are predicted for its filtered point."""
+    import estimator.ident.tracker as tracker_mod
+    from estimator.ident.idle_stroke import predict_valve
+    calls = []
+    monkeypatch.setattr(tracker_mod, "predict_valve", lambda *a: calls.append(1) or predict_valve(*a))
+    tr = Tracker(sim=sim)
+    inj = measured(17.0, 3.0, 820)[0]
+    first = tr.update(inj)
+    assert first.raw.evaluations > 44 and calls == [] and np.isfinite(first.stroke_m)
+    assert (first.t_contact_s, first.t_open_s, first.stroke_m) == predict_valve(sim, inj, first.nu_n_per_v,
+                                                                                first.lh_m)
+    second = tr.update(at(measured(17.0, 3.0, 821)[0], 0.04))
+    assert second.raw.evaluations < 40 and calls == [1] and np.isfinite(second.stroke_m)
+
+
 def test_bad_trace_rejected_state_kept(sim):
     tr = Tracker(sim=sim)
     good = tr.update(measured(17.0, 2.0, 800)[0])
