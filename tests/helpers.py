@@ -36,3 +36,17 @@ def injection_messages(injector: int, n: int, seed: int, frame_dt_s: float = 2e-
             out.append(to_message(fr, timestamp=t))
         t += gap_s
     return out
+
+
+def record_codes(monkeypatch, module, name: str) -> list:
+    """Wrap ``module.name`` (a function returning something with a ``code``) so that each call's code is
+    appended to the list returned; the call's result is passed on unchanged."""
+    codes: list = []
+    real = getattr(module, name)
+
+    def recording(*args):
+        out = real(*args)
+        codes.append(out.code)
+        return out
+    monkeypatch.setattr(module, name, recording)
+    return codes

@@ -413,38 +413,9 @@ def test_direct_calls_work_with_numbas_jit_switched_off():
     np.testing.assert_allclose(python_run, compiled, rtol=1e-9)
 
 
-def _python_gauss_newton(model, start, box, config, radius=None):
-    """cold_start.gauss_newton_fit as it was written in Python before its loop was compiled."""
-    from estimator.ident import cold_start as cs
-    from estimator.ident.local_fit import local_fit
-    x = box.clip(np.asarray(start, dtype=float))
-    fit = local_fit(model, x, box)
-    rad = np.array(cs.START_RADIUS if radius is None else radius, dtype=float)
-    tol = np.asarray(config.tol, dtype=float)
-    for _ in range(cs.GN_MAX_STEPS):
-        if not fit.success:
-            return fit, False
-        step, sd = fit.gn_step, fit.sd_x
-        if np.all(np.abs(step) <= np.maximum(tol, cs.GN_CONVERGED_SD * sd)):
-            return fit, True
-        scale = min(1.0, float(np.min(rad / np.maximum(np.abs(step), 1e-300))))
-        x_new = box.clip(x + scale * step)
-        moved = np.abs(x_new - x)
-        if np.all(moved <= tol):
-            return fit, False
-        fit_new = local_fit(model, x_new, box)
-        if fit_new.success and fit_new.criterion < fit.criterion:
-            x, fit, rad = x_new, fit_new, 2.0 * rad
-        elif scale == 1.0 and np.all(np.abs(step) <= np.maximum(tol, cs.GN_CLOSE_SD * sd)):
-            return fit, True
-        else:
-            rad = cs.SHRINK * moved + tol
-    return fit, False
-
-
 def test_compiled_gauss_newton_loop_is_the_python_loop(sim, monkeypatch):
-    """The cold start's Gauss–Newton loop, compiled, takes the Python loop's steps to the bit: from a
-    lot-like start, and where a point needs a pre-compressed start (L_h <= 0) and the loop goes on
+    """The cold start's Gauss–Newton loop, compiled, takes the Python loop's steps (``compiled=False``)
+    to the bit: from a lot-like start, and where a point needs a pre-compressed start (L_h <= 0) and the loop goes on
     in Python, at the first point or after some compiled steps; a small trust region that runs out
     of steps included."""
     from estimator.ident import cold_start
@@ -454,14 +425,8 @@ def test_compiled_gauss_newton_loop_is_the_python_loop(sim, monkeypatch):
     from estimator.ident.idle_stroke import search_box
     from sim_bench.ident_bench import F_OPEN_N, _injection
     from sim_bench.plant import Plant, PlantConfig
-    codes = []
-    run = cold_start.run_gauss_newton
-
-    def spy(*args):
-        out = run(*args)
-        codes.append(out.code)
-        return out
-    monkeypatch.setattr(cold_start, "run_gauss_newton", spy)
+    from .helpers import record_codes
+    codes = record_codes(monkeypatch, cold_start, "run_gauss_newton")
     cfg = IdentConfig()
     cases = [(0.2, (16.5, 3.0), None, False), (0.05, (16.5, 1.0), None, False), (0.3, (16.5, -0.5), None, False),
              (-0.2, (16.2, 2.0), None, True), (3.0, (17.5, 6.0), (0.002, 0.01), False)]
@@ -472,7 +437,7 @@ def test_compiled_gauss_newton_loop_is_the_python_loop(sim, monkeypatch):
         m_c, m_py = CostModel(sim, inj, 100e-6, "l2", robust), CostModel(sim, inj, 100e-6, "l2", robust)
         r = None if radius is None else np.array(radius)
         got, conv = cold_start.gauss_newton_fit(m_c, np.array(start), box, cfg, r)
-        want, conv_py = _python_gauss_newton(m_py, np.array(start), box, cfg, r)
+        want, conv_py = cold_start.gauss_newton_fit(m_py, np.array(start), box, cfg, r, compiled=False)
         assert m_c.evaluations == m_py.evaluations, k
         assert np.array_equal(got.x, want.x) and got.criterion == want.criterion and conv == conv_py, k
         assert np.array_equal(got.cov_x, want.cov_x) and got.success == want.success

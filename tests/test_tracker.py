@@ -12,7 +12,7 @@ from estimator.ident.measurement import Injection
 from estimator.ident.status import Status
 from estimator.ident.tracker import Tracker, TrackerState
 
-from .helpers import measured
+from .helpers import measured, record_codes
 
 
 def at(inj: Injection, time_s: float, temperature_c: float = float("nan"), gain: float = 1.0) -> Injection:
@@ -213,14 +213,7 @@ def test_prior_and_reset(sim):
 
 def test_warm_up_runs_a_cold_start_and_compiled_warm_updates_without_touching_the_states(monkeypatch):
     from estimator.ident import compiled_cycle, local_fit
-    codes = []
-    real = local_fit.run_cycle
-
-    def counting(*args):
-        out = real(*args)
-        codes.append(out.code)
-        return out
-    monkeypatch.setattr(local_fit, "run_cycle", counting)
+    codes = record_codes(monkeypatch, local_fit, "run_cycle")
     tr = Tracker(TrackerConfig())
     tr.set_prior(3, 17.0, 2.0)
     before = tr.states[3].to_dict()

@@ -168,7 +168,7 @@ def bound_tolerance(config: IdentConfig) -> tuple[float, float]:
 
 
 def gauss_newton_fit(model: CostModel, start: np.ndarray, box: Box, config: IdentConfig,
-                     radius: np.ndarray | None = None) -> tuple[LocalFit, bool]:
+                     radius: np.ndarray | None = None, compiled: bool = True) -> tuple[LocalFit, bool]:
     """Gauss–Newton steps from ``start`` (N/V, µm; clipped into the box) in a trust region; (fit, converged).
 
     Each step is one :func:`local_fit` (the point and its two forward-difference neighbours, one
@@ -185,15 +185,16 @@ def gauss_newton_fit(model: CostModel, start: np.ndarray, box: Box, config: Iden
     The loop runs compiled (:func:`compiled_cycle.gauss_newton`: the same decisions in the same float
     operations, one call; with the ring's compiled costs the cold start's median in ``speed`` went
     1.5 -> 1.2 ms); where it meets a point that needs a pre-compressed start (L_h <= 0) it returns its
-    state and the loop below goes on from there."""
+    state and the loop below goes on from there (all of it with ``compiled=False``: the tests' reference)."""
     x = box.clip(np.asarray(start, dtype=float))
     rad = np.array(START_RADIUS if radius is None else radius, dtype=float)
     tol = np.asarray(config.tol, dtype=float)
-    gn = run_gauss_newton(model, x, FD_STEP, box, rad, tol, GN_MAX_STEPS, GN_CONVERGED_SD, GN_CLOSE_SD, SHRINK)
-    if gn.code == GN_DONE:
+    gn = (run_gauss_newton(model, x, FD_STEP, box, rad, tol, GN_MAX_STEPS, GN_CONVERGED_SD, GN_CLOSE_SD, SHRINK)
+          if compiled else None)
+    if gn is not None and gn.code == GN_DONE:
         return from_cycle_fit(gn.fit), gn.converged
     x_new: np.ndarray | None = None
-    if gn.code == GN_FIRST_FIT:
+    if gn is None or gn.code == GN_FIRST_FIT:
         fit, first = local_fit(model, x, box), 0
     else:   # GN_STEP_FIT: the step to x_new is decided, its fit is Python's
         x, fit, rad, first, x_new, scale = gn.x, from_cycle_fit(gn.fit), gn.radius, gn.steps, gn.x_new, gn.scale
