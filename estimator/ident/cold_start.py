@@ -259,11 +259,9 @@ def probe_ring(model: CostModel, fit: LocalFit, box: Box) -> np.ndarray | None:
     Jacobian there can put the valley a few degrees off, and the refinement stops a standard
     deviation or two short of the minimum with its Gauss–Newton step small. Probing the axes and
     the diagonals does not rely on that Jacobian."""
-    sd = np.sqrt(np.maximum(np.diag(fit.cov_x), 0.0))
-    if not np.all(np.isfinite(sd)):
+    if not np.all(np.isfinite(fit.sd_x)):
         return None
-    sd = np.maximum(sd, RING_MIN_SD)
-    pts = box.clip(fit.x[None, :] + RING * sd[None, :])
+    pts = box.clip(fit.x[None, :] + RING * sd_radius(fit, 1.0)[None, :])
     j = run_point_costs(model, pts)   # one compiled call (the fit's own cost is summed the same way)
     if j is None:                     # a probe at L_h <= 0: in Python
         j = cost_fn(model)(pts)
