@@ -417,7 +417,8 @@ def test_compiled_gauss_newton_loop_is_the_python_loop(sim, monkeypatch):
     """The cold start's Gauss–Newton loop, compiled, takes the Python loop's steps (``compiled=False``)
     to the bit: from a lot-like start, and where a point needs a pre-compressed start (L_h <= 0) and the loop goes on
     in Python, at the first point or after some compiled steps; a small trust region that runs out
-    of steps included."""
+    of steps included, and first trust regions widened to the first fit's standard deviations
+    (``radius_sd``) in both."""
     from estimator.ident import cold_start
     from estimator.ident import compiled_cycle as cc
     from estimator.ident.config import IdentConfig
@@ -428,20 +429,29 @@ def test_compiled_gauss_newton_loop_is_the_python_loop(sim, monkeypatch):
     from .helpers import record_codes
     codes = record_codes(monkeypatch, cold_start, "run_gauss_newton")
     cfg = IdentConfig()
-    cases = [(0.2, (16.5, 3.0), None, False), (0.05, (16.5, 1.0), None, False), (0.3, (16.5, -0.5), None, False),
-             (-0.2, (16.2, 2.0), None, True), (3.0, (17.5, 6.0), (0.002, 0.01), False)]
-    for k, (lh_um, start, radius, robust) in enumerate(cases):
+    cases = [(0.2, (16.5, 3.0), None, False, 0.0), (0.05, (16.5, 1.0), None, False, 0.0),
+             (0.3, (16.5, -0.5), None, False, 0.0), (-0.2, (16.2, 2.0), None, True, 0.0),
+             (3.0, (17.5, 6.0), (0.002, 0.01), False, 0.0), (3.0, (16.4, 3.6), (0.002, 0.01), True, 4.0),
+             (0.3, (16.5, -0.5), (0.002, 0.01), True, 4.0)]
+    widened = []
+    for k, (lh_um, start, radius, robust, radius_sd) in enumerate(cases):
         plant = Plant(PlantConfig())
         inj = _injection(plant.measure(16.2, lh_um * 1e-6, F_OPEN_N, np.random.default_rng(k)))
         box = search_box(cfg, sim, inj.f_open_n)
         m_c, m_py = CostModel(sim, inj, 100e-6, "l2", robust), CostModel(sim, inj, 100e-6, "l2", robust)
         r = None if radius is None else np.array(radius)
-        got, conv = cold_start.gauss_newton_fit(m_c, np.array(start), box, cfg, r)
-        want, conv_py = cold_start.gauss_newton_fit(m_py, np.array(start), box, cfg, r, compiled=False)
+        got, conv = cold_start.gauss_newton_fit(m_c, np.array(start), box, cfg, r, radius_sd=radius_sd)
+        want, conv_py = cold_start.gauss_newton_fit(m_py, np.array(start), box, cfg, r, compiled=False,
+                                                    radius_sd=radius_sd)
+        if radius_sd:   # the widening changes the run: without it, more steps
+            m_0 = CostModel(sim, inj, 100e-6, "l2", robust)
+            cold_start.gauss_newton_fit(m_0, np.array(start), box, cfg, r, compiled=False)
+            widened.append(m_0.evaluations - m_py.evaluations)
         assert m_c.evaluations == m_py.evaluations, k
         assert np.array_equal(got.x, want.x) and got.criterion == want.criterion and conv == conv_py, k
         assert np.array_equal(got.cov_x, want.cov_x) and got.success == want.success
     assert {cc.GN_DONE, cc.GN_FIRST_FIT, cc.GN_STEP_FIT} <= set(codes)
+    assert max(widened) > 0, widened
 
 
 @pytest.mark.parametrize("robust", [False, True])

@@ -168,12 +168,14 @@ def bound_tolerance(config: IdentConfig) -> tuple[float, float]:
 
 
 def gauss_newton_fit(model: CostModel, start: np.ndarray, box: Box, config: IdentConfig,
-                     radius: np.ndarray | None = None, compiled: bool = True) -> tuple[LocalFit, bool]:
+                     radius: np.ndarray | None = None, compiled: bool = True,
+                     radius_sd: float = 0.0) -> tuple[LocalFit, bool]:
     """Gauss–Newton steps from ``start`` (N/V, µm; clipped into the box) in a trust region; (fit, converged).
 
     Each step is one :func:`local_fit` (the point and its two forward-difference neighbours, one
     compiled call): the step is the Gauss–Newton step, shortened to fit ``radius`` (N/V, µm; default
-    :data:`START_RADIUS`). A step that lowers the cost is taken and the radius doubles; one that does
+    :data:`START_RADIUS`), each radius at least ``radius_sd`` of the first fit's own standard
+    deviations (:func:`widened_radius`; 0: as given). A step that lowers the cost is taken and the radius doubles; one that does
     not shrinks the radius to :data:`SHRINK` times that step. Converged when the Gauss–Newton step is
     within :data:`GN_CONVERGED_SD` standard deviations (or the tolerance) of the point, or within
     :data:`GN_CLOSE_SD` (:func:`refine`'s criterion) and taking it did not lower the cost; not
@@ -189,13 +191,14 @@ def gauss_newton_fit(model: CostModel, start: np.ndarray, box: Box, config: Iden
     x = box.clip(np.asarray(start, dtype=float))
     rad = np.array(START_RADIUS if radius is None else radius, dtype=float)
     tol = np.asarray(config.tol, dtype=float)
-    gn = (run_gauss_newton(model, x, FD_STEP, box, rad, tol, GN_MAX_STEPS, GN_CONVERGED_SD, GN_CLOSE_SD, SHRINK)
-          if compiled else None)
+    gn = (run_gauss_newton(model, x, FD_STEP, box, rad, radius_sd, RING_MIN_SD, tol, GN_MAX_STEPS, GN_CONVERGED_SD,
+                           GN_CLOSE_SD, SHRINK) if compiled else None)
     if gn is not None and gn.code == GN_DONE:
         return from_cycle_fit(gn.fit), gn.converged
     x_new: np.ndarray | None = None
     if gn is None or gn.code == GN_FIRST_FIT:
         fit, first = local_fit(model, x, box), 0
+        rad = widened_radius(rad, fit, radius_sd)
     else:   # GN_STEP_FIT: the step to x_new is decided, its fit is Python's
         x, fit, rad, first, x_new, scale = gn.x, from_cycle_fit(gn.fit), gn.radius, gn.steps, gn.x_new, gn.scale
     for _ in range(first, GN_MAX_STEPS):
@@ -227,13 +230,23 @@ def sd_radius(fit: LocalFit, k: float) -> np.ndarray:
     return k * np.maximum(fit.sd_x, RING_MIN_SD)
 
 
+def widened_radius(radius: np.ndarray, fit: LocalFit, k: float) -> np.ndarray:
+    """``radius`` (N/V, µm), each entry raised to :func:`sd_radius` ``(fit, k)`` where that is larger
+    and finite; ``k <= 0``: unchanged (:func:`compiled_cycle.widened_radius` is its compiled twin)."""
+    if k <= 0.0:
+        return radius
+    r = sd_radius(fit, k)
+    return np.where((r > radius) & (r < np.inf), r, radius)
+
+
 def local_first_fit(model: CostModel, start: np.ndarray, box: Box, config: IdentConfig,
-                    radius: np.ndarray | None = None) -> LocalFit | None:
-    """:func:`gauss_newton_fit` from ``start`` (N/V, µm) in a trust region of ``radius``, then
+                    radius: np.ndarray | None = None, radius_sd: float = 0.0) -> LocalFit | None:
+    """:func:`gauss_newton_fit` from ``start`` (N/V, µm) in a trust region of ``radius`` (at least
+    ``radius_sd`` of the first fit's standard deviations), then
     :func:`probe_ring` (fitted again from a lower point it finds); the fit if it converged inside the
     box, else None. Whether its residual is that of the minimum is the caller's check
     (:func:`excess_residual_z`)."""
-    fit, converged = gauss_newton_fit(model, start, box, config, radius)
+    fit, converged = gauss_newton_fit(model, start, box, config, radius, radius_sd=radius_sd)
     if fit.success and not converged:
         # Gauss–Newton stalled (a Jacobian the cost's kinks or a model error mislead): the line searches,
         # which need no Jacobian, from the best point it reached

@@ -291,10 +291,24 @@ def _max_nan(a, b):
 
 
 @njit(cache=True, nogil=True)
+def widened_radius(rad, cov, k, min_sd):
+    """A copy of the trust region ``rad`` (N/V, µm), each radius raised to ``k`` standard deviations of
+    ``cov`` (each at least ``min_sd``) where that is larger and finite (``k <= 0``: unchanged)."""
+    out = rad.copy()
+    if k > 0.0:
+        for i in range(2):
+            r = k * _max_nan(np.sqrt(abs(cov[i, i])), min_sd[i])
+            if r > out[i] and r < np.inf:
+                out[i] = r
+    return out
+
+
+@njit(cache=True, nogil=True)
 def gauss_newton(sim_model, aut, src, h, nu_lo, nu_hi, cur, fo, measured, weights, basis, project, l1, x, fd,
-                 lo, hi, rad, tol, max_steps, converged_sd, close_sd, shrink):
+                 lo, hi, rad, radius_sd, min_sd, tol, max_steps, converged_sd, close_sd, shrink):
     """cold_start.gauss_newton_fit's loop compiled: Gauss–Newton steps from ``x`` (inside the box ``lo``,
-    ``hi``) in a trust region of first radius ``rad`` (N/V, µm), each step one :func:`forward_fit`
+    ``hi``) in a trust region of first radius ``rad`` (N/V, µm; widened to ``radius_sd`` of the first
+    fit's standard deviations, each at least ``min_sd``, see :func:`widened_radius`), each step one :func:`forward_fit`
     (steps ``fd``), the same decisions in the same float operations. Returns (code, converged,
     evaluations, steps done, x, pending point, its scale, radius, the fit at x as :class:`CycleFit`
     fields): ``GN_DONE``, or where :func:`forward_fit` cannot simulate a point (L_h <= 0), the state to
@@ -304,7 +318,7 @@ def gauss_newton(sim_model, aut, src, h, nu_lo, nu_hi, cur, fo, measured, weight
     evaluations = fit[1]
     if fit[0] != CYCLE_FIT:
         return GN_FIRST_FIT, False, evaluations, 0, x, x.copy(), 1.0, rad, fit
-    rad = rad.copy()
+    rad = widened_radius(rad, fit[10], radius_sd, min_sd)
     for k in range(max_steps):
         if not fit[14]:
             return GN_DONE, False, evaluations, k, x, x.copy(), 1.0, rad, fit
@@ -401,12 +415,12 @@ def run_cycle(model: CostModel, x0: np.ndarray, d: np.ndarray, st: np.ndarray, b
 
 
 def run_gauss_newton(model: CostModel, x: np.ndarray, fd: np.ndarray, box: Box, radius: np.ndarray,
-                     tol: np.ndarray, max_steps: int, converged_sd: float, close_sd: float,
-                     shrink: float) -> GaussNewtonRun:
+                     radius_sd: float, min_sd: np.ndarray, tol: np.ndarray, max_steps: int, converged_sd: float,
+                     close_sd: float, shrink: float) -> GaussNewtonRun:
     """:func:`gauss_newton` for a cost model (its evaluations counted) from ``x`` (inside the box)."""
     code, converged, evaluations, steps, x, x_new, scale, rad, fit = _gauss_newton_loop(
         *_model_args(model), c_float(x), c_float(fd), c_float(box.lo), c_float(box.hi), c_float(radius),
-        c_float(tol), int(max_steps), float(converged_sd), float(close_sd), float(shrink))
+        float(radius_sd), c_float(min_sd), c_float(tol), int(max_steps), float(converged_sd), float(close_sd), float(shrink))
     model.evaluations += int(evaluations)
     return GaussNewtonRun(int(code), bool(converged), int(steps), x, x_new, float(scale), rad, CycleFit(*fit))
 

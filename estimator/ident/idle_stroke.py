@@ -32,6 +32,8 @@ from estimator.model import dynamics as dyn
 from estimator.model.drive import SAMPLE_PERIOD_REL_TOL, sampled_samples
 from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
 
+ROBUST_START_SD = 4.0   # the automatic cold start's robust fit: first trust region in standard deviations
+
 
 def search_box(config: IdentConfig, sim: FastSimulator, f_open_n: float) -> Box:
     """The search bounds in (N/V, µm): the configured bounds, the simulator's N_u range, and the
@@ -128,13 +130,15 @@ def identify(injection: Injection, sim: FastSimulator | None = None, config: Ide
 def _local_first_auto(sim: FastSimulator, injection: Injection, m_plain: CostModel, m_rob: CostModel,
                       x0: np.ndarray, box: Box, config: IdentConfig) -> Estimate | None:
     """The automatic cold start's choice made from local fits: the plain fit from ``x0``, the robust
-    fit from the plain optimum (its first trust region four of the plain fit's standard deviations),
+    fit from the plain optimum (its first trust region :data:`ROBUST_START_SD` standard deviations: the
+    plain fit's, or the robust cost's own at that point where larger, as they are by 30-40 times where
+    the nuisance span is projected out; four of the plain fit's alone took 4-7 steps to cross them),
     the same likelihood-ratio rule as the global search; the chosen fit kept only if its residual
     passes :func:`excess_residual_z`."""
     f_plain = local_first_fit(m_plain, x0, box, config)
     if f_plain is None:
         return None
-    f_rob = local_first_fit(m_rob, f_plain.x, box, config, sd_radius(f_plain, 4.0))
+    f_rob = local_first_fit(m_rob, f_plain.x, box, config, sd_radius(f_plain, ROBUST_START_SD), ROBUST_START_SD)
     if f_rob is None:
         return None
     stat = likelihood_ratio(m_plain, f_plain, m_rob, f_rob)
