@@ -9,6 +9,12 @@ from sim_bench.plant import Plant, PlantConfig
 
 _PLANTS: dict[tuple, Plant] = {}
 
+# Simulations an update reports, to tell a cold start from a warm update of the clean test traces:
+# a warm update 7-16 (one to four compiled cycles), a local-first cold start 29-53 (two Gauss-Newton
+# fits, the 16-probe ring of the published one, the valve prediction), the global search 450-700.
+WARM_MAX_EVALUATIONS = 20
+COLD_MIN_EVALUATIONS = 26
+
 
 def measured(nu: float, lh_um: float, seed: int, mismatch: bool = False, f_open_n: float = 28.0,
              window_s: float = 150e-6, **kw) -> tuple[Injection, object]:

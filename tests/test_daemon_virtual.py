@@ -18,7 +18,7 @@ from estimator.service.config import DaemonConfig
 from estimator.service.daemon import Daemon
 from estimator.service.state_store import load_states
 
-from .helpers import measured
+from .helpers import COLD_MIN_EVALUATIONS, measured
 
 
 @pytest.fixture()
@@ -118,6 +118,6 @@ def test_reset_command_and_bad_frames_do_not_stop_it(running):
     got = collect(bus, codec, lambda g: any(isinstance(r, EstimateQuality) for r in g))
     q = [r for r in got if isinstance(r, EstimateQuality)][-1]
     # the same injection again: after the reset a cold start exactly as the first time (a warm update
-    # would cost < 40 simulations and report a smaller sigma, the two injections' information)
+    # would cost fewer simulations and report a smaller sigma, the two injections' information)
     assert (q.evaluations, q.sigma_lh_um, q.cost_uvs) == (q0.evaluations, q0.sigma_lh_um, q0.cost_uvs)
-    assert q.evaluations > 44
+    assert q.evaluations >= COLD_MIN_EVALUATIONS

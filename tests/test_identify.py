@@ -262,3 +262,27 @@ def test_the_check_passes_the_minimum_and_fails_a_point_off_the_valley(sim):
 def test_cold_start_settings_are_checked(kw):
     with pytest.raises(ValueError):
         IdentConfig(**kw)
+
+
+def test_the_published_fit_is_ringed_and_the_other_only_where_the_choice_is_close(sim, monkeypatch):
+    """The automatic cold start rings (16 probes) the fit it publishes; the other fit only enters the
+    model-error statistic and is ringed too only where that statistic lies within FLIP_MARGIN of the
+    threshold. Either way the published estimate is the same."""
+    from estimator.ident import cold_start
+    from estimator.ident.idle_stroke import FLIP_MARGIN
+    rings: list[bool] = []
+    real = cold_start.probe_ring
+    monkeypatch.setattr(cold_start, "probe_ring", lambda m, f, b: rings.append(m.robust) or real(m, f, b))
+    cfg = IdentConfig()
+    inj, _ = measured(17.0, 3.0, 47)
+    est = identify(inj, sim)
+    assert not est.robust and est.model_error_stat < cfg.model_error_threshold - FLIP_MARGIN and rings == [False]
+    rings.clear()
+    close = identify(inj, sim, IdentConfig(model_error_threshold=abs(est.model_error_stat) + 4))
+    assert sorted(rings) == [False, True] and not close.robust
+    assert (close.nu_n_per_v, close.lh_m, close.model_error_stat) == (est.nu_n_per_v, est.lh_m, est.model_error_stat)
+    rings.clear()
+    mis, _ = measured(16.0, 4.0, 48, mismatch=True)
+    est_m = identify(mis, sim)
+    assert est_m.robust and est_m.model_error_stat > cfg.model_error_threshold + FLIP_MARGIN and rings == [True]
+    assert est_m.evaluations < 100    # the local fits, not the global search

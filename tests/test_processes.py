@@ -18,7 +18,7 @@ from estimator.service.bus import open_bus, to_frame, to_message
 from sim_bench.procs import DaemonProcess, wait_until
 
 from .conftest import REPO
-from .helpers import measured
+from .helpers import WARM_MAX_EVALUATIONS, measured
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -69,7 +69,7 @@ def test_restart_after_sigkill_resumes_from_persisted_state(hub, monitor, tmp_pa
             assert d.stop() == 0
     last = before[(0, 7)]["EstimateState"]
     nxt = after[(0, 8)]
-    assert nxt["EstimateQuality"].evaluations < 40            # warm start from the persisted state
+    assert nxt["EstimateQuality"].evaluations <= WARM_MAX_EVALUATIONS            # warm start from the persisted state
     assert abs(nxt["EstimateState"].lh_um - last.lh_um) < 0.1
     assert nxt["EstimateQuality"].sigma_lh_um < 0.05          # the accumulated information survived
     assert "restored the state of 1 injector" in (tmp_path / "daemon2.log").read_text()

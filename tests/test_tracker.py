@@ -12,7 +12,7 @@ from estimator.ident.measurement import Injection
 from estimator.ident.status import Status
 from estimator.ident.tracker import Tracker, TrackerState
 
-from .helpers import measured, record_codes
+from .helpers import COLD_MIN_EVALUATIONS, WARM_MAX_EVALUATIONS, measured, record_codes
 
 
 def at(inj: Injection, time_s: float, temperature_c: float = float("nan"), gain: float = 1.0) -> Injection:
@@ -23,8 +23,8 @@ def at(inj: Injection, time_s: float, temperature_c: float = float("nan"), gain:
 def test_converges_and_warm_updates_are_cheap(sim):
     tr = Tracker(sim=sim)
     results = [tr.update(at(measured(17.3, 4.2, 300 + k)[0], 0.04 * k)) for k in range(40)]
-    assert results[0].evaluations > 44            # cold start: two checked local fits (48-131), the global search 450-700
-    assert max(r.evaluations for r in results[1:]) < 40   # warm: a few line-search points
+    assert results[0].evaluations >= COLD_MIN_EVALUATIONS   # cold start
+    assert max(r.evaluations for r in results[1:]) <= WARM_MAX_EVALUATIONS   # warm: a few compiled cycles
     assert all(r.status == Status.OK for r in results)
     last = results[-1]
     assert abs(last.lh_m * 1e6 - 4.2) < 0.05 and abs(last.nu_n_per_v - 17.3) < 0.01
@@ -157,11 +157,11 @@ def test_a_cold_starts_valve_prediction_is_published_not_made_again(sim, monkeyp
     tr = Tracker(sim=sim)
     inj = measured(17.0, 3.0, 820)[0]
     first = tr.update(inj)
-    assert first.raw.evaluations > 44 and calls == [] and np.isfinite(first.stroke_m)
+    assert first.raw.evaluations >= COLD_MIN_EVALUATIONS and calls == [] and np.isfinite(first.stroke_m)
     assert (first.t_contact_s, first.t_open_s, first.stroke_m) == predict_valve(sim, inj, first.nu_n_per_v,
                                                                                 first.lh_m)
     second = tr.update(at(measured(17.0, 3.0, 821)[0], 0.04))
-    assert second.raw.evaluations < 40 and calls == [1] and np.isfinite(second.stroke_m)
+    assert second.raw.evaluations <= WARM_MAX_EVALUATIONS and calls == [1] and np.isfinite(second.stroke_m)
 
 
 def test_bad_trace_rejected_state_kept(sim):
@@ -183,7 +183,7 @@ def test_state_round_trips_through_json_and_resumes(sim):
     tr2 = Tracker(sim=sim)
     tr2.states[0] = TrackerState.from_dict(json.loads(blob))
     r = tr2.update(measured(18.0, 5.0, 950)[0])
-    assert r.evaluations < 40 and abs(r.lh_m * 1e6 - 5.0) < 0.1   # warm, not a cold start
+    assert r.evaluations <= WARM_MAX_EVALUATIONS and abs(r.lh_m * 1e6 - 5.0) < 0.1   # warm, not a cold start
 
 
 @pytest.mark.parametrize("change", [
@@ -206,7 +206,7 @@ def test_prior_and_reset(sim):
     tr.set_prior(3, 17.0, 2.0)
     inj, _ = measured(17.05, 2.1, 1000)
     r = tr.update(Injection(inj.current_a, inj.voltage_v, inj.dt_s, injector_id=3))
-    assert r.evaluations < 40 and abs(r.lh_m * 1e6 - 2.1) < 0.15
+    assert r.evaluations <= WARM_MAX_EVALUATIONS and abs(r.lh_m * 1e6 - 2.1) < 0.15
     tr.reset(3)
     assert 3 not in tr.states
 

@@ -19,7 +19,8 @@ values, or the caller's) by Gauss–Newton steps in a trust region (:func:`gauss
 searches of :func:`~estimator.ident.local_fit.refine` where those stall) and keeps that fit only if it
 passes a check (:func:`local_first_fit`, :func:`probe_ring`, :func:`excess_residual_z`): converged,
 inside the box, no lower point on a ring around it, and a residual no larger than white noise allows;
-a median of 60 simulations for both costs of an automatic start (90 on the hysteresis plant). A fit
+a median of 38-41 simulations for both costs of an automatic start on matched plants (60 on the
+hysteresis plant; the ring checks the fit published, see :func:`idle_stroke._local_first_auto`). A fit
 in another valley, or one whose model error the cost does not absorb, fails the check and the global
 search runs as before (the same estimate, bit for bit). In the accuracy bench's 400 injections the
 kept fit's cost was never more than 0.09 (in chi-square units) above the global search's.
@@ -239,18 +240,22 @@ def widened_radius(radius: np.ndarray, fit: LocalFit, k: float) -> np.ndarray:
     return np.where((r > radius) & (r < np.inf), r, radius)
 
 
-def local_first_fit(model: CostModel, start: np.ndarray, box: Box, config: IdentConfig,
-                    radius: np.ndarray | None = None, radius_sd: float = 0.0) -> LocalFit | None:
+def unchecked_fit(model: CostModel, start: np.ndarray, box: Box, config: IdentConfig,
+                  radius: np.ndarray | None = None, radius_sd: float = 0.0) -> tuple[LocalFit, bool]:
     """:func:`gauss_newton_fit` from ``start`` (N/V, µm) in a trust region of ``radius`` (at least
-    ``radius_sd`` of the first fit's standard deviations), then
-    :func:`probe_ring` (fitted again from a lower point it finds); the fit if it converged inside the
-    box, else None. Whether its residual is that of the minimum is the caller's check
-    (:func:`excess_residual_z`)."""
+    ``radius_sd`` of the first fit's standard deviations), then, where it stalled, the line searches;
+    (fit, converged), not yet checked by :func:`ring_checked`."""
     fit, converged = gauss_newton_fit(model, start, box, config, radius, radius_sd=radius_sd)
     if fit.success and not converged:
         # Gauss–Newton stalled (a Jacobian the cost's kinks or a model error mislead): the line searches,
         # which need no Jacobian, from the best point it reached
         fit, converged, _ = refine(model, fit.x, np.eye(2), np.array(START_STEPS), box, config)
+    return fit, converged
+
+
+def ring_checked(model: CostModel, fit: LocalFit, converged: bool, box: Box, config: IdentConfig) -> LocalFit | None:
+    """:func:`probe_ring` around the fit (fitted again from a lower point it finds, at most
+    :data:`RESCANS` times); the fit if it converged inside the box, else None."""
     for _ in range(RESCANS):
         lower = probe_ring(model, fit, box) if fit.success and converged else None
         if lower is None:
@@ -259,9 +264,20 @@ def local_first_fit(model: CostModel, start: np.ndarray, box: Box, config: Ident
         if not (fit2.success and fit2.criterion < fit.criterion):
             break
         fit, converged = fit2, converged2
-    if not (fit.success and converged) or box.at_bound(fit.x, bound_tolerance(config)):
-        return None
-    return fit
+    return fit if usable(fit, converged, box, config) else None
+
+
+def usable(fit: LocalFit, converged: bool, box: Box, config: IdentConfig) -> bool:
+    """A local fit that may be kept: successful, converged and not at a search bound."""
+    return fit.success and converged and not box.at_bound(fit.x, bound_tolerance(config))
+
+
+def local_first_fit(model: CostModel, start: np.ndarray, box: Box, config: IdentConfig,
+                    radius: np.ndarray | None = None, radius_sd: float = 0.0) -> LocalFit | None:
+    """:func:`unchecked_fit` then :func:`ring_checked`: the fit if it converged inside the box with no
+    lower point on the ring, else None. Whether its residual is that of the minimum is the caller's
+    check (:func:`excess_residual_z`)."""
+    return ring_checked(model, *unchecked_fit(model, start, box, config, radius, radius_sd), box, config)
 
 
 def probe_ring(model: CostModel, fit: LocalFit, box: Box) -> np.ndarray | None:

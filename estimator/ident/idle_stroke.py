@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from estimator.ident.cold_start import (SharedGrid, bound_tolerance, cold_fit, excess_residual_z, local_first_fit,
-                                        sd_radius)
+                                        ring_checked, sd_radius, unchecked_fit, usable)
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M, cov_to_si
 from estimator.ident.cost import CostModel
@@ -33,6 +33,7 @@ from estimator.model.drive import SAMPLE_PERIOD_REL_TOL, sampled_samples
 from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
 
 ROBUST_START_SD = 4.0   # the automatic cold start's robust fit: first trust region in standard deviations
+FLIP_MARGIN = 16.0      # chi-square units: the fit not chosen is ringed too where the statistic is this close to the threshold
 
 
 def search_box(config: IdentConfig, sim: FastSimulator, f_open_n: float) -> Box:
@@ -134,16 +135,32 @@ def _local_first_auto(sim: FastSimulator, injection: Injection, m_plain: CostMod
     plain fit's, or the robust cost's own at that point where larger, as they are by 30-40 times where
     the nuisance span is projected out; four of the plain fit's alone took 4-7 steps to cross them),
     the same likelihood-ratio rule as the global search; the chosen fit kept only if its residual
-    passes :func:`excess_residual_z`."""
-    f_plain = local_first_fit(m_plain, x0, box, config)
-    if f_plain is None:
+    passes :func:`excess_residual_z`.
+
+    The ring (:func:`ring_checked`, 16 simulations) checks the fit that is published; the other one
+    only enters the statistic, and is ringed too where the statistic lies within :data:`FLIP_MARGIN`
+    of the threshold (a fit stopped a few standard deviations short moves it by about that much).
+    The choice is made again after each ring, so it is the one the ringed fits give."""
+    f_plain, c_plain = unchecked_fit(m_plain, x0, box, config)
+    if not usable(f_plain, c_plain, box, config):
         return None
-    f_rob = local_first_fit(m_rob, f_plain.x, box, config, sd_radius(f_plain, ROBUST_START_SD), ROBUST_START_SD)
-    if f_rob is None:
+    f_rob, c_rob = unchecked_fit(m_rob, f_plain.x, box, config, sd_radius(f_plain, ROBUST_START_SD), ROBUST_START_SD)
+    if not usable(f_rob, c_rob, box, config):
         return None
-    stat = likelihood_ratio(m_plain, f_plain, m_rob, f_rob)
-    robust = prefers_robust(stat, config.model_error_threshold)
-    model, fit = (m_rob, f_rob) if robust else (m_plain, f_plain)
+    models, fits, ringed = (m_plain, m_rob), [f_plain, f_rob], [False, False]
+    while True:
+        stat = likelihood_ratio(m_plain, fits[0], m_rob, fits[1])
+        robust = prefers_robust(stat, config.model_error_threshold)
+        todo = [i for i in (int(robust), int(not robust))
+                if not ringed[i] and (i == int(robust) or abs(stat - config.model_error_threshold) <= FLIP_MARGIN)]
+        if not todo:
+            break
+        for i in todo:
+            fit = ring_checked(models[i], fits[i], True, box, config)
+            if fit is None:
+                return None
+            fits[i], ringed[i] = fit, True
+    model, fit = models[int(robust)], fits[int(robust)]
     if not excess_residual_z(model, fit) <= config.local_accept_z:
         return None
     return finish(sim, injection, fit, True, m_plain.evaluations + m_rob.evaluations, box, robust, stat, config)
