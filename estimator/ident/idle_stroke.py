@@ -140,19 +140,21 @@ def _local_first_auto(sim: FastSimulator, injection: Injection, m_plain: CostMod
     The ring (:func:`ring_checked`, 16 simulations) checks the fit that is published; the other one
     only enters the statistic, and is ringed too where the statistic lies within :data:`FLIP_MARGIN`
     of the threshold (a fit stopped a few standard deviations short moves it by about that much).
-    The choice is made again after each ring, so it is the one the ringed fits give."""
+    The choice is made again after each ring, so it is the one the ringed fits give. A fit at a
+    search bound is ringed in any case (a lower point may lead it off the bound; else it fails)."""
     f_plain, c_plain = unchecked_fit(m_plain, x0, box, config)
-    if not usable(f_plain, c_plain, box, config):
+    if not (f_plain.success and c_plain):
         return None
     f_rob, c_rob = unchecked_fit(m_rob, f_plain.x, box, config, sd_radius(f_plain, ROBUST_START_SD), ROBUST_START_SD)
-    if not usable(f_rob, c_rob, box, config):
+    if not (f_rob.success and c_rob):
         return None
     models, fits, ringed = (m_plain, m_rob), [f_plain, f_rob], [False, False]
     while True:
         stat = likelihood_ratio(m_plain, fits[0], m_rob, fits[1])
         robust = prefers_robust(stat, config.model_error_threshold)
+        close = abs(stat - config.model_error_threshold) <= FLIP_MARGIN
         todo = [i for i in (int(robust), int(not robust))
-                if not ringed[i] and (i == int(robust) or abs(stat - config.model_error_threshold) <= FLIP_MARGIN)]
+                if not ringed[i] and (i == int(robust) or close or not usable(fits[i], True, box, config))]
         if not todo:
             break
         for i in todo:
