@@ -23,6 +23,8 @@ import pytest
 from estimator.codec.records import Codec, EstimateQuality, EstimateState, EstimatorStatus, SimTruth
 from estimator.service.bus import to_frame
 
+from ..helpers import COLD_MIN_EVALUATIONS, WARM_MAX_EVALUATIONS
+
 REPO = Path(__file__).resolve().parents[2]
 HAVE_VCAN = Path("/sys/class/net/vcan0").exists()
 HAVE_UTILS = all(shutil.which(t) for t in ("candump", "cansend"))
@@ -171,7 +173,7 @@ def test_daemon_node_candump_cansend_replay(tmp_path):
     # 2. the reset sent with cansend was obeyed: injector 0's next injection is a cold start again
     recs = decode_log(capture, codec)
     quality0 = [r for r in recs if isinstance(r, EstimateQuality) and r.injector_id == 0]
-    assert len(quality0) == 6 and quality0[4].evaluations <= 20 and quality0[5].evaluations >= 26   # warm; cold (tests/helpers.py)
+    assert len(quality0) == 6 and quality0[4].evaluations <= WARM_MAX_EVALUATIONS and quality0[5].evaluations >= COLD_MIN_EVALUATIONS   # warm; cold
     assert quality0[5].sigma_lh_um > 1.5 * quality0[4].sigma_lh_um   # one injection's information, not five
 
     # 3. the bad frames were counted, not fatal
