@@ -14,6 +14,7 @@ import pytest
 pytest.importorskip("distributed")
 pd = pytest.importorskip("pandas")
 
+from estimator.errors import EstimatorError  # noqa: E402
 from estimator.fleet.run import run_fleet  # noqa: E402
 from estimator.service.config import DaemonConfig  # noqa: E402
 from estimator.service.daemon import build_tracker  # noqa: E402
@@ -97,11 +98,22 @@ def test_fleet_capture_rows_equal_replay_csv(lot, tmp_path):
 
 
 def test_groups_per_task_keep_every_worker_busy_and_tasks_few():
-    from estimator.fleet.run import MAX_GROUPS_PER_TASK, task_size
-    assert task_size(6, 2) == 1                      # few inputs: a task each
-    assert task_size(1000, 2) == MAX_GROUPS_PER_TASK  # a lot: 63 tasks, not 1000
-    assert task_size(100, 2) == 12                   # still four tasks per worker
-    assert task_size(0, 0) == 1
+    from estimator.fleet.run import MAX_GROUPS_PER_TASK, task_chunks, task_sizes
+    assert task_sizes(6, 2) == [1] * 6                  # few inputs: a task each
+    assert task_sizes(0, 0) == []
+    for n, workers in ((1000, 1), (1000, 2), (100, 2), (10_000, 2), (7, 3)):
+        sizes = task_sizes(n, workers)
+        assert sum(sizes) == n and max(sizes) <= MAX_GROUPS_PER_TASK
+        assert sizes == sorted(sizes, reverse=True)     # the tasks shrink towards the end of the run
+        assert sizes[-1] == 1                           # the last ones are single groups: the workers finish together
+    assert task_sizes(1000, 1)[:4] == [MAX_GROUPS_PER_TASK] * 4
+    assert len(task_sizes(1000, 1)) == 23 and len(task_sizes(1000, 2)) == 41   # not 63 tasks of 16, or 1,000
+    assert task_sizes(100, 2)[:3] == [13, 11, 10]       # still about four tasks per worker's share
+    groups = list(range(10))
+    assert [len(c) for c in task_chunks(groups, 2, 3)] == [3, 3, 3, 1]
+    assert sum(task_chunks(groups, 2), []) == groups    # every group once, in order
+    with pytest.raises(EstimatorError):
+        task_chunks(groups, 2, 0)
 
 
 def test_a_worker_reuses_freed_memory_despite_the_nannys_trim_threshold():

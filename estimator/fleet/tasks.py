@@ -74,15 +74,17 @@ def warm_worker(cfg: Any) -> bool:
     return True
 
 
-def process_group(key: str | None, paths: tuple[str, ...], cfg: Any, trace_options: dict[str, Any]) -> list[dict]:
+def process_group(key: str | None, paths: tuple[str, ...], cfg: Any, trace_options: dict[str, Any],
+                  tracker_config: Any = None) -> list[dict]:
     """Rows of every injection in ``paths`` (state carried across them when ``key`` is set); an input
-    that cannot be read gives one row with status ``error`` and the reason, and the others go on."""
+    that cannot be read gives one row with status ``error`` and the reason, and the others go on.
+    ``tracker_config``: ``cfg.tracker_config()``, if the caller has it (the same for every group)."""
     from estimator.errors import EstimatorError
     from estimator.ident.tracker import Tracker
     from estimator.service.estimates import iter_estimates, new_pipeline, source_kind
 
     pool, codec = _worker_parts(cfg)
-    tracker = Tracker(cfg.tracker_config(), pool=pool)   # one per task: state per injector key
+    tracker = Tracker(tracker_config or cfg.tracker_config(), pool=pool)   # one per group: state per injector key
     pipeline = None    # a keyed group's captures continue one pipeline; an unkeyed capture gets its own
     rows: list[dict] = []
     for path in paths:
@@ -106,6 +108,7 @@ def process_groups(groups: tuple[tuple[str | None, tuple[str, ...]], ...], cfg: 
     rows are the same as with a task per group (a Dask task costs the scheduler and the client ≈ 2 ms
     of CPU, which on a small machine they take from the workers' cores)."""
     rows: list[dict] = []
+    tracker_config = cfg.tracker_config()
     for key, paths in groups:
-        rows.extend(process_group(key, paths, cfg, trace_options))
+        rows.extend(process_group(key, paths, cfg, trace_options, tracker_config))
     return rows

@@ -294,7 +294,7 @@ def _warm_estimate(state: TrackerState, x0: np.ndarray, inj: Injection, sim: Fas
 
 def _cold_estimate(state: TrackerState, inj: Injection, sim: FastSimulator, config: TrackerConfig) -> Estimate:
     mode = "on" if state.robust else config.ident.robust
-    return identify(inj, sim, replace(config.ident, robust=mode))
+    return identify(inj, sim, config.ident if mode == config.ident.robust else replace(config.ident, robust=mode))
 
 
 _BOXES: "weakref.WeakKeyDictionary[FastSimulator, dict]" = weakref.WeakKeyDictionary()
