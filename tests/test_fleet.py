@@ -107,7 +107,7 @@ def test_groups_per_task_keep_every_worker_busy_and_tasks_few():
         assert sizes == sorted(sizes, reverse=True)     # the tasks shrink towards the end of the run
         assert sizes[-1] == 1                           # the last ones are single groups: the workers finish together
     assert task_sizes(1000, 1)[:4] == [MAX_GROUPS_PER_TASK] * 4
-    assert len(task_sizes(1000, 1)) == 23 and len(task_sizes(1000, 2)) == 41   # not 63 tasks of 16, or 1,000
+    assert len(task_sizes(1000, 1)) == 29 and len(task_sizes(1000, 2)) == 44   # not 63 tasks of 16, or 1,000
     assert task_sizes(100, 2)[:3] == [13, 11, 10]       # still about four tasks per worker's share
     groups = list(range(10))
     assert [len(c) for c in task_chunks(groups, 2, 3)] == [3, 3, 3, 1]

@@ -22,7 +22,7 @@ from estimator.service.config import DaemonConfig
 from estimator.service.estimates import FIELDS
 
 COLUMNS = FIELDS + ("injector_key",)
-MAX_GROUPS_PER_TASK = 128  # groups (an injector's traces, or one input) sent to a worker in one Dask task at most
+MAX_GROUPS_PER_TASK = 64   # groups (an injector's traces, or one input) sent to a worker in one Dask task at most
 TASKS_PER_WORKER = 4       # each task takes at most 1/(this x workers) of the groups not yet given out
 OUTLIER_MADS = 4.0      # |x - lot median| beyond this many robust sigmas (1.4826 MAD) is flagged
 
@@ -73,8 +73,8 @@ def task_sizes(n_groups: int, n_workers: int) -> list[int]:
     least one, at most :data:`MAX_GROUPS_PER_TASK`), so the tasks shrink towards the end of the run and
     the workers finish together. A task costs ≈ 2.8 ms of a worker's core (Dask's messages for it and
     its result; measured on this 2-core machine as 1/587 - 1/673 s per lot file with 16 files a task
-    against 125), so 1,000 lot files as 63 tasks of 16 lost 12 % of a worker to them; as these tasks
-    (23 on one worker, 41 on two) they lose 4-6 %."""
+    against 125), so 1,000 lot files (≈ 1.45 ms each) as 63 tasks of 16 spent 12 % of the workers' time
+    on tasks; as these (29 tasks on one worker, 44 on two) 6-8 %."""
     sizes: list[int] = []
     left = max(n_groups, 0)
     share = TASKS_PER_WORKER * max(n_workers, 1)
