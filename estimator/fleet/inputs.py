@@ -4,7 +4,7 @@ Injector key (documented in the README): a trace's metadata ``serial=...`` (or `
 traces that share a key are one injector's measurements and are processed in one task, in order of
 their ``time_s`` metadata (then file name), with the recursive estimator's state carried from one to
 the next. Everything else (traces without a key, captures) is independent: a group of its own. A Dask
-task runs one or more groups (:func:`estimator.fleet.run.task_size`), each with its own tracker.
+task runs one or more groups (:func:`estimator.fleet.run.task_sizes`), each with its own tracker.
 """
 
 from __future__ import annotations
