@@ -59,7 +59,7 @@ def csv_head(path: str | Path, block: int = 4096) -> tuple[dict[str, str], str |
         rest = b""
         while True:
             more = f.read(block)
-            lines = (rest + more).split(b"\n")
+            lines = (rest + more).replace(b"\r", b"\n").split(b"\n")   # CRLF or CR: extra empty lines
             rest = lines.pop() if more else b""   # a line the next block may go on with
             for raw in lines:
                 line = raw.decode("utf-8", "replace").strip()

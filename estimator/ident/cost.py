@@ -21,6 +21,7 @@ decides to use it.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -77,8 +78,13 @@ def _nuisance_columns(current_a, dt_s, thresholds):
 
 
 def nuisance_basis(current_a: np.ndarray, dt_s: float) -> np.ndarray:
-    """Orthonormal basis (N, 6) of the nuisance span (QR of :func:`nuisance_columns`)."""
-    return _nuisance_basis(np.ascontiguousarray(current_a, dtype=float), float(dt_s), _THRESHOLDS)
+    """Orthonormal basis (N, 6) of the nuisance span (QR of :func:`nuisance_columns`); NaN where the
+    current (A) is not finite, as numpy's QR gives (the compiled one would raise)."""
+    cur = np.ascontiguousarray(current_a, dtype=float)
+    if not (cur.size and np.isfinite(cur).all() and math.isfinite(dt_s)):
+        qb, _ = np.linalg.qr(nuisance_columns(cur, dt_s))
+        return qb
+    return _nuisance_basis(cur, float(dt_s), _THRESHOLDS)
 
 
 @njit(cache=True, nogil=True)
