@@ -50,18 +50,13 @@ def meta_item(line: str) -> tuple[str, str] | None:
     return (k.strip(), v.strip()) if sep else None
 
 
-def csv_head(path: str | Path, block: int = 4096) -> tuple[dict[str, str], str | None]:
+def csv_head(path: str | Path) -> tuple[dict[str, str], str | None]:
     """The ``# key=value`` lines of a CSV up to its first other non-empty line, and that line (None if
-    there is none); reads no further than the ``block`` (bytes) that holds it. OSError if the file
-    cannot be read."""
+    there is none); reads no further. Line ends: LF, CRLF or CR. OSError if the file cannot be read."""
     meta: dict[str, str] = {}
     with open(path, "rb") as f:
-        rest = b""
-        while True:
-            more = f.read(block)
-            lines = (rest + more).replace(b"\r", b"\n").split(b"\n")   # CRLF or CR: extra empty lines
-            rest = lines.pop() if more else b""   # a line the next block may go on with
-            for raw in lines:
+        for chunk in f:
+            for raw in chunk.split(b"\r"):   # a CR-only file is one "line" here
                 line = raw.decode("utf-8", "replace").strip()
                 if not line:
                     continue
@@ -70,8 +65,7 @@ def csv_head(path: str | Path, block: int = 4096) -> tuple[dict[str, str], str |
                 item = meta_item(line)
                 if item:
                     meta[item[0]] = item[1]
-            if not more:
-                return meta, None
+    return meta, None
 
 
 def read_trace(path: str | Path) -> Trace:

@@ -29,7 +29,7 @@ def test_trace_layouts_read_to_the_same_columns(tmp_path, name):
     assert list(tr.columns) == ["t_s", "current_A"]
     assert tr.column("t_s").tolist() == [0.0, 1.0] and tr.column("current_A").tolist() == [1.0, 2.0]
     assert tr.meta == meta
-    assert csv_head(p, block=5)[1].replace(" ", "") == "t_s,current_A"   # the header, across small blocks
+    assert csv_head(p)[1].replace(" ", "") == "t_s,current_A"   # the header, whatever the line ends
 
 
 @pytest.mark.parametrize("text, message", [

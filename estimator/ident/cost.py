@@ -21,7 +21,6 @@ decides to use it.
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,20 +77,10 @@ def _nuisance_columns(current_a, dt_s, thresholds):
 
 
 def nuisance_basis(current_a: np.ndarray, dt_s: float) -> np.ndarray:
-    """Orthonormal basis (N, 6) of the nuisance span (QR of :func:`nuisance_columns`); NaN where the
-    current (A) is not finite, as numpy's QR gives (the compiled one would raise)."""
-    cur = np.ascontiguousarray(current_a, dtype=float)
-    if not (cur.size and np.isfinite(cur).all() and math.isfinite(dt_s)):
-        qb, _ = np.linalg.qr(nuisance_columns(cur, dt_s))
-        return qb
-    return _nuisance_basis(cur, float(dt_s), _THRESHOLDS)
-
-
-@njit(cache=True, nogil=True)
-def _nuisance_basis(current_a, dt_s, thresholds):
-    """The Q of the columns' QR, compiled: the LAPACK routines ``np.linalg.qr`` calls (the same basis
-    to the bit in 400 lot windows), in 11 instead of 24 µs."""
-    qb, _ = np.linalg.qr(_nuisance_columns(current_a, dt_s, thresholds))
+    """Orthonormal basis (N, 6) of the nuisance span (QR of :func:`nuisance_columns`). numpy's QR:
+    numba's (the same LAPACK routines, from another build) took 11 instead of 24 µs but differed in the
+    last bits for some windows (35 of the accuracy bench's 400 estimates moved by 1e-10)."""
+    qb, _ = np.linalg.qr(nuisance_columns(current_a, dt_s))
     return qb
 
 
