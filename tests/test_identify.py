@@ -267,14 +267,12 @@ def test_cold_start_settings_are_checked(kw):
 def test_the_published_fit_is_ringed_and_the_other_only_where_the_choice_is_close(sim, monkeypatch):
     """The automatic cold start rings (16 probes) the fit it publishes; the other fit only enters the
     model-error statistic and is ringed too only where that statistic lies within FLIP_MARGIN of the
-    threshold. Either way the published estimate is the same. (The Python path, where the rings can
-    be counted: the compiled one makes the same decisions, ``tests/test_compiled_cold_start.py``.)"""
-    from estimator.ident import cold_start, idle_stroke
+    threshold. Either way the published estimate is the same."""
+    from estimator.ident import cold_start
     from estimator.ident.idle_stroke import FLIP_MARGIN
     rings: list[bool] = []
     real = cold_start.probe_ring
     monkeypatch.setattr(cold_start, "probe_ring", lambda m, f, b: rings.append(m.robust) or real(m, f, b))
-    monkeypatch.setattr(idle_stroke, "run_local_first_auto", lambda *a: None)   # "needs Python"
     cfg = IdentConfig()
     inj, _ = measured(17.0, 3.0, 47)
     est = identify(inj, sim)

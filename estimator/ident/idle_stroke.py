@@ -17,15 +17,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimator.ident.cold_start import (GN_CLOSE_SD, GN_CONVERGED_SD, GN_MAX_STEPS, RESCANS, RING, RING_MIN_SD, SHRINK,
-                                        START_RADIUS, SharedGrid, bound_tolerance, cold_fit, excess_residual_z,
-                                        local_first_fit, ring_checked, sd_radius, unchecked_fit, usable)
-from estimator.ident.compiled_cold_start import AUTO_DONE, run_local_first_auto
+from estimator.ident.cold_start import (SharedGrid, bound_tolerance, cold_fit, excess_residual_z, local_first_fit,
+                                        ring_checked, sd_radius, unchecked_fit, usable)
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M, cov_to_si
 from estimator.ident.cost import CostModel
 from estimator.ident.estimate import Estimate, rejected
-from estimator.ident.local_fit import FD_STEP, LocalFit, from_cycle_fit
+from estimator.ident.local_fit import LocalFit
 from estimator.ident.measurement import Injection
 from estimator.ident.model_selection import likelihood_ratio, prefers_robust
 from estimator.ident.search import Box
@@ -131,7 +129,7 @@ def identify(injection: Injection, sim: FastSimulator | None = None, config: Ide
 
 
 def _local_first_auto(sim: FastSimulator, injection: Injection, m_plain: CostModel, m_rob: CostModel,
-                      x0: np.ndarray, box: Box, config: IdentConfig, compiled: bool = True) -> Estimate | None:
+                      x0: np.ndarray, box: Box, config: IdentConfig) -> Estimate | None:
     """The automatic cold start's choice made from local fits: the plain fit from ``x0``, the robust
     fit from the plain optimum (its first trust region :data:`ROBUST_START_SD` standard deviations: the
     plain fit's, or the robust cost's own at that point where larger, as they are by 30-40 times where
@@ -143,21 +141,7 @@ def _local_first_auto(sim: FastSimulator, injection: Injection, m_plain: CostMod
     only enters the statistic, and is ringed too where the statistic lies within :data:`FLIP_MARGIN`
     of the threshold (a fit stopped a few standard deviations short moves it by about that much).
     The choice is made again after each ring, so it is the one the ringed fits give. A fit at a
-    search bound is ringed in any case (a lower point may lead it off the bound; else it fails).
-
-    It runs as one compiled call (:func:`compiled_cold_start.local_first_auto`, the same decisions;
-    ``compiled=False``, or where that call needs Python, the code below: the tests' reference)."""
-    if compiled:
-        run = run_local_first_auto(m_plain, m_rob, box.clip(np.asarray(x0, dtype=float)), FD_STEP, box,
-                                   np.array(START_RADIUS), ROBUST_START_SD, RING_MIN_SD, np.asarray(config.tol, dtype=float),
-                                   GN_MAX_STEPS, GN_CONVERGED_SD, GN_CLOSE_SD, SHRINK, RING, RESCANS,
-                                   config.model_error_threshold, FLIP_MARGIN, bound_tolerance(config))
-        if run is not None:
-            if run.code != AUTO_DONE or not run.residual_z <= config.local_accept_z:
-                return None
-            fit = from_cycle_fit(run.rob if run.robust else run.plain)
-            return finish(sim, injection, fit, True, m_plain.evaluations + m_rob.evaluations, box, run.robust,
-                          run.stat, config)
+    search bound is ringed in any case (a lower point may lead it off the bound; else it fails)."""
     f_plain, c_plain = unchecked_fit(m_plain, x0, box, config)
     if not (f_plain.success and c_plain):
         return None

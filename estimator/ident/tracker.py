@@ -628,9 +628,8 @@ class Tracker:
     def warm_up(self) -> None:
         """Load (or compile) every compiled function an update uses, and the N_u table of the default
         sample period: a cold start and two warm updates of a simulated injection on a scratch tracker
-        that shares this one's simulators (this tracker's states are not touched), a cold start
-        with the global search (what a local-first cold start falls back to) and one that leaves the
-        compiled automatic cold start for its Python path."""
+        that shares this one's simulators (this tracker's states are not touched), and a cold start
+        with the global search (what a local-first cold start falls back to)."""
         from estimator.model.drive import SAMPLE_PERIOD_S, StandardDrive
 
         sim = self.simulator(SAMPLE_PERIOD_S)
@@ -639,10 +638,8 @@ class Tracker:
         scratch = Tracker(self.config, pool=self.pool)
         for k in range(3):
             scratch.update(Injection(cur, res.voltage_v[1], SAMPLE_PERIOD_S, counter=k, time_s=0.04 * k))
-        # a local-first cold start passes its check on this clean trace: load the global search's too,
-        # and the Python path's pieces (a pre-compressed start, L_h < 0, leaves the one compiled call)
+        # a local-first cold start passes its check on this clean trace: load the global search's too
         identify(Injection(cur, res.voltage_v[2], SAMPLE_PERIOD_S), sim, replace(self.config.ident, cold_start="global"))
-        identify(Injection(cur, res.voltage_v[0], SAMPLE_PERIOD_S), sim, self.config.ident)
 
     def reset(self, injector_id: int) -> None:
         """Forget everything about one injector."""
