@@ -10,6 +10,7 @@ import io
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -50,22 +51,28 @@ def meta_item(line: str) -> tuple[str, str] | None:
     return (k.strip(), v.strip()) if sep else None
 
 
+def read_head(lines: Iterator[str], meta: dict[str, str]) -> str | None:
+    """The ``# key=value`` lines of ``lines`` into ``meta`` up to the first other non-empty line, which is
+    returned (None if there is none); ``lines`` is left just after it."""
+    for raw in lines:
+        line = raw.strip()
+        if not line:
+            continue
+        if not line.startswith("#"):
+            return line
+        item = meta_item(line)
+        if item:
+            meta[item[0]] = item[1]
+    return None
+
+
 def csv_head(path: str | Path) -> tuple[dict[str, str], str | None]:
     """The ``# key=value`` lines of a CSV up to its first other non-empty line, and that line (None if
     there is none); reads no further. Line ends: LF, CRLF or CR. OSError if the file cannot be read."""
     meta: dict[str, str] = {}
-    with open(path, "rb") as f:
-        for chunk in f:
-            for raw in chunk.split(b"\r"):   # a CR-only file is one "line" here
-                line = raw.decode("utf-8", "replace").strip()
-                if not line:
-                    continue
-                if not line.startswith("#"):
-                    return meta, line
-                item = meta_item(line)
-                if item:
-                    meta[item[0]] = item[1]
-    return meta, None
+    with open(path, "rb") as f:   # a CR-only file is one "line" for the file's iterator: split it too
+        lines = (raw.decode("utf-8", "replace") for chunk in f for raw in chunk.split(b"\r"))
+        return meta, read_head(lines, meta)
 
 
 def read_trace(path: str | Path) -> Trace:
@@ -84,19 +91,9 @@ def read_trace(path: str | Path) -> Trace:
     if "\r" in text:
         text = text.replace("\r\n", "\n").replace("\r", "\n")
     meta: dict[str, str] = {}
-    header, pos = None, 0
-    while header is None and pos < len(text):
-        end = text.find("\n", pos)
-        end = len(text) if end < 0 else end
-        s = text[pos:end].strip()
-        pos = end + 1
-        if s.startswith("#"):
-            item = meta_item(s)
-            if item:
-                meta[item[0]] = item[1]
-        elif s:
-            header = s
-    body = text[pos:]
+    buf = io.StringIO(text)
+    header = read_head(buf, meta)
+    body = buf.read()
     rows = bool(body.strip())
     if "#" in body:   # metadata below the header (kept); loadtxt skips the comment lines
         rows = False

@@ -97,7 +97,7 @@ def task_chunks(groups: list[Group], n_workers: int, groups_per_task: int | None
     for k in sizes:
         chunks.append(groups[i:i + k])
         i += k
-    return [c for c in chunks if c]
+    return chunks
 
 
 def _compute(groups: list[Group], cfg: DaemonConfig, trace_options: dict, workers: int | None,
