@@ -95,6 +95,36 @@ def test_wrong_sampling_rejected_on_construction():
         Injection.from_samples(t, np.ones(300), np.ones(300))
 
 
+def test_the_sample_period_median_is_numpys_to_the_bit():
+    from estimator.ident.measurement import median
+
+    rng = np.random.default_rng(5)
+    for n in list(range(1, 12)) + [200, 201, 1999]:
+        for scale in (5e-7, 1.0, 3e4):
+            x = rng.normal(size=n) * scale
+            x[rng.random(n) < 0.3] = x[0]   # ties
+            assert median(x) == float(np.median(x)), (n, scale)
+    steps = np.diff(np.arange(201) * 5e-7)
+    assert median(steps) == float(np.median(steps))
+
+
+@pytest.mark.parametrize("window_s", [100e-6, 150e-6])
+def test_the_plain_cost_shares_the_robust_costs_nuisance_basis_only_over_the_same_samples(sim, window_s):
+    from estimator.ident.cost import CostModel, nuisance_basis
+
+    inj, _ = measured(17.2, 2.5, 41, window_s=window_s)
+    rob = CostModel(sim, inj, window_s, "l2", True)
+    plain = CostModel(sim, inj, 100e-6, "l2", False)
+    plain.share_basis(rob)
+    np.testing.assert_array_equal(plain.basis, nuisance_basis(plain.current, plain.dt))
+    assert (plain.basis is rob.basis) == (window_s == 100e-6)   # one QR where the windows are the same
+    other, _ = measured(17.2, 2.5, 42)
+    alien = CostModel(sim, other, 100e-6, "l2", False)
+    alien.share_basis(rob)   # another injection: its own basis
+    np.testing.assert_array_equal(alien.basis, nuisance_basis(alien.current, alien.dt))
+    assert alien.basis is not rob.basis
+
+
 def test_other_sample_period_with_matching_simulator():
     from estimator.model.fast_sim import FastSimulator
 

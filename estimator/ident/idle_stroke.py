@@ -113,6 +113,7 @@ def identify(injection: Injection, sim: FastSimulator | None = None, config: Ide
         fit, converged = cold_fit(model, box, config, SharedGrid([model]))
         return finish(sim, injection, fit, converged, model.evaluations, box, robust, float("nan"), config)
     m_plain, m_rob = _cost_model(sim, injection, config, False), _cost_model(sim, injection, config, True)
+    m_plain.share_basis(m_rob)
     if local:
         est = _local_first_auto(sim, injection, m_plain, m_rob, x0, box, config)
         if est is not None:

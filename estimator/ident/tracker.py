@@ -285,6 +285,7 @@ def _warm_estimate(state: TrackerState, x0: np.ndarray, inj: Injection, sim: Fas
         # is the model error still there? the likelihood ratio of a plain fit against the robust one,
         # as at a cold start (the plain residual at the robust estimate would overstate it)
         plain = CostModel(sim, inj, effective_window_s(ic, inj, False), ic.norm, False)
+        plain.share_basis(model)
         fit_p, _, _ = refine(plain, x0, np.array(state.directions), np.array(state.steps), box, ic,
                              max_cycles=config.warm_cycles, batched=True)
         stat = likelihood_ratio(plain, fit_p, model, fit)
