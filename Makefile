@@ -15,10 +15,12 @@ $(STAMP): pyproject.toml
 # The nominal bench for ~20 s on the default bus (vcan0 if present, else a loopback hub);
 # exits non-zero if the estimator misses its accuracy targets.
 demo: $(STAMP)
+	@$(PY) -m estimator compile --quiet
 	$(PY) -m sim_bench table3 --paper-only
 	$(PY) -m sim_bench bench --scenario nominal --seconds 20
 
 test: $(STAMP)
+	@$(PY) -m estimator compile --quiet
 	$(PY) -m pytest
 
 # The vcan0 + candump suite: natively where vcan0 exists, otherwise inside the QEMU VM of ../shared/vcan-vm.

@@ -304,6 +304,16 @@ def cmd_dbc_path(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_compile(args: argparse.Namespace) -> int:
+    """Fill numba's cache for this version on two cores (``make`` runs it before demo and test)."""
+    from estimator.service.precompile import precompile
+
+    seconds = precompile(parallel=not args.serial, log=lambda m: print(m, file=sys.stderr))
+    if seconds == 0.0 and not args.quiet:
+        print("compiled kernels already cached", file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with all subcommands."""
     p, sub = base_parser("python -m estimator", __doc__)
@@ -397,6 +407,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("dbc-path", help="print where the packaged DBC is: cantools monitor $(injector-estimator dbc-path)")
     s.set_defaults(func=cmd_dbc_path)
+
+    s = sub.add_parser("compile", help="compile the kernels into numba's cache now, on two cores (once per version)")
+    s.add_argument("--serial", action="store_true", help="in this process only")
+    s.add_argument("--quiet", action="store_true", help="say nothing when the cache is complete already")
+    s.set_defaults(func=cmd_compile)
 
     s = sub.add_parser("check-dbc", help="validate the DBC against the contract")
     s.add_argument("--dbc", type=Path, default=None)

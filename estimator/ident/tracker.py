@@ -626,17 +626,21 @@ class Tracker:
                 problems.append(f"injector {inj_id}: {why}")
         return problems
 
-    def warm_up(self) -> None:
+    def warm_up(self, cold_start: bool = True) -> None:
         """Load (or compile) every compiled function an update uses, and the N_u table of the default
         sample period: a cold start and two warm updates of a simulated injection on a scratch tracker
         that shares this one's simulators (this tracker's states are not touched), and a cold start
-        with the global search (what a local-first cold start falls back to)."""
+        with the global search (what a local-first cold start falls back to). ``cold_start=False``:
+        the scratch tracker starts from a prior, so the local-first cold start's fits are left out
+        (another process compiles them: :mod:`estimator.service.precompile`)."""
         from estimator.model.drive import SAMPLE_PERIOD_S, StandardDrive
 
         sim = self.simulator(SAMPLE_PERIOD_S)
         cur = StandardDrive().samples(100e-6, SAMPLE_PERIOD_S)
         res = sim.simulate(cur, [16.0, 17.0, 18.0], [-0.5e-6, 2e-6, 6e-6])
         scratch = Tracker(self.config, pool=self.pool)
+        if not cold_start:
+            scratch.set_prior(0, 17.0, 2.0)   # N/V, µm: the injection's own values
         for k in range(3):
             scratch.update(Injection(cur, res.voltage_v[1], SAMPLE_PERIOD_S, counter=k, time_s=0.04 * k))
         # a local-first cold start passes its check on this clean trace: load the global search's too

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # A wheel built from this checkout, installed in a fresh venv, run from outside the checkout:
-# the packaged DBC, --version, check-dbc, identify and track must work without the source tree.
+# the packaged DBC, --version, check-dbc, compile, identify and track must work without the source tree.
 set -euo pipefail
 REPO="$(cd "$(dirname "$0")/../.." && pwd)"
 PY="$REPO/.venv/bin/python"
@@ -22,6 +22,8 @@ BIN="$WORK/venv/bin"
 "$BIN/injector-estimator" dbc-path | grep -q "site-packages/estimator/dbc/injector.dbc" || { echo "dbc-path"; exit 1; }
 "$BIN/python" -c "import estimator.codec.database as d, sys; p = d.default_dbc_path(); \
 assert 'site-packages' in str(p) and p.exists(), p; print('packaged DBC:', p)"
+"$BIN/injector-estimator" compile            # the numba cache beside the installed sources, two processes
+"$BIN/injector-estimator" compile 2>&1 | grep -q "already cached" || { echo "compile did not mark the cache"; exit 1; }
 "$BIN/injector-estimator" identify "$WORK/a.csv" --json | "$BIN/python" -c "import json, sys; d = json.load(sys.stdin); \
 assert d['status'] in ('ok', 'uncertain') and abs(d['lh_um'] - 3.3) < 0.2, d; print('identify:', d['status'], d['lh_um'])"
 "$BIN/injector-estimator" track "$WORK/a.csv" "$WORK/b.csv" | wc -l | grep -q 2
