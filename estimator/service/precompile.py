@@ -77,9 +77,8 @@ def warm_the_rest() -> None:
 
 
 def cache_dir() -> Path:
-    """This installation's numba cache directory (:func:`estimator.numba_cache.configure` set it)."""
-    import estimator  # noqa: F401  (configures the cache directory)
-
+    """This installation's numba cache directory (``estimator/__init__`` set it through
+    :func:`estimator.numba_cache.configure` before this module was imported)."""
     return Path(os.environ["NUMBA_CACHE_DIR"])
 
 
