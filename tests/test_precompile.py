@@ -21,10 +21,10 @@ class _Child:
 def _fake(monkeypatch, tmp_path, child_code: int = 0) -> list[str]:
     calls: list[str] = []
     monkeypatch.setattr(pc, "cache_dir", lambda: tmp_path / "numba-x")
-    monkeypatch.setattr(pc, "warm_cold_start", lambda: calls.append("cold start here"))
-    monkeypatch.setattr(pc.subprocess, "Popen", lambda argv: calls.append("child: " + argv[-1]) or _Child(child_code))
     tracker = SimpleNamespace(warm_up=lambda: calls.append("warm_up"))
-    monkeypatch.setattr(pc, "_parts", lambda: (tracker, None, None, None))
+    monkeypatch.setattr(pc, "warm_cold_start", lambda t: calls.append("cold start here") if t is tracker else None)
+    monkeypatch.setattr(pc.subprocess, "Popen", lambda argv: calls.append("child: " + argv[-1]) or _Child(child_code))
+    monkeypatch.setattr(pc, "_tracker", lambda: tracker)
     monkeypatch.setattr(pc.os, "cpu_count", lambda: 2)
     return calls
 

@@ -27,38 +27,35 @@ from pathlib import Path
 MARKER = ".complete"   # in the numba cache directory: every entry point of Tracker.warm_up is in it
 
 
-def _parts():
-    """The tracker, its simulator and a current and a voltage (A, V; no simulation needed) to fit."""
-    import numpy as np
-
+def _tracker():
+    """A tracker with the default configuration and its own simulator pool."""
     from estimator.ident.tracker import Tracker
-    from estimator.model.drive import SAMPLE_PERIOD_S, StandardDrive
     from estimator.service.config import DaemonConfig
     from estimator.service.daemon import build_pool
 
     cfg = DaemonConfig()
-    tracker = Tracker(cfg.tracker_config(), pool=build_pool(cfg))
-    sim = tracker.simulator(SAMPLE_PERIOD_S)
-    cur = np.ascontiguousarray(StandardDrive().samples(100e-6, SAMPLE_PERIOD_S), dtype=float)
-    q = np.cumsum(cur)
-    volt = 120.0 * q / q[-1]   # a charging voltage's shape: enough to compile against, not to fit well
-    return tracker, sim, cur, volt
+    return Tracker(cfg.tracker_config(), pool=build_pool(cfg))
 
 
-def warm_cold_start() -> None:
-    """Compile the automatic cold start's local fits (plain and robust cost): the Gauss–Newton loop,
-    the forward-difference fit, the probe ring and the valve prediction."""
+def warm_cold_start(tracker) -> None:
+    """Compile the automatic cold start's local fits (plain and robust cost) on ``tracker``'s
+    simulator: the Gauss–Newton loop, the forward-difference fit, the probe ring and the valve
+    prediction. The trace is a charging voltage's shape (no simulation needed): enough to compile
+    against, not to fit well."""
     import numpy as np
 
     from estimator.ident.cold_start import gauss_newton_fit, probe_ring
+    from estimator.ident.coords import UM_PER_M
     from estimator.ident.idle_stroke import _cost_model, predict_valve, search_box
     from estimator.ident.local_fit import local_fit
     from estimator.ident.measurement import Injection
-    from estimator.model.drive import SAMPLE_PERIOD_S
+    from estimator.model.drive import SAMPLE_PERIOD_S, StandardDrive
 
-    tracker, sim, cur, volt = _parts()
+    sim = tracker.simulator(SAMPLE_PERIOD_S)
+    cur = np.ascontiguousarray(StandardDrive().samples(100e-6, SAMPLE_PERIOD_S), dtype=float)
+    q = np.cumsum(cur)
+    inj = Injection(cur, 120.0 * q / q[-1], SAMPLE_PERIOD_S)   # A, V
     config = tracker.config.ident
-    inj = Injection(cur, volt, SAMPLE_PERIOD_S)
     box = search_box(config, sim, inj.f_open_n)
     x0 = np.asarray(config.start_point, dtype=float)
     for robust in (False, True):
@@ -66,14 +63,13 @@ def warm_cold_start() -> None:
         fit, _ = gauss_newton_fit(model, x0, box, config)
         fit = local_fit(model, x0, box) if not fit.success else fit
         probe_ring(model, fit, box)
-    predict_valve(sim, inj, float(x0[0]), float(x0[1]) * 1e-6)
+    predict_valve(sim, inj, float(x0[0]), float(x0[1]) / UM_PER_M)
 
 
 def warm_the_rest() -> None:
     """Compile the free simulation, the warm update and the global search
     (:meth:`Tracker.warm_up` without its local-first cold start)."""
-    tracker, *_ = _parts()
-    tracker.warm_up(cold_start=False)
+    _tracker().warm_up(cold_start=False)
 
 
 def cache_dir() -> Path:
@@ -94,10 +90,10 @@ def precompile(parallel: bool = True, log=print) -> float:
     if parallel and (os.cpu_count() or 1) > 1:
         child = subprocess.Popen([sys.executable, "-c", "from estimator.service.precompile import warm_the_rest; "
                                   "warm_the_rest()"])
-    warm_cold_start()
+    tracker = _tracker()
+    warm_cold_start(tracker)
     if child is not None and child.wait() != 0:
         log(f"the second compiling process exited with {child.returncode}; compiling the rest here")
-    tracker, *_ = _parts()
     tracker.warm_up()   # loads what is cached, compiles what is not
     try:
         marker.parent.mkdir(parents=True, exist_ok=True)
