@@ -2,7 +2,7 @@
 injector, with the truth and a ± band around it where the capture holds SimTruth (bench captures).
 
 Any capture format python-can reads (:func:`estimator.service.replay.read_capture`); times in s
-from the first frame; only published estimates (status ok, at_bound, uncertain, unconfirmed) are drawn.
+from the first frame; only published estimates (every status that carries an estimate of its injection) are drawn.
 """
 
 from __future__ import annotations

@@ -118,10 +118,10 @@ def cmd_accuracy(args: argparse.Namespace) -> int:
     from sim_bench import ident_bench
 
     scen = {"matched": [False], "mismatch": [True], "both": [False, True]}[args.scenario]
-    sweeps = ["random", "near-edge", "high-noise"] if args.sweep == "all" else [args.sweep]
+    sweeps = ["random", "near-edge", "high-noise", "spread", "chain"] if args.sweep == "all" else [args.sweep]
     reports = []
     for sweep in sweeps:
-        plants = scen if sweep == "random" else [False]   # the edge and noise targets are for the exact plant
+        plants = scen if sweep == "random" else [False]   # the other sweeps have targets of their own
         noise = ident_bench.HIGH_NOISE_V if sweep == "high-noise" else None
         reports += [ident_bench.accuracy(args.n, args.seed, m, args.window_us * 1e-6, sweep=sweep, noise_v=noise)
                     for m in plants]
@@ -393,8 +393,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("accuracy", help="single-injection accuracy vs the Cramér–Rao bound")
     s.add_argument("--scenario", choices=("matched", "mismatch", "both"), default="both")
-    s.add_argument("--sweep", choices=("all", "random", "near-edge", "high-noise"), default="all",
-                   help="random truths over the ranges; N_u near the range edges; 0.3 V voltage noise")
+    s.add_argument("--sweep", choices=("all", "random", "near-edge", "high-noise", "spread", "spread-chain", "chain"),
+                   default="all",
+                   help="random truths over the ranges; N_u near the range edges; 0.3 V voltage noise; series "
+                        "parts within ±10 %% (spread; spread-chain behind an unmodelled chain); a modelled chain")
     s.add_argument("--n", type=int, default=100, help="number of random injectors per sweep (default 100)")
     s.add_argument("--seed", type=int, default=1)
     s.add_argument("--window-us", type=float, default=100.0)

@@ -18,8 +18,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
+from estimator.model.chain import NO_CHAIN, MeasurementChain
 from estimator.model.drive import SAMPLE_PERIOD_S, ChopperRipple, Drive, StandardDrive, sample_count, sample_times
 from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
+from estimator.model.parameters import InjectorParameters
 
 # Prandtl–Ishlinskii operator of the mismatch plant: thresholds in C, weights in V/C. The paper
 # (section 3.3) replaces the rising branch of H[Q] by R(N_u)·I: for a trapezoidal charge, H rises
@@ -80,6 +82,7 @@ class PlantConfig:
     ripple_a: float = 0.15               # chopper ripple amplitude (triangle, peak) while charging
     ripple_period_s: float = 8e-6        # chopper period
     mismatch: bool = False               # hysteresis H[Q] + series resistance instead of R(N_u) I
+    chain: MeasurementChain = NO_CHAIN   # the amplifier's anti-aliasing filters and I/U skew
 
     def amplifier(self, drive: Drive, phase: float) -> Drive:
         """What the amplifier delivers for the commanded ``drive``: it plus the chopper ripple at ``phase``."""
@@ -108,11 +111,14 @@ def true_current(t_s: np.ndarray, cfg: PlantConfig, phase: float = 0.0) -> np.nd
 
 
 class Plant:
-    """Simulates measured injections; one instance per plant grid (it caches transition matrices)."""
+    """Simulates measured injections; one instance per plant grid (it caches transition matrices).
 
-    def __init__(self, cfg: PlantConfig | None = None) -> None:
+    ``params``: the injector's true structural parameters (default Tables 1-2; a series part's own,
+    see :mod:`sim_bench.series_part`)."""
+
+    def __init__(self, cfg: PlantConfig | None = None, params: InjectorParameters | None = None) -> None:
         self.cfg = cfg or PlantConfig()
-        self.sim = FastSimulator(dt_s=self.cfg.dt_s / self.cfg.oversample)
+        self.sim = FastSimulator(params, dt_s=self.cfg.dt_s / self.cfg.oversample)
 
     def warm_up(self) -> None:
         """One throw-away simulation: loads the compiled kernels before real-time work starts."""
@@ -138,6 +144,8 @@ class Plant:
             r_model = psa.resistance_ohm(nu_n_per_v)
             scale = r_model / psa.resistance_ohm(PI_NU_REF_N_PER_V)
             u = u - r_model * cur + scale * pi_hysteresis(q) + SERIES_RESISTANCE_OHM * cur
+        if not cfg.chain.identity:
+            cur, u = cfg.chain.apply(cur, u, self.sim.dt_s)
         n_meas = sample_count(cfg.window_s, cfg.dt_s)
         idx = np.arange(n_meas) * m
         clean_u, clean_i = u[idx], cur[idx]

@@ -36,4 +36,6 @@ def render(columns: list[Column], rows: list[dict], verdict: Callable[[dict], st
 
 def plant(s: dict) -> str:
     """The plant column of the accuracy and tracking tables."""
+    if s.get("plant"):
+        return s["plant"]
     return "mismatch" if s["mismatch"] else "matched"

@@ -18,6 +18,7 @@ from typing import Any
 from estimator.errors import EstimatorError
 from estimator.fleet.inputs import Group, expand, group
 from estimator.fleet.tasks import WORKER_ENV, process_groups, warm_worker
+from estimator.ident.status import ESTIMATED_WORDS
 from estimator.service.config import DaemonConfig
 from estimator.service.estimates import FIELDS
 
@@ -164,11 +165,11 @@ def summarise(rows: list[dict]) -> list[dict]:
         by.setdefault(ident, []).append(r)
     out = []
     for (ident, inj_id), rs in by.items():
-        ok = [r for r in rs if r.get("status") in ("ok", "uncertain", "at_bound", "unconfirmed")
-              and r.get("lh_um") is not None]
+        ok = [r for r in rs if r.get("status") in ESTIMATED_WORDS and r.get("lh_um") is not None]
         last = ok[-1] if ok else {}
         out.append({"injector": ident, "injector_id": inj_id, "injections": len(rs), "estimated": len(ok),
                     "errors": sum(r.get("status") == "error" for r in rs),
+                    "model_mismatch": sum(r.get("status") == "model_mismatch" for r in rs),
                     "nu_n_per_v": last.get("nu_n_per_v"), "lh_um": last.get("lh_um"),
                     "sigma_lh_um": last.get("sigma_lh_um"), "t_open_us": last.get("t_open_us"),
                     "raw_lh_um_median": float(np.median([r["raw_lh_um"] for r in ok if r.get("raw_lh_um") is not None]))
@@ -220,18 +221,20 @@ def format_report(res: FleetResult) -> str:
              f"worker(s)"]
     if res.missing:
         lines.append(f"matched nothing: {', '.join(res.missing)}")
-    lines.append(f"  {'injector':<40} {'id':>2} {'n':>5} {'N_u [N/V]':>10} {'L_h [µm]':>9} {'σ(L_h)':>7}  flag")
+    lines.append(f"  {'injector':<40} {'id':>2} {'n':>5} {'N_u [N/V]':>10} {'L_h [µm]':>9} {'σ(L_h)':>7} {'mism':>5}  flag")
     for s in res.summary:
         nu = f"{s['nu_n_per_v']:.4f}" if s["nu_n_per_v"] is not None else "-"
         lh = f"{s['lh_um']:.3f}" if s["lh_um"] is not None else "-"
         sg = f"{s['sigma_lh_um']:.3f}" if s["sigma_lh_um"] is not None else "-"
         lines.append(f"  {str(s['injector'])[-40:]:<40} {s['injector_id'] if s['injector_id'] is not None else '-':>2} "
-                     f"{s['injections']:>5} {nu:>10} {lh:>9} {sg:>7}  {s['outlier']}")
+                     f"{s['injections']:>5} {nu:>10} {lh:>9} {sg:>7} {s.get('model_mismatch', 0):>5}  {s['outlier']}")
     if est:
         lh = np.array([s["lh_um"] for s in est])
         nu = np.array([s["nu_n_per_v"] for s in est])
         lines.append(f"  lot: L_h mean {lh.mean():.3f} µm, std {lh.std():.3f} µm; N_u mean {nu.mean():.4f} N/V, "
-                     f"std {nu.std():.4f} N/V; flagged {sum(bool(s['outlier']) for s in res.summary)}")
+                     f"std {nu.std():.4f} N/V; flagged {sum(bool(s['outlier']) for s in res.summary)}; "
+                     f"model mismatch on {sum(bool(s.get('model_mismatch')) for s in res.summary)} injector(s) "
+                     "(their model cannot explain their samples: calibrate them)")
     for r in [r for r in res.rows if r.get("status") == "error"][:20]:
         lines.append(f"  error: {r['source']}: {r['reason']}")
     return "\n".join(lines)

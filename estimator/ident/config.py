@@ -39,6 +39,12 @@ class IdentConfig:
     cold_start: str = "local-first"        # "local-first": a checked local fit, the global search if it fails; "global"
     start_point: tuple[float, float] = (18.0, 4.0)   # N/V, µm: where a local-first cold start begins (a lot's nominal)
     local_accept_z: float = 6.0            # a local fit is kept if its residual exceeds white noise by <= z standard deviations
+    adequacy_structure: float = 60.0       # chi-square(24) of the residual's smooth part above which the model is inadequate
+                                           # (its lowest 8 columns: 0.6 of it)
+    adequacy_excess_z: float = 4.0         # the whole residual's energy above noise (sd) above which it is inadequate
+    mismatch_floor: tuple[float, float] = (0.01, 0.3)   # model-error sigma of an inadequate fit: N_u relative, L_h µm
+    mismatch_scale: tuple[float, float] = (0.002, 0.18)  # ... plus this per sqrt(structure chi2 / 24): N_u relative, L_h µm
+    preload_rel_sigma: float = 0.0         # relative uncertainty (1 sigma) of the header's PreloadForce; enters sigma
 
     def __post_init__(self) -> None:
         if self.robust not in ("auto", "on", "off"):
@@ -51,7 +57,16 @@ class IdentConfig:
             raise ValueError(f"start_point {self.start_point!r} must be two numbers (N/V, µm)")
         if self.norm not in ("l1", "l2"):
             raise ValueError(f"norm must be l1 or l2, not {self.norm!r}")
-        _positive(self, "window_s", "robust_window_s", "model_error_threshold", "sigma_limit_lh_um", "local_accept_z")
+        _positive(self, "window_s", "robust_window_s", "model_error_threshold", "sigma_limit_lh_um", "local_accept_z",
+                  "adequacy_structure", "adequacy_excess_z")
+        _positive(self, "preload_rel_sigma", allow_zero=True)
+        if self.preload_rel_sigma > 0.5:
+            raise ValueError(f"preload_rel_sigma = {self.preload_rel_sigma!r} must be within 0..0.5")
+        for name in ("mismatch_floor", "mismatch_scale"):
+            v = getattr(self, name)
+            if not (isinstance(v, tuple) and len(v) == 2 and all(
+                    isinstance(e, (int, float)) and not isinstance(e, bool) and math.isfinite(e) and e >= 0 for e in v)):
+                raise ValueError(f"{name} {v!r} must be two numbers >= 0 (relative N_u, µm)")
         if not (20e-6 <= self.window_s <= 2e-3):
             raise ValueError(f"window {self.window_s * 1e6:.1f} µs must be within 20..2000 µs")
         lo, hi = self.nu_bounds_n_per_v
@@ -95,6 +110,7 @@ class TrackerConfig:
     robust_on_after: int = 3                # consecutive injections with model error to switch robust on
     robust_off_after: int = 20              # consecutive clean injections to switch it off again
     robust_floor: tuple[float, float] = (0.02, 0.1)  # added raw sigma (N/V, µm) in robust mode: bias
+    mismatch_clear_after: int = 10          # consecutive adequate injections before an injector's model mismatch is cleared
 
     def __post_init__(self) -> None:
         _positive(self, "q_nu_n_per_v", "q_lh_um", "gate_chi2", "raw_publish_chi2", "default_interval_s", "max_interval_s",
@@ -103,7 +119,8 @@ class TrackerConfig:
                   "q_rate_per_sqrt_s_known_t", allow_zero=True)
         if not math.isfinite(self.slope_n_per_v_degc):
             raise ValueError(f"slope_n_per_v_degc = {self.slope_n_per_v_degc!r} must be a number")
-        for name in ("max_consecutive_outliers", "warm_cycles", "robust_on_after", "robust_off_after"):
+        for name in ("max_consecutive_outliers", "warm_cycles", "robust_on_after", "robust_off_after",
+                     "mismatch_clear_after"):
             v = getattr(self, name)
             if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
                 raise ValueError(f"{name} = {v!r} must be a whole number >= 1")

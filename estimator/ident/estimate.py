@@ -16,7 +16,11 @@ class Estimate:
     """Result of one identification (raw, single injection). SI units except where named.
 
     ``cov`` is the covariance of (N_u [N/V], L_h [m]) from the Gauss–Newton model and the noise
-    level estimated from the residual; ``jtj`` and ``directions`` are in (N/V, µm) coordinates.
+    level estimated from the residual, plus ``model_error_cov`` (in (N/V, µm)) where the model cannot
+    explain the samples (status ``model_mismatch``: the bias that implies, see
+    :mod:`estimator.ident.mismatch`; ``model_error_d`` the difference to the other cost's estimate in
+    (N/V, µm), zero if it was not made); ``structure_chi2`` is the adequacy test's statistic of the plain
+    model; ``jtj`` and ``directions`` are in (N/V, µm) coordinates.
     """
 
     nu_n_per_v: float
@@ -35,6 +39,9 @@ class Estimate:
     stroke_m: float = float("nan")
     jtj: np.ndarray = field(default_factory=lambda: np.eye(2))
     directions: np.ndarray = field(default_factory=lambda: np.eye(2))
+    structure_chi2: float = float("nan")
+    model_error_cov: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
+    model_error_d: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
     @property
     def point(self) -> NuLh:
@@ -67,7 +74,7 @@ class Estimate:
             "t_open_us": num(self.t_open_s, 1e6, 3), "stroke_um": num(self.stroke_m, 1e6, 4),
             "status": self.status.value, "message": self.message, "evaluations": self.evaluations,
             "robust": self.robust, "model_error_stat": num(self.model_error_stat, 1.0, 2),
-            "noise_sigma_v": num(self.noise_sigma_v, 1.0, 4),
+            "noise_sigma_v": num(self.noise_sigma_v, 1.0, 4), "structure_chi2": num(self.structure_chi2, 1.0, 1),
         }
 
 

@@ -19,12 +19,14 @@ import numpy as np
 
 from estimator.ident.cold_start import (SharedGrid, bound_tolerance, cold_fit, excess_residual_z, local_first_fit,
                                         ring_checked, sd_radius, unchecked_fit, usable)
+from estimator.ident.adequacy import Adequacy
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M, cov_to_si
 from estimator.ident.cost import CostModel
 from estimator.ident.estimate import Estimate, rejected
 from estimator.ident.local_fit import LocalFit
 from estimator.ident.measurement import Injection
+from estimator.ident.mismatch import model_error_cov, plain_adequacy, preload_cov
 from estimator.ident.model_selection import likelihood_ratio, prefers_robust
 from estimator.ident.search import Box
 from estimator.ident.status import Status
@@ -98,6 +100,7 @@ def identify(injection: Injection, sim: FastSimulator | None = None, config: Ide
     if problem:
         return rejected(problem)
     sim = sim or FastSimulator(dt_s=injection.dt_s)
+    injection = injection.through_chain(sim.params.chain)
     problem = check_injection(injection, sim, config)
     if problem:
         return rejected(problem)
@@ -108,10 +111,15 @@ def identify(injection: Injection, sim: FastSimulator | None = None, config: Ide
         robust = config.robust == "on"
         model = _cost_model(sim, injection, config, robust)
         fit = local_first_fit(model, x0, box, config) if local else None
-        if fit is not None and excess_residual_z(model, fit) <= config.local_accept_z:
-            return finish(sim, injection, fit, True, model.evaluations, box, robust, float("nan"), config)
-        fit, converged = cold_fit(model, box, config, SharedGrid([model]))
-        return finish(sim, injection, fit, converged, model.evaluations, box, robust, float("nan"), config)
+        converged = True
+        if fit is None or excess_residual_z(model, fit) > config.local_accept_z:
+            fit, converged = cold_fit(model, box, config, SharedGrid([model]))
+        adequacy = plain_adequacy(model, fit, config) if fit.success else None
+        other, extra = None, 0
+        if fit.success and (robust or not adequacy.adequate):   # type: ignore[union-attr]
+            other, extra = complement_fit(sim, injection, config, box, model, fit)
+        return finish(sim, injection, fit, converged, model.evaluations + extra, box, robust, float("nan"), config,
+                      adequacy=adequacy, other=other, model=model)
     m_plain, m_rob = _cost_model(sim, injection, config, False), _cost_model(sim, injection, config, True)
     m_plain.share_basis(m_rob)
     if local:
@@ -124,9 +132,12 @@ def identify(injection: Injection, sim: FastSimulator | None = None, config: Ide
     f_rob, c_rob = cold_fit(m_rob, box, config, shared)
     evaluations = m_plain.evaluations + m_rob.evaluations
     stat = likelihood_ratio(m_plain, f_plain, m_rob, f_rob)
+    adequacy = plain_adequacy(m_plain, f_plain, config) if f_plain.success else None
     if prefers_robust(stat, config.model_error_threshold):
-        return finish(sim, injection, f_rob, c_rob, evaluations, box, True, stat, config)
-    return finish(sim, injection, f_plain, c_plain, evaluations, box, False, stat, config)
+        return finish(sim, injection, f_rob, c_rob, evaluations, box, True, stat, config, adequacy=adequacy,
+                      other=f_plain.x if f_plain.success else None, model=m_rob)
+    return finish(sim, injection, f_plain, c_plain, evaluations, box, False, stat, config, adequacy=adequacy,
+                  other=f_rob.x if f_rob.success else None, model=m_plain)
 
 
 def _local_first_auto(sim: FastSimulator, injection: Injection, m_plain: CostModel, m_rob: CostModel,
@@ -166,24 +177,59 @@ def _local_first_auto(sim: FastSimulator, injection: Injection, m_plain: CostMod
     model, fit = models[int(robust)], fits[int(robust)]
     if not excess_residual_z(model, fit) <= config.local_accept_z:
         return None
-    return finish(sim, injection, fit, True, m_plain.evaluations + m_rob.evaluations, box, robust, stat, config)
+    return finish(sim, injection, fit, True, m_plain.evaluations + m_rob.evaluations, box, robust, stat, config,
+                  adequacy=plain_adequacy(m_plain, fits[0], config), other=fits[1 - int(robust)].x, model=model)
+
+
+def complement_fit(sim: FastSimulator, injection: Injection, config: IdentConfig, box: Box, model: CostModel,
+                   fit: LocalFit) -> tuple[np.ndarray | None, int]:
+    """The estimate (N/V, µm) of the other cost (robust for a plain ``model``, plain for a robust one)
+    on the same samples, by a local fit from ``fit``, and its simulations; None where it fails. The
+    two differ by about as much as a model error moves them (:mod:`estimator.ident.mismatch`)."""
+    other = _cost_model(sim, injection, config, not model.robust)
+    if other.n == model.n:
+        other.share_basis(model)
+    start_sd = ROBUST_START_SD if other.robust else 0.0
+    radius = sd_radius(fit, ROBUST_START_SD) if other.robust else None
+    f, converged = unchecked_fit(other, fit.x, box, config, radius, start_sd)
+    return (f.x if f.success else None), other.evaluations
 
 
 def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: bool, evaluations: int, box: Box,
-           robust: bool, stat: float, config: IdentConfig, predict: bool = True) -> Estimate:
+           robust: bool, stat: float, config: IdentConfig, predict: bool = True, adequacy: Adequacy | None = None,
+           other: np.ndarray | None = None, model: CostModel | None = None, structure: float | None = None) -> Estimate:
     """Turn a local fit into an Estimate with status and (``predict``) the plateau stroke.
 
-    Contact and opening times are those of the fitted window; the stroke needs one more, longer
-    simulation (see :func:`predict_valve`)."""
+    ``adequacy`` is the plain model's test on these samples; a robust fit, or a plain one that fails
+    it, is a ``model_mismatch`` whose covariance includes the model error (``other``: the other
+    cost's estimate, see :mod:`estimator.ident.mismatch`; ``structure`` the plain residual's statistic
+    where ``adequacy`` was not tested now). ``model``: the fit's cost model, for the
+    preload force's uncertainty. Contact and opening times are those of the fitted window; the stroke
+    needs one more, longer simulation (see :func:`predict_valve`)."""
     if not fit.success:
         return rejected("simulation failed at the optimum", evaluations)
     x = fit.x
+    mismatch = robust or (adequacy is not None and not adequacy.adequate)
+    if adequacy is not None:
+        structure = adequacy.structure
+    structure = float("nan") if structure is None else structure
+    bias = model_error_cov(x, other, config, structure) if mismatch else np.zeros((2, 2))
+    cov_x = fit.cov_x + bias
+    if config.preload_rel_sigma > 0 and model is not None:
+        cov_x = cov_x + preload_cov(model, fit, config.preload_rel_sigma)
+        evaluations += 4
     if box.at_bound(x, bound_tolerance(config)):
         status, msg = Status.AT_BOUND, "estimate at a search bound"
+        if mismatch:   # the truth may lie anywhere beyond the bound: sigma of a uniform over the range
+            cov_x = cov_x + np.diag(np.square(box.hi - box.lo) / 12.0)
     elif not converged:
         status, msg = Status.NOT_CONVERGED, "line searches did not converge"
-    elif fit.cov_x[1, 1] > config.sigma_limit_lh_um ** 2:
-        status, msg = Status.UNCERTAIN, (f"sigma(L_h) {np.sqrt(fit.cov_x[1, 1]):.2f} µm above the limit "
+    elif mismatch:
+        status = Status.MODEL_MISMATCH
+        msg = adequacy.reason if adequacy is not None and not adequacy.adequate else (
+            "model cannot explain the samples (robust cost: model error in the nuisance span)")
+    elif cov_x[1, 1] > config.sigma_limit_lh_um ** 2:
+        status, msg = Status.UNCERTAIN, (f"sigma(L_h) {np.sqrt(cov_x[1, 1]):.2f} µm above the limit "
                                          f"{config.sigma_limit_lh_um:.2f} µm")
     else:
         status, msg = Status.OK, ""
@@ -191,5 +237,7 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
     if predict:
         tc, to, stroke = predict_valve(sim, injection, x[0], x[1] / UM_PER_M)
     d, _ = fit.directions
-    return Estimate(float(x[0]), float(x[1] / UM_PER_M), cov_to_si(fit.cov_x), fit.paper_cost_vs, fit.criterion,
-                    evaluations + 1, status, msg, robust, stat, fit.sigma_v, tc, to, stroke, fit.jtj, d)
+    diff = x - other if mismatch and other is not None and np.all(np.isfinite(other)) else np.zeros(2)
+    return Estimate(float(x[0]), float(x[1] / UM_PER_M), cov_to_si(cov_x), fit.paper_cost_vs, fit.criterion,
+                    evaluations + 1, status, msg, robust, stat, fit.sigma_v, tc, to, stroke, fit.jtj, d, structure, bias,
+                    diff)

@@ -7,12 +7,13 @@ Checks return a reason instead of raising deep inside the estimator: a bad trace
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit
 
 from estimator.errors import TraceError
+from estimator.model.chain import MeasurementChain
 from estimator.model.drive import SAMPLE_PERIOD_REL_TOL, TableDrive, sample_count
 
 MIN_WINDOW_S = 40e-6          # shorter windows hold too little of the charging phase to identify anything
@@ -63,6 +64,7 @@ class Injection:
         its changes to predict N_u (eq. 25).
     time_s : time of the injection in s on any monotonic clock (bus timestamp, trace metadata), NaN if
         unknown; the recursive estimator scales its process noise by the time between injections.
+    chain_corrected : True once the measurement chain has been undone (:meth:`through_chain`).
     """
 
     current_a: np.ndarray
@@ -73,6 +75,15 @@ class Injection:
     counter: int = 0
     temperature_c: float = float("nan")
     time_s: float = float("nan")
+    chain_corrected: bool = False
+
+    def through_chain(self, chain: MeasurementChain) -> "Injection":
+        """The actuator's own current and voltage with the amplifier's ``chain`` undone (once: an
+        injection already corrected, or an identity chain, is returned as it is)."""
+        if self.chain_corrected or chain.identity:
+            return self
+        cur, volt = chain.correct(self.current_a, self.voltage_v, self.dt_s)
+        return replace(self, current_a=cur, voltage_v=volt, chain_corrected=True)
 
     @property
     def n(self) -> int:
@@ -120,7 +131,7 @@ class Injection:
         """The samples with t <= t_end_s (a view-sized copy)."""
         k = min(self.n, sample_count(t_end_s, self.dt_s))
         return Injection(self.current_a[:k], self.voltage_v[:k], self.dt_s, self.f_open_n,
-                         self.injector_id, self.counter, self.temperature_c, self.time_s)
+                         self.injector_id, self.counter, self.temperature_c, self.time_s, self.chain_corrected)
 
     @classmethod
     def from_samples(cls, t_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray,

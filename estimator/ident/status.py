@@ -21,6 +21,9 @@ class Status(str, Enum):
     UNCONFIRMED = "unconfirmed"      # this injection disagrees with the filter (a step, a fast drift, or a glitch):
                                      # its own estimate (far off) or the filter updated by it (marginal), until
                                      # the next injection confirms or discards it
+    MODEL_MISMATCH = "model_mismatch"  # estimated, but the model cannot explain this injector's samples: the
+                                       # estimate is biased by an unknown amount; sigma is widened to cover it
+                                       # (calibrate the injector's own model)
 
     @property
     def code(self) -> int:
@@ -32,8 +35,10 @@ class Status(str, Enum):
 
 
 _CODES = {Status.OK: 0, Status.AT_BOUND: 1, Status.NOT_CONVERGED: 2, Status.REJECTED: 3, Status.NO_ESTIMATE: 4,
-          Status.UNCERTAIN: 5, Status.UNCONFIRMED: 6}
+          Status.UNCERTAIN: 5, Status.UNCONFIRMED: 6, Status.MODEL_MISMATCH: 7}
 
 #: statuses whose published (N_u, L_h) is an estimate of this injection (not the previous one held)
-ESTIMATED = frozenset({Status.OK, Status.AT_BOUND, Status.NOT_CONVERGED, Status.UNCERTAIN, Status.UNCONFIRMED})
+ESTIMATED = frozenset({Status.OK, Status.AT_BOUND, Status.NOT_CONVERGED, Status.UNCERTAIN, Status.UNCONFIRMED,
+                       Status.MODEL_MISMATCH})
 ESTIMATED_CODES = frozenset(s.code for s in ESTIMATED)   # the same, as EstimateState.Status values
+ESTIMATED_WORDS = frozenset(s.value for s in ESTIMATED)   # the same, as the words of JSON and CSV rows

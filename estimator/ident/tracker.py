@@ -43,8 +43,9 @@ from estimator.ident.config import TrackerConfig
 from estimator.ident.coords import NuLh
 from estimator.ident.cost import CostModel, plain_model_error
 from estimator.ident.estimate import Estimate, rejected
-from estimator.ident.idle_stroke import (check_injection, effective_window_s, finish, identify, predict_valve,
-                                         search_box)
+from estimator.ident.idle_stroke import (check_injection, complement_fit, effective_window_s, finish, identify,
+                                         predict_valve, search_box)
+from estimator.ident.mismatch import model_error_cov, plain_adequacy
 from estimator.ident.local_fit import refine
 from estimator.ident.measurement import Injection
 from estimator.ident.model_selection import likelihood_ratio
@@ -86,7 +87,10 @@ class TrackerState:
 
     ``x`` = filtered [N_u N/V, L_h µm, drift rate N/V/s, temperature slope N/V/degC] at the time and
     temperature of the last accepted injection, ``p`` its covariance; ``directions`` (columns) and
-    ``steps`` the line-search state carried to the next injection; ``pending`` an injection in doubt.
+    ``steps`` the line-search state carried to the next injection; ``pending`` an injection in doubt;
+    ``mismatch`` whether the model cannot explain this injector (until ``mismatch_clean`` reaches the
+    configured count of adequate injections), ``model_error_d`` the last plain - robust difference
+    (N/V, µm) and plain residual structure (chi-square) that size its model-error covariance.
     """
 
     initialized: bool = False
@@ -104,6 +108,10 @@ class TrackerState:
     accepted: int = 0
     rejected: int = 0
     updates: int = 0
+    mismatch: bool = False
+    mismatch_clean: int = 0
+    model_error_d: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    model_error_structure: float | None = None
     version: int = STATE_VERSION
 
     def to_dict(self) -> dict:
@@ -116,10 +124,12 @@ class TrackerState:
         if not isinstance(d, dict) or d.get("version") != STATE_VERSION:
             raise ValueError(f"not a tracker state of version {STATE_VERSION}")
         st = cls()
-        for name in ("initialized", "robust"):
+        for name in ("initialized", "robust", "mismatch"):
             setattr(st, name, _check_bool(d, name, getattr(st, name)))
-        for name in ("model_error_run", "clean_run", "doubts", "accepted", "rejected", "updates"):
+        for name in ("model_error_run", "clean_run", "doubts", "accepted", "rejected", "updates", "mismatch_clean"):
             setattr(st, name, _check_count(d, name))
+        st.model_error_d = _check_array(d, "model_error_d", (2,), True).tolist() if "model_error_d" in d else [0.0, 0.0]
+        st.model_error_structure = _check_optional_float(d, "model_error_structure")
         st.x = _check_array(d, "x", (kalman.N_STATE,), st.initialized).tolist()
         p = _check_array(d, "p", (kalman.N_STATE, kalman.N_STATE), True)
         if st.initialized and (not np.allclose(p, p.T, rtol=1e-9, atol=1e-15) or np.any(np.linalg.eigvalsh(p) < 0)):
@@ -279,8 +289,12 @@ def _warm_estimate(state: TrackerState, x0: np.ndarray, inj: Injection, sim: Fas
     fit, converged, _ = refine(model, x0, np.array(state.directions), np.array(state.steps), box, ic,   # refine clips x0
                                max_cycles=config.warm_cycles, batched=True)
     stat = float("nan")
+    adequacy, other, extra = None, None, 0
     if fit.success and not state.robust:   # the plain residual against the nuisance span (normal equations)
         stat = plain_model_error(fit.residual[: model.n], model.current, model.dt, fit.sigma_v)
+        adequacy = plain_adequacy(model, fit, ic)
+        if not adequacy.adequate:     # size the model error: the robust estimate of the same samples
+            other, extra = complement_fit(sim, inj, ic, box, model, fit)
     elif fit.success and state.updates % ROBUST_CHECK_EVERY == 0:
         # is the model error still there? the likelihood ratio of a plain fit against the robust one,
         # as at a cold start (the plain residual at the robust estimate would overstate it)
@@ -289,8 +303,14 @@ def _warm_estimate(state: TrackerState, x0: np.ndarray, inj: Injection, sim: Fas
         fit_p, _, _ = refine(plain, x0, np.array(state.directions), np.array(state.steps), box, ic,
                              max_cycles=config.warm_cycles, batched=True)
         stat = likelihood_ratio(plain, fit_p, model, fit)
+        extra = plain.evaluations
+        if fit_p.success:
+            adequacy, other = plain_adequacy(plain, fit_p, ic), fit_p.x
+    elif fit.success:    # robust, untested this time: the model error as last sized
+        other = fit.x - np.asarray(state.model_error_d)
     # the published prediction is made once, for the published estimate (``_publish``)
-    return finish(sim, inj, fit, converged, model.evaluations, box, state.robust, stat, ic, predict=False)
+    return finish(sim, inj, fit, converged, model.evaluations + extra, box, state.robust, stat, ic, predict=False,
+                  adequacy=adequacy, other=other, model=model, structure=state.model_error_structure)
 
 
 def _cold_estimate(state: TrackerState, inj: Injection, sim: FastSimulator, config: TrackerConfig) -> Estimate:
@@ -349,16 +369,18 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
     now, temp = _known(inj.time_s), _temperature(inj)
     held = _held(st, now, temp, config, noise)
     problem = check_injection(inj, sim, config.ident)
+    if problem is None:
+        inj = inj.through_chain(sim.params.chain)   # once: the cold start and the valve prediction see it too
     if problem:
         st.rejected += 1
-        return st, _publish(held, rejected(problem), Status.REJECTED, problem, sim, inj, predict=False)
+        return st, _publish(_widen(held, st, config), rejected(problem), Status.REJECTED, problem, sim, inj, predict=False)
 
     cold = not (st.initialized and math.isfinite(st.x[0]) and math.isfinite(st.x[1]))   # a prior counts
     x0 = held[0][:2] if held is not None else None
     raw = _cold_estimate(st, inj, sim, config) if cold else _warm_estimate(st, x0, inj, sim, config, box)
     if raw.status == Status.REJECTED:
         st.rejected += 1
-        return st, _publish(held, raw, Status.REJECTED, raw.message, sim, inj, predict=False)
+        return st, _publish(_widen(held, st, config), raw, Status.REJECTED, raw.message, sim, inj, predict=False)
     if not cold and (raw.status == Status.NOT_CONVERGED or (raw.status == Status.AT_BOUND and not st.robust)):
         # the warm searches ran out of cycles (the injector moved more than expected), or the plain
         # model ran into a bound, which is how it absorbs a model error: decide afresh
@@ -372,7 +394,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
     r = _robust_cov(raw, config)
     if not all(map(math.isfinite, r.ravel().tolist() + z.tolist())):
         st.rejected += 1
-        return st, _publish(held, raw, Status.REJECTED, "no curvature at the optimum", sim, inj, predict=False)
+        return st, _publish(_widen(held, st, config), raw, Status.REJECTED, "no curvature at the optimum", sim, inj, predict=False)
 
     if restart:
         _restart(st, z, r, now, temp, config)
@@ -397,7 +419,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
         st.rejected += 1
         reason = (f"outlier (innovation chi2 {inn.d2:.1f} > {config.gate_chi2:.1f}, model error "
                   f"{raw.model_error_stat:.0f})")
-        return st, _publish(held, raw, Status.REJECTED, reason, sim, inj, predict=True, outliers=1)
+        return st, _publish(_widen(held, st, config), raw, Status.REJECTED, reason, sim, inj, predict=True, outliers=1)
 
     if st.pending is not None:
         taken = _confirm_jump(st, z, r, now, temp, config, noise)
@@ -421,7 +443,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
     else:   # marginal: as likely a noise tail as a small change: the filter updated with it (not committed)
         best, whose = kalman.update(x_pred, p_pred, z, r), "the filter's estimate with it"
     reason = f"in doubt (innovation chi2 {inn.d2:.1f} > {config.gate_chi2:.1f}): {whose}"
-    return st, _publish(best, raw, Status.UNCONFIRMED, reason, sim, inj, predict=True, outliers=outliers)
+    return st, _publish(_widen(best, st, config), raw, Status.UNCONFIRMED, reason, sim, inj, predict=True, outliers=outliers)
 
 
 def _robust_hysteresis(st: TrackerState, raw: Estimate, config: TrackerConfig, cold: bool) -> bool:
@@ -509,14 +531,55 @@ def _embed(r: np.ndarray, p: np.ndarray) -> np.ndarray:
     return q
 
 
+def mismatched(raw: Estimate) -> bool:
+    """True if the raw estimate's model could not explain its samples (it carries a model error)."""
+    return raw.robust or bool(np.any(raw.model_error_cov))
+
+
+def _note_mismatch(st: TrackerState, raw: Estimate, config: TrackerConfig) -> None:
+    """Keep the injector's model-mismatch flag: set by a mismatched accepted injection, cleared after
+    ``mismatch_clear_after`` adequate ones in a row."""
+    if mismatched(raw):
+        st.mismatch, st.mismatch_clean = True, 0
+        if np.any(raw.model_error_d):
+            st.model_error_d = [float(v) for v in raw.model_error_d]
+        if math.isfinite(raw.structure_chi2):
+            st.model_error_structure = float(raw.structure_chi2)
+    elif st.mismatch:
+        st.mismatch_clean += 1
+        if st.mismatch_clean >= config.mismatch_clear_after:
+            st.mismatch, st.mismatch_clean, st.model_error_d = False, 0, [0.0, 0.0]
+            st.model_error_structure = None
+
+
+def _widen(filt: tuple[np.ndarray, np.ndarray] | None, st: TrackerState,
+           config: TrackerConfig) -> tuple[np.ndarray, np.ndarray] | None:
+    """The filtered (state, covariance) to publish: while the injector's model is mismatched, its
+    model-error covariance is added. That error is the same for every injection of the injector, so
+    averaging injections does not shrink it: the filter's own covariance would claim it did."""
+    if filt is None or not st.mismatch:
+        return filt
+    x, p = filt
+    q = np.array(p, copy=True)
+    xi = x[:2]
+    structure = st.model_error_structure if st.model_error_structure is not None else float("nan")
+    q[:2, :2] += model_error_cov(xi, xi - np.asarray(st.model_error_d), config.ident, structure)
+    return x, q
+
+
 def _accepted(st: TrackerState, raw: Estimate, r: np.ndarray, sim: FastSimulator, inj: Injection,
               config: TrackerConfig, reason: str, outliers: int = 0,
               confirmed: int = 0) -> tuple[TrackerState, TrackResult]:
     st.accepted += 1 + confirmed
+    _note_mismatch(st, raw, config)
     _carry_search(st, raw, r, config)
-    x, p = np.array(st.x), np.array(st.p)
+    x, p = _widen((np.array(st.x), np.array(st.p)), st, config)   # type: ignore[misc]
     if raw.status in (Status.AT_BOUND, Status.NOT_CONVERGED):
         status, reason = raw.status, reason or raw.message
+    elif st.mismatch:
+        status = Status.MODEL_MISMATCH
+        reason = reason or raw.message or (f"model mismatch on this injector (the last {st.mismatch_clean} "
+                                           f"injection(s) adequate, {config.mismatch_clear_after} clear it)")
     elif math.sqrt(max(p[1, 1], 0.0)) > config.ident.sigma_limit_lh_um:
         status = Status.UNCERTAIN   # judged on the filtered sigma: averaging can make a noisy injector ok
         reason = reason or (f"sigma(L_h) {math.sqrt(p[1, 1]):.2f} µm above the limit "

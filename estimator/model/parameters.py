@@ -21,6 +21,7 @@ import numpy as np
 from numba import njit
 
 from estimator.errors import ParameterError
+from estimator.model.chain import NO_CHAIN, MeasurementChain
 
 NOMINAL_FILE = Path(__file__).with_name("parameters.toml")
 
@@ -185,14 +186,17 @@ class ValveParameters:
 
 @dataclass(frozen=True)
 class InjectorParameters:
-    """The PSA and the valve together: everything the hybrid model needs except N_u, L_h, F_open."""
+    """The PSA and the valve together: everything the hybrid model needs except N_u, L_h, F_open;
+    and the amplifier's measurement chain between the actuator and the samples (default: none)."""
 
     psa: PsaParameters
     valve: ValveParameters
+    chain: MeasurementChain = NO_CHAIN
 
     @classmethod
     def from_toml(cls, path: str | Path) -> "InjectorParameters":
-        """Read ``[psa]`` and ``[valve]`` tables (SI values) from a TOML file."""
+        """Read ``[psa]`` and ``[valve]`` tables (SI values) and an optional ``[chain]`` table
+        (``u_filter_tau_s``, ``i_filter_tau_s``, ``i_skew_s``: :class:`MeasurementChain`) from a TOML file."""
         path = Path(path)
         try:
             data = tomllib.loads(path.read_text())
@@ -200,7 +204,22 @@ class InjectorParameters:
             raise ParameterError(f"cannot read parameter file {path}: {exc}") from None
         if "psa" not in data or "valve" not in data:
             raise ParameterError(f"parameter file {path} needs the tables [psa] and [valve]")
-        return cls(PsaParameters.from_mapping(data["psa"]), ValveParameters.from_mapping(data["valve"]))
+        return cls(PsaParameters.from_mapping(data["psa"]), ValveParameters.from_mapping(data["valve"]),
+                   chain_from_mapping(data.get("chain", {})))
+
+
+def chain_from_mapping(values: Any) -> MeasurementChain:
+    """A :class:`MeasurementChain` from the TOML table ``[chain]`` (s; missing keys are 0)."""
+    if not isinstance(values, Mapping):
+        raise ParameterError("[chain] must be a table")
+    known = {f.name for f in fields(MeasurementChain)}
+    unknown = set(values) - known
+    if unknown:
+        raise ParameterError(f"unknown chain parameter(s): {', '.join(sorted(unknown))} (known: {', '.join(sorted(known))})")
+    try:
+        return MeasurementChain(**{k: v for k, v in values.items()})
+    except (TypeError, ValueError) as exc:
+        raise ParameterError(str(exc)) from None
 
 
 _NOMINAL: InjectorParameters | None = None

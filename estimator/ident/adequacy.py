@@ -1,0 +1,120 @@
+"""Does the model explain the samples? A test of a fit's residual against the measurement noise.
+
+The noise level comes from the residual's first differences, which a smooth model error hardly
+raises (it is independent of how well the model fits); a robust trimmed RMS, so a spike does not
+inflate it. Two statistics are formed in units of that noise variance:
+
+- ``structure``: the residual's energy in its ``SMOOTH_COLUMNS`` lowest cosine (DCT-II) components,
+  and ``low`` in the lowest ``LOW_COLUMNS`` of them (more power where the error is smoothest).
+  Under a correct model with white noise it is at most chi-square with that many degrees of freedom
+  (the fit removes some of it); a structural model error puts its residual there (mechanical
+  resonances below ~120 kHz in a 100 µs window, a misplaced contact), far above it.
+- ``excess_z``: the whole residual energy above white noise, in standard deviations (a broadband
+  error such as an unmodelled filter shows here too).
+
+The thresholds are set for a false-alarm rate well below 1 % on the exact plant at 0.1 and 0.3 V
+noise (``python -m sim_bench accuracy --sweep exact``); a linearised analysis of 10 % structural
+errors leaves chi-square excesses of 50-4000, far above them.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from numba import njit
+
+from estimator.ident.cost import MAD_PER_SIGMA, NOISE_FLOOR_V
+
+SMOOTH_COLUMNS = 24          # cosines 0..23: up to ~115 kHz in a 100 µs window
+LOW_COLUMNS = 8              # cosines 0..7 (up to ~35 kHz): where most structural errors leave their residual
+STRUCTURE_THRESHOLD = 60.0   # chi-square(24): P(> 60) = 6e-5 under a correct model
+LOW_THRESHOLD = 36.0         # chi-square(8): P(> 36) = 2e-5
+EXCESS_Z_THRESHOLD = 4.0     # the whole residual's energy above white noise, standard deviations
+TRIM_SIGMA = 5.0             # differences beyond this many robust standard deviations are clipped
+
+
+@dataclass(frozen=True)
+class Adequacy:
+    """The model-adequacy test of one fit.
+
+    Attributes
+    ----------
+    structure : residual energy in the smooth columns over the noise variance (chi-square units).
+    low : the same in the lowest :data:`LOW_COLUMNS` of them.
+    excess_z : whole residual energy above white noise, in standard deviations.
+    noise_v : the noise level (V, 1 sigma) from the residual's differences.
+    adequate : both statistics within their thresholds.
+    """
+
+    structure: float
+    low: float
+    excess_z: float
+    noise_v: float
+    adequate: bool
+
+    @property
+    def reason(self) -> str:
+        """Why the model is inadequate (a phrase), '' if it is adequate."""
+        if self.adequate:
+            return ""
+        return (f"model cannot explain the samples (structure chi2 {self.structure:.0f}, "
+                f"residual {self.excess_z:+.1f} sd above noise {self.noise_v:.3f} V)")
+
+
+def noise_level_v(residual_v: np.ndarray) -> float:
+    """White-noise level (V, 1 sigma) from the first differences: their RMS over sqrt(2), with
+    differences beyond :data:`TRIM_SIGMA` robust standard deviations clipped (spikes)."""
+    r = np.ascontiguousarray(residual_v, dtype=float)
+    if r.size < 3:
+        return float("nan")
+    return float(_noise_level(r, TRIM_SIGMA, NOISE_FLOOR_V))
+
+
+@njit(cache=True, nogil=True)
+def _noise_level(r, trim, floor):
+    n = r.shape[0] - 1
+    d = np.empty(n)
+    for k in range(n):
+        d[k] = abs(r[k + 1] - r[k])
+    half = n // 2
+    p = np.partition(d, half)     # the median of |d| (the upper one for an even count: a scale, not a statistic)
+    clip = trim * max(p[half] / MAD_PER_SIGMA, floor * np.sqrt(2.0))
+    acc = 0.0
+    for k in range(n):
+        acc += min(d[k] * d[k], clip * clip)
+    return max(np.sqrt(acc / n / 2.0), floor)
+
+
+@functools.lru_cache(maxsize=32)
+def smooth_basis(n: int, m: int = SMOOTH_COLUMNS) -> np.ndarray:
+    """Orthonormal DCT-II columns 0..m-1 over ``n`` samples, shape (n, min(m, n)); read-only."""
+    m = min(m, n)
+    j = np.arange(n) + 0.5
+    b = np.cos(np.pi * np.outer(j, np.arange(m)) / n)
+    b /= np.linalg.norm(b, axis=0)
+    b.setflags(write=False)
+    return b
+
+
+def assess(residual_v: np.ndarray, fitted: int = 2, structure_threshold: float = STRUCTURE_THRESHOLD,
+           excess_threshold: float = EXCESS_Z_THRESHOLD) -> Adequacy:
+    """Test a fit's residual (V, the samples of its cost window; projected off the nuisance span in
+    robust mode) for structure the model left; ``fitted`` is the number of fitted directions (the
+    parameters and the nuisance columns), which the residual's degrees of freedom lose."""
+    r = np.asarray(residual_v, dtype=float)
+    n = r.size
+    sigma = noise_level_v(r)
+    if not (n > fitted + 2 and math.isfinite(sigma) and np.all(np.isfinite(r))):
+        return Adequacy(float("nan"), float("nan"), float("nan"), sigma, False)
+    c = smooth_basis(n).T @ r
+    c2 = c * c / sigma ** 2
+    structure, low = float(c2.sum()), float(c2[:LOW_COLUMNS].sum())
+    dof = n - fitted
+    excess = (float(r @ r) / sigma ** 2 - dof) / math.sqrt(2.0 * dof)
+    adequate = structure <= structure_threshold and low <= structure_threshold * LOW_THRESHOLD / STRUCTURE_THRESHOLD \
+        and excess <= excess_threshold
+    return Adequacy(structure, low, excess, sigma, adequate)

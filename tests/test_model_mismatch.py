@@ -1,0 +1,169 @@
+"""The model-adequacy test, the model_mismatch status and its sigma, the measurement chain, series parts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimator.errors import ParameterError
+from estimator.ident.adequacy import assess, noise_level_v, smooth_basis
+from estimator.ident.config import IdentConfig, TrackerConfig
+from estimator.ident.idle_stroke import identify
+from estimator.ident.measurement import Injection
+from estimator.ident.status import ESTIMATED, Status
+from estimator.ident.tracker import Tracker, TrackerState
+from estimator.model.chain import MeasurementChain, lowpass, shift, unfilter
+from estimator.model.fast_sim import FastSimulator
+from estimator.model.parameters import InjectorParameters, load_nominal
+from sim_bench.plant import Plant, PlantConfig
+from sim_bench.series_part import STRUCTURAL, TYPICAL_CHAIN, SeriesPart, draw, scaled
+
+
+def _inj(m) -> Injection:
+    return Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n)
+
+
+def test_white_noise_is_adequate_and_smooth_structure_is_not():
+    rng = np.random.default_rng(0)
+    n = 201
+    alarms = sum(not assess(0.1 * rng.standard_normal(n)).adequate for _ in range(400))
+    assert alarms <= 2                      # false alarms well below 1 %
+    w = 0.1 * rng.standard_normal(n)
+    assert abs(noise_level_v(w) / 0.1 - 1) < 0.15
+    bump = 0.06 * np.sin(np.linspace(0, 3 * np.pi, n))   # 0.04 V RMS, chi-square excess ~35
+    a = assess(w + bump * 2)
+    assert not a.adequate and a.structure > 60
+    assert "cannot explain" in a.reason
+    b = smooth_basis(n)
+    np.testing.assert_allclose(b.T @ b, np.eye(b.shape[1]), atol=1e-12)
+
+
+def test_exact_plant_is_ok_and_a_series_part_is_a_model_mismatch_with_a_sigma_that_covers_it():
+    rng = np.random.default_rng(3)
+    sim = FastSimulator()
+    exact = Plant(PlantConfig(window_s=150e-6))
+    for _ in range(5):
+        est = identify(_inj(exact.measure(float(rng.uniform(15.5, 20.5)), float(rng.uniform(0, 8)) * 1e-6, 28.0, rng)), sim)
+        assert est.status == Status.OK and not np.any(est.model_error_cov)
+    # a part whose mounting is 10 % off Table 1: the plain fit is biased by micrometres with a tiny sigma
+    part = SeriesPart({"psa.kg1_n_per_m": 0.9, "psa.kp_n_per_m": 1.1, "psa.m3_kg": 0.9})
+    plant = Plant(PlantConfig(window_s=150e-6), part.params)
+    m = plant.measure(17.5, 4e-6, 28.0, rng)
+    est = identify(_inj(m), sim)
+    err = abs(est.lh_m - 4e-6) * 1e6
+    assert est.status in (Status.MODEL_MISMATCH, Status.AT_BOUND)
+    assert est.status != Status.OK
+    assert err <= 3 * est.sigma_lh_m * 1e6, (err, est.sigma_lh_m * 1e6)
+    assert est.to_dict()["status"] == est.status.value and est.to_dict()["structure_chi2"] > 60
+
+
+def test_model_mismatch_has_its_wire_code_and_counts_as_an_estimate():
+    from estimator.codec.records import Codec
+
+    assert Status.MODEL_MISMATCH.code == 7 and Status.MODEL_MISMATCH in ESTIMATED
+    choices = {int(k): str(v) for k, v in Codec().db.get_message_by_name("EstimateState")
+               .get_signal_by_name("Status").choices.items()}
+    assert choices[7] == "model_mismatch"
+
+
+def test_the_tracker_never_publishes_ok_for_a_mismatched_injector_and_keeps_its_model_error():
+    rng = np.random.default_rng(8)
+    part = SeriesPart({"psa.kg1_n_per_m": 0.9, "psa.kp_n_per_m": 1.1, "valve.kv1_n_per_m": 0.8})
+    plant = Plant(PlantConfig(window_s=150e-6), part.params)
+    tr = Tracker(TrackerConfig())
+    statuses, z = [], []
+    for k in range(12):
+        m = plant.measure(17.0, 3e-6, 28.0, rng)
+        r = tr.update(Injection(m.current_a, m.voltage_v, m.dt_s, 28.0, counter=k, time_s=0.1 * k))
+        statuses.append(r.status)
+        z.append((r.lh_m - 3e-6) / r.sigma_lh_m)
+    assert Status.OK not in statuses
+    assert statuses[-1] == Status.MODEL_MISMATCH
+    st = tr.states[0]
+    assert st.mismatch
+    # the model error does not average away: the published sigma stays at least the floor
+    assert r.sigma_lh_m * 1e6 >= TrackerConfig().ident.mismatch_floor[1]
+    assert abs(z[-1]) < 3
+    # and the state with it survives a save and restore
+    back = TrackerState.from_dict(st.to_dict())
+    assert back.mismatch and back.model_error_d == st.model_error_d
+
+
+def test_an_old_state_without_the_mismatch_fields_still_loads():
+    d = TrackerState().to_dict()
+    for k in ("mismatch", "mismatch_clean", "model_error_d", "model_error_structure"):
+        d.pop(k)
+    st = TrackerState.from_dict(d)
+    assert not st.mismatch and st.model_error_d == [0.0, 0.0]
+
+
+def test_mismatch_settings_are_checked():
+    for kw in ({"mismatch_floor": (0.01,)}, {"mismatch_scale": (-1.0, 0.1)}, {"preload_rel_sigma": 0.9},
+               {"adequacy_structure": 0.0}):
+        with pytest.raises(ValueError):
+            IdentConfig(**kw)
+
+
+def test_chain_inverse_undoes_the_forward_chain():
+    dt = 0.125e-6
+    t = np.arange(2000) * dt
+    x = np.clip(t / 20e-6, 0, 1) * 100 + 5 * np.sin(2 * np.pi * t / 8e-6)
+    tau = 1 / (2 * np.pi * 300e3)
+    y = lowpass(x, tau, dt)
+    assert np.max(np.abs(unfilter(y, tau, dt) - x)[5:]) < 0.05 * np.max(np.abs(x - y))
+    np.testing.assert_allclose(shift(shift(x, 4.0), -4.0)[4:-4], x[4:-4])
+    chain = MeasurementChain.from_cutoffs(u_cutoff_hz=300e3, i_skew_s=0.5e-6)
+    assert not chain.identity and MeasurementChain().identity
+    with pytest.raises(ParameterError):
+        MeasurementChain(u_filter_tau_s=-1e-6)
+    with pytest.raises(ParameterError):
+        MeasurementChain(i_skew_s=float("nan"))
+
+
+def test_a_modelled_chain_brings_the_estimate_back(tmp_path):
+    rng = np.random.default_rng(4)
+    plant = Plant(PlantConfig(window_s=150e-6, chain=TYPICAL_CHAIN))
+    plain_sim = FastSimulator()
+    chain_sim = FastSimulator(InjectorParameters(load_nominal().psa, load_nominal().valve, TYPICAL_CHAIN))
+    errs_plain, errs_chain = [], []
+    for _ in range(4):
+        nu, lh = float(rng.uniform(16, 20)), float(rng.uniform(1, 7))
+        m = plant.measure(nu, lh * 1e-6, 28.0, rng)
+        a, b = identify(_inj(m), plain_sim), identify(_inj(m), chain_sim)
+        errs_plain.append(abs(a.nu_n_per_v / nu - 1))
+        errs_chain.append(abs(b.nu_n_per_v / nu - 1))
+        assert b.status == Status.OK and abs(b.lh_m * 1e6 - lh) <= 3 * b.sigma_lh_m * 1e6
+    assert max(errs_chain) < 1e-3 and np.mean(errs_chain) < np.mean(errs_plain)
+    # the chain loads from the parameter file where parameters load
+    text = (load_nominal_text() + "\n[chain]\nu_filter_tau_s = 5.3e-7\ni_skew_s = 5e-7\n")
+    p = tmp_path / "injector.toml"
+    p.write_text(text)
+    params = InjectorParameters.from_toml(p)
+    assert params.chain.u_filter_tau_s == 5.3e-7 and params.chain.i_skew_s == 5e-7
+    p.write_text(load_nominal_text() + "\n[chain]\nu_filter_hz = 3\n")
+    with pytest.raises(ParameterError, match="unknown chain"):
+        InjectorParameters.from_toml(p)
+
+
+def load_nominal_text() -> str:
+    from estimator.model.parameters import NOMINAL_FILE
+    return NOMINAL_FILE.read_text()
+
+
+def test_series_parts_are_seeded_and_within_their_spread():
+    a, b = draw(np.random.default_rng(1), 0.1), draw(np.random.default_rng(1), 0.1)
+    assert a == b and len(a.factors) == len(STRUCTURAL)
+    assert all(0.9 <= f <= 1.1 for f in a.factors.values())
+    p = scaled(load_nominal(), {"psa.kp_n_per_m": 1.1})
+    assert p.psa.kp_n_per_m == pytest.approx(1.1 * load_nominal().psa.kp_n_per_m)
+    assert "kp" in SeriesPart({"psa.kp_n_per_m": 1.1}).describe()
+
+
+def test_preload_uncertainty_widens_sigma_only_when_configured():
+    rng = np.random.default_rng(6)
+    m = Plant(PlantConfig(window_s=150e-6)).measure(17.0, 3e-6, 28.0, rng)
+    sim = FastSimulator()
+    base = identify(_inj(m), sim)
+    wide = identify(_inj(m), sim, IdentConfig(preload_rel_sigma=0.1))
+    assert wide.lh_m == base.lh_m
+    assert wide.sigma_lh_m > 1.2 * base.sigma_lh_m
