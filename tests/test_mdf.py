@@ -53,7 +53,9 @@ def test_other_time_bases_are_resampled(tmp_path):
     # voltage logged on its own clock, 0.1 µs later: linear interpolation onto the current's grid
     write_mf4(mf4, inj.t_s, inj.current_a, inj.voltage_v, t_voltage=inj.t_s[:-1] + 0.1e-6)
     b = identify(mf4, "--current-channel", "I_Amp", "--voltage-channel", "U_PSA")
-    assert b["status"] in ("ok", "uncertain") and abs(b["lh_um"] - 3.4) < 0.3
+    # the 0.1 µs skew and the interpolation are a small model error the adequacy test may notice
+    assert b["status"] in ("ok", "uncertain", "model_mismatch") and abs(b["lh_um"] - 3.4) < 0.3
+    assert abs(b["lh_um"] - 3.4) <= 3 * b["sigma_lh_um"]
 
 
 def test_mdf_errors_are_one_line(tmp_path):

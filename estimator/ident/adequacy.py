@@ -33,7 +33,7 @@ SMOOTH_COLUMNS = 24          # cosines 0..23: up to ~115 kHz in a 100 µs window
 LOW_COLUMNS = 8              # cosines 0..7 (up to ~35 kHz): where most structural errors leave their residual
 STRUCTURE_THRESHOLD = 60.0   # chi-square(24): P(> 60) = 6e-5 under a correct model
 LOW_THRESHOLD = 36.0         # chi-square(8): P(> 36) = 2e-5
-EXCESS_Z_THRESHOLD = 4.0     # the whole residual's energy above white noise, standard deviations
+EXCESS_Z_THRESHOLD = 6.0     # the whole residual's energy above white noise, standard deviations
 TRIM_SIGMA = 5.0             # differences beyond this many robust standard deviations are clipped
 
 
