@@ -141,7 +141,7 @@ def test_a_cold_start_that_chose_the_robust_cost_switches_the_mode_at_once(sim, 
     tr = Tracker(sim=sim)
     results = [tr.update(at(measured(17.3, 4.2, 500 + k, mismatch=True)[0], 0.04 * k)) for k in range(6)]
     assert results[0].raw.robust and tr.states[0].robust and len(colds) == 1
-    assert all(r.status == Status.OK and r.raw.robust and r.outliers == 0 for r in results)
+    assert all(r.status == Status.MODEL_MISMATCH and r.raw.robust and r.outliers == 0 for r in results)
     assert results[-1].sigma_lh_m < results[0].sigma_lh_m      # one filter since the first injection
     assert abs(results[-1].lh_m * 1e6 - 4.2) < 0.15
 

@@ -403,6 +403,16 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
 
     x_pred, p_pred = held
     inn = kalman.innovation(x_pred, p_pred, z, r)
+    if not (st.mismatch or st.robust) and mismatched(raw):
+        # an injector the model explained, and an injection it cannot: its model-error sigma would
+        # let a glitch through the gate, so gate with the fit's own covariance
+        own = kalman.innovation(x_pred, p_pred, z, r - raw.model_error_cov).d2
+        if own > config.gate_chi2:
+            st.rejected += 1
+            reason = (f"outlier (innovation chi2 {own:.1f} > {config.gate_chi2:.1f} with the model "
+                      f"mismatched on this injection only)")
+            return st, _publish(_widen(held, st, config), raw, Status.REJECTED, reason, sim, inj, predict=True,
+                                outliers=1)
     if inn.d2 <= config.gate_chi2:
         outliers = 0
         if st.pending is not None:     # the injection in doubt was not confirmed: an outlier
