@@ -1,0 +1,289 @@
+"""Electrical calibration: an injector's own structural parameters from its own current and voltage.
+
+Tables 1-2 describe one laboratory's injector; a series part's masses and stiffnesses differ by
+5-15 %, which moves the idle-stroke estimate by micrometres. No displacement sensor is needed to learn
+them: a batch of injections at different preload forces and coupling factors carries the
+information in the voltage alone. This module fits, by bounded least squares
+(:func:`scipy.optimize.least_squares`),
+
+- the shared structural parameters ``theta`` as relative factors on the base parameter set (default
+  the thirteen of :data:`~estimator.model.parameters.STRUCTURAL`), each with a Gaussian prior of
+  relative standard deviation ``tolerance`` at its base value, so that what a batch does not excite
+  stays near the tables instead of wandering, and
+- each injection's own N_u (N/V) and L_h (µm),
+
+to the voltage over each injection's first ``window_s``, each sample weighted by that injection's
+noise level (estimated from the residual of a nominal fit). The Jacobian is built in batches: one
+simulator per perturbed parameter set simulates every injection, and each injection's own two
+columns are one batched simulation.
+
+The result reports each parameter with its standard deviation (from the Gauss-Newton matrix, prior
+included), the pairs whose correlation exceeds 0.9, the parameters the batch hardly informs (posterior
+standard deviation above 70 % of the prior's), and the RMS voltage residual before (nominal
+parameters, each injection fitted alone) and after.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from estimator.ident.adequacy import SMOOTH_COLUMNS, assess, noise_level_v
+from estimator.ident.config import IdentConfig
+from estimator.ident.idle_stroke import identify
+from estimator.ident.measurement import Injection
+from estimator.model.fast_sim import FastSimulator
+from estimator.model.parameters import STRUCTURAL, InjectorParameters, load_nominal, scaled
+
+WINDOW_S = 200e-6          # the Fisher analysis behind this module used 0-200 µs of the charge
+FD_THETA = 1e-3            # relative step of a structural factor's finite difference
+FD_NU, FD_LH_UM = 2e-3, 2e-3
+WEAK_FRACTION = 0.7        # posterior sd above this fraction of the prior sd: the batch hardly informs it
+CORRELATED = 0.9
+SIMULATORS_KEPT = 16
+MISFIT_Z = 4.0             # an injection's smooth residual this many sd above noise: the model does not explain the batch
+RESTART_SEED = 20261124    # restarts from a local minimum are seeded: the same traces give the same parameters
+STRUCTURAL_NAMES = tuple(f"{table}.{name}" for table, name in STRUCTURAL)   # what is fitted by default
+
+
+@dataclass
+class ElectricalCalibration:
+    """What :func:`calibrate_electrical` found.
+
+    Attributes
+    ----------
+    params : the calibrated parameter set.
+    names : the fitted structural parameters ("psa.kp_n_per_m", ...).
+    factors : each one's value over the base value.
+    sigma_rel : each one's standard deviation, relative to its value.
+    nu_n_per_v, lh_um : each injection's fitted N_u (N/V) and L_h (µm).
+    rms_before_v, rms_after_v : RMS voltage residual (V) with the base parameters (each injection fitted
+        alone) and with the calibrated ones.
+    correlated : (name, name, correlation) of the pairs beyond 0.9 in magnitude.
+    weak : parameters the batch hardly informs (they stay near the prior).
+    warnings : readable lines about the batch (e.g. one preload force only).
+    evaluations : simulations run.
+    adequate : the calibrated model explains the batch (its residual is white noise within
+        :data:`MISFIT_Z` standard deviations); a calibration that is not must not be used.
+    misfit_z : that statistic.
+    """
+
+    params: InjectorParameters
+    names: tuple[str, ...]
+    factors: np.ndarray
+    sigma_rel: np.ndarray
+    nu_n_per_v: np.ndarray
+    lh_um: np.ndarray
+    rms_before_v: float
+    rms_after_v: float
+    correlated: list[tuple[str, str, float]] = field(default_factory=list)
+    weak: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    evaluations: int = 0
+    adequate: bool = True
+    misfit_z: float = 0.0
+
+    def report(self) -> str:
+        """A table of the parameters, the residual before and after, and the warnings."""
+        lines = [f"electrical calibration of {len(self.nu_n_per_v)} injections: RMS voltage residual "
+                 f"{self.rms_before_v * 1e3:.1f} mV with the base parameters, {self.rms_after_v * 1e3:.1f} mV after",
+                 f"  {'parameter':<22} {'factor':>8} {'sd [%]':>7}"]
+        for n, f, s in zip(self.names, self.factors, self.sigma_rel):
+            lines.append(f"  {n:<22} {f:8.4f} {100 * s:7.2f}{'  (weakly informed: stays near the prior)' if n in self.weak else ''}")
+        for a, b, c in self.correlated:
+            lines.append(f"  correlation {a} / {b}: {c:+.2f}")
+        lines += [f"  injection {k}: N_u {nu:.4f} N/V, L_h {lh:.3f} µm"
+                  for k, (nu, lh) in enumerate(zip(self.nu_n_per_v, self.lh_um))]
+        lines += [f"warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+class _Simulators:
+    """Simulators per parameter vector (their tables cost ≈ 45 ms each), the most recent kept."""
+
+    def __init__(self, base: InjectorParameters, names: tuple[str, ...], dt_s: float) -> None:
+        self.base, self.names, self.dt_s = base, names, dt_s
+        self._kept: OrderedDict[bytes, FastSimulator] = OrderedDict()
+
+    def params(self, theta: np.ndarray) -> InjectorParameters:
+        return scaled(self.base, {n: math.exp(t) for n, t in zip(self.names, theta)})
+
+    def __call__(self, theta: np.ndarray) -> FastSimulator:
+        key = np.asarray(theta, dtype=float).tobytes()
+        sim = self._kept.get(key)
+        if sim is None:
+            sim = FastSimulator(self.params(theta), self.dt_s)
+            self._kept[key] = sim
+            if len(self._kept) > SIMULATORS_KEPT:
+                self._kept.popitem(last=False)
+        else:
+            self._kept.move_to_end(key)
+        return sim
+
+
+def calibrate_electrical(injections: list[Injection], base: InjectorParameters | None = None,
+                         names: tuple[str, ...] = STRUCTURAL_NAMES, tolerance: float = 0.10,
+                         window_s: float = WINDOW_S, max_iterations: int = 30,
+                         max_restarts: int = 4) -> ElectricalCalibration:
+    """Fit the structural parameters ``names`` (shared) and each injection's N_u and L_h to the
+    voltage of a batch of injections of one injector (or of one lot, whose injectors share a
+    structure). ``tolerance`` is the prior's relative standard deviation of each parameter. A fit whose
+    residual is not white noise is restarted (up to ``max_restarts`` times) from the structure redrawn
+    within the prior, and the best kept; if none explains the batch the result says so. Raises
+    ValueError for a batch that cannot be fitted (fewer than two usable injections, mixed sample periods)."""
+    base = base or load_nominal()
+    if not (isinstance(tolerance, (int, float)) and 0.0 < tolerance <= 1.0):
+        raise ValueError(f"tolerance {tolerance!r} must be a relative standard deviation in (0, 1]")
+    if not (20e-6 <= window_s <= 2e-3):
+        raise ValueError(f"window {window_s * 1e6:.1f} µs must be within 20..2000 µs")
+    known = {f"psa.{f.name}" for f in fields(base.psa)} | {f"valve.{f.name}" for f in fields(base.valve)}
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise ValueError(f"unknown structural parameter(s) {', '.join(unknown)}")
+    usable = [inj for inj in injections if not inj.problem()]
+    if len(usable) < 2:
+        raise ValueError(f"an electrical calibration needs at least two usable injections, got {len(usable)}")
+    dts = {round(inj.dt_s, 12) for inj in usable}
+    if len(dts) > 1:
+        raise ValueError("the injections of one calibration must share their sample period")
+    dt = usable[0].dt_s
+    usable = [inj.through_chain(base.chain) for inj in usable]
+    n_win = [min(inj.current_a.size, int(round(window_s / dt)) + 1) for inj in usable]
+    k, b = len(names), len(usable)
+    sims = _Simulators(base, names, dt)
+    sim0 = sims(np.zeros(k))
+
+    # start: each injection fitted alone with the base parameters; its residual gives its noise level
+    ident = IdentConfig()
+    x0 = np.zeros(k + 2 * b)
+    sigma = np.empty(b)
+    before = []
+    evaluations = 0
+    for j, inj in enumerate(usable):
+        est = identify(inj, sim0, ident)
+        evaluations += est.evaluations
+        nu = est.nu_n_per_v if math.isfinite(est.nu_n_per_v) else ident.start_point[0]
+        lh = est.lh_m * 1e6 if math.isfinite(est.lh_m) else ident.start_point[1]
+        x0[k + 2 * j:k + 2 * j + 2] = nu, lh
+        r = _voltage(sim0, inj, n_win[j], nu, lh) - inj.voltage_v[:n_win[j]]
+        sigma[j] = noise_level_v(r)
+        before.append(r)
+    rms_before = float(np.sqrt(np.mean(np.concatenate(before) ** 2)))
+
+    f_open = np.array([inj.f_open_n for inj in usable])
+    warnings = []
+    if np.ptp(f_open) < 0.2 * np.mean(f_open):
+        warnings.append(f"the preload forces span only {np.min(f_open):.0f}-{np.max(f_open):.0f} N: the valve's "
+                        "parameters are weakly determined (calibrate over rail pressures, e.g. 28-300 N)")
+    nu_range = (base.psa.nu_min_n_per_v, base.psa.nu_max_n_per_v)
+    prior_sd = math.log1p(tolerance)
+    lo = np.concatenate([np.full(k, -4 * prior_sd), np.tile([nu_range[0] - 0.1, base.valve.lh_min_m * 1e6], b)])
+    hi = np.concatenate([np.full(k, 4 * prior_sd), np.tile([nu_range[1] + 0.1, base.valve.lh_max_m * 1e6], b)])
+    x0 = np.clip(x0, lo + 1e-9, hi - 1e-9)
+    count = [0]
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        sim = sims(x[:k])
+        parts = []
+        for j, inj in enumerate(usable):
+            u = _voltage(sim, inj, n_win[j], x[k + 2 * j], x[k + 2 * j + 1])
+            parts.append((u - inj.voltage_v[:n_win[j]]) / sigma[j])
+        count[0] += b
+        parts.append(x[:k] / prior_sd)
+        return np.concatenate(parts)
+
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        r0 = residual(x)
+        jac = np.zeros((r0.size, x.size))
+        for i in range(k):   # one simulator per perturbed structural factor, every injection on it
+            xp = x.copy()
+            xp[i] += FD_THETA
+            jac[:, i] = (residual(xp) - r0) / FD_THETA
+        sim = sims(x[:k])
+        row = 0
+        for j, inj in enumerate(usable):   # each injection's own (N_u, L_h): one batched simulation
+            nu, lh = x[k + 2 * j], x[k + 2 * j + 1]
+            h_nu = FD_NU if nu + FD_NU <= hi[k + 2 * j] else -FD_NU       # stay inside the simulator's range
+            h_lh = FD_LH_UM if lh + FD_LH_UM <= hi[k + 2 * j + 1] else -FD_LH_UM
+            res = sim.simulate(inj.current_a[:n_win[j]], np.array([nu, nu + h_nu, nu]),
+                               np.array([lh, lh, lh + h_lh]) * 1e-6, inj.f_open_n)
+            count[0] += 3
+            u = np.where(np.isfinite(res.voltage_v), res.voltage_v, 1e3)
+            jac[row:row + n_win[j], k + 2 * j] = (u[1] - u[0]) / h_nu / sigma[j]
+            jac[row:row + n_win[j], k + 2 * j + 1] = (u[2] - u[0]) / h_lh / sigma[j]
+            row += n_win[j]
+        return jac
+
+    def solve(start: np.ndarray):
+        return least_squares(residual, start, jac=jacobian, bounds=(lo, hi), method="trf", x_scale="jac",
+                             max_nfev=max_iterations, xtol=1e-8, ftol=1e-10)
+
+    def misfit_z(f) -> float:
+        """The worst injection's smooth residual structure (chi-square of its lowest cosine components,
+        :func:`~estimator.ident.adequacy.assess`) in standard deviations above its expectation."""
+        worst, row = 0.0, 0
+        for j in range(b):
+            r = f.fun[row:row + n_win[j]] * sigma[j]
+            row += n_win[j]
+            a = assess(r, 2 + k // b)
+            worst = max(worst, (a.structure - SMOOTH_COLUMNS) / math.sqrt(2.0 * SMOOTH_COLUMNS))
+        return worst
+
+    fit = solve(x0)
+    rng = np.random.default_rng(RESTART_SEED)
+    restarts = 0
+    while misfit_z(fit) > MISFIT_Z and restarts < max_restarts:
+        # a local minimum (the valve's stiffness and damping trade against each other and L_h):
+        # start again from the best point with the structure redrawn within the prior
+        start = fit.x.copy()
+        start[:k] = np.clip(rng.normal(0.0, prior_sd, k), lo[:k] + 1e-9, hi[:k] - 1e-9)
+        trial = solve(start)
+        restarts += 1
+        if trial.cost < fit.cost:
+            fit = trial
+    x = fit.x
+    jac = fit.jac
+    cov = np.linalg.pinv(jac.T @ jac)
+    sd_theta = np.sqrt(np.clip(np.diag(cov)[:k], 0, None))
+    d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    corr = cov / np.outer(d, d)
+    correlated = [(names[i], names[j], float(corr[i, j])) for i in range(k) for j in range(i + 1, k)
+                  if abs(corr[i, j]) > CORRELATED]
+    weak = [names[i] for i in range(k) if sd_theta[i] > WEAK_FRACTION * prior_sd]
+    z = misfit_z(fit)
+    if z > MISFIT_Z:
+        warnings.append(f"the calibrated model does not explain the batch (residual {z:.0f} standard deviations "
+                        f"above the noise after {restarts} restart(s)): do not use it; add injections or check "
+                        "the traces' preload forces and measurement chain")
+    if weak:
+        warnings.append(f"{len(weak)} parameter(s) hardly informed by this batch (kept near the tables): "
+                        + ", ".join(weak))
+    sim = sims(x[:k])
+    after = [_voltage(sim, inj, n_win[j], x[k + 2 * j], x[k + 2 * j + 1]) - inj.voltage_v[:n_win[j]]
+             for j, inj in enumerate(usable)]
+    return ElectricalCalibration(
+        sims.params(x[:k]), tuple(names), np.exp(x[:k]), sd_theta, x[k::2].copy(), x[k + 1::2].copy(), rms_before,
+        float(np.sqrt(np.mean(np.concatenate(after) ** 2))), correlated, weak, warnings, evaluations + count[0],
+        z <= MISFIT_Z, z)
+
+
+def _voltage(sim: FastSimulator, inj: Injection, n: int, nu: float, lh_um: float) -> np.ndarray:
+    """Simulated voltage (V) of the first ``n`` samples of ``inj`` at (N_u N/V, L_h µm); NaN-free
+    (an infeasible candidate gets a large constant so that the search turns away from it)."""
+    u = sim.simulate(inj.current_a[:n], nu, lh_um * 1e-6, inj.f_open_n).voltage_v[0]
+    return np.where(np.isfinite(u), u, 1e3)
+
+
+def to_toml(params: InjectorParameters, header: str = "") -> str:
+    """A parameter set in the layout of ``parameters.toml`` (every key; the chain when there is one)."""
+    lines = [f"# {line}" for line in header.splitlines()] + ([""] if header else []) + ["[psa]"]
+    lines += [f"{k} = {float(v)!r}" for k, v in params.psa.__dict__.items()]
+    lines += ["", "[valve]"] + [f"{k} = {float(v)!r}" for k, v in params.valve.__dict__.items()]
+    ch = params.chain
+    if not ch.identity:
+        lines += ["", "[chain]"] + [f"{k} = {float(v)!r}" for k, v in ch.__dict__.items()]
+    return "\n".join(lines) + "\n"
