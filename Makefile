@@ -5,11 +5,11 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 VCANVM := ../shared/vcan-vm
 
-.PHONY: demo test test-vcan test-install benches clean
+.PHONY: demo test test-vcan test-install benches docs lint clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --disable-pip-version-check -e '.[test,plot,mdf,fleet]'
+	$(PY) -m pip install -q --disable-pip-version-check -e '.[test,plot,mdf,fleet,docs,lint]'
 	@touch $(STAMP)
 
 # The nominal bench for ~20 s on the default bus (vcan0 if present, else a loopback hub);
@@ -31,7 +31,17 @@ test-vcan: $(STAMP)
 test-install: $(STAMP)
 	@bash tests/install/run.sh
 
-# Every benchmark of the README (takes a while).
+# The documentation site (docs/_build/html); warnings are errors.
+docs: $(STAMP)
+	$(PY) -m sphinx -b html -W --keep-going -q docs docs/_build/html
+	@echo "docs in docs/_build/html/index.html"
+
+# ruff and mypy.
+lint: $(STAMP)
+	$(PY) -m ruff check estimator sim_bench tests docs
+	$(PY) -m mypy
+
+# Every benchmark (takes a while).
 benches: $(STAMP)
 	$(PY) -m sim_bench speed-sim
 	$(PY) -m sim_bench accuracy
@@ -43,4 +53,4 @@ benches: $(STAMP)
 	$(PY) -m sim_bench bench --scenario all --quiet
 
 clean:
-	rm -rf $(VENV) bench-results .pytest_cache
+	rm -rf $(VENV) bench-results .pytest_cache docs/_build

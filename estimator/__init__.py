@@ -2,7 +2,7 @@
 
 import os as _os
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"
 
 # One BLAS thread per process. Our matrices are 7x7 and small batches: a multi-threaded OpenBLAS
 # never helps them, and its spinning worker threads turn a loaded machine into stalls (measured with

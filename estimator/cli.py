@@ -140,8 +140,40 @@ def cmd_track(args: argparse.Namespace) -> int:
     return 1 if bad else 0
 
 
+def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
+    """The injector's structural parameters from current and voltage alone (no displacement)."""
+    from estimator.ident.electrical import calibrate_electrical, to_toml
+
+    injections = []
+    for path in args.traces:
+        inj = _load(path, args)
+        problem = inj.problem()
+        if problem:
+            print(f"skipped {path}: {problem}", file=sys.stderr)
+            continue
+        injections.append(inj)
+    try:
+        res = calibrate_electrical(injections, _params(args), tolerance=args.tolerance,
+                                   window_s=(200.0 if args.window_us is None else args.window_us) * 1e-6)
+    except ValueError as exc:
+        raise EstimatorError(str(exc)) from None
+    header = (f"parameters calibrated electrically (python -m estimator calibrate --electrical) from "
+              f"{len(injections)} injections;\nRMS voltage residual {res.rms_before_v * 1e3:.1f} mV before, "
+              f"{res.rms_after_v * 1e3:.1f} mV after; SI units.")
+    toml = to_toml(res.params, header)
+    if args.out:
+        args.out.write_text(toml)
+        print(f"wrote {args.out}")
+    else:
+        print(toml)
+    print(res.report())
+    return 0 if res.adequate else 1
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     """Calibrate k_p, k_s, R_b and the temperature laws from traces with s3 (eq. 25)."""
+    if args.electrical:
+        return cmd_calibrate_electrical(args)
     from estimator.ident.calibration import CalibrationTrace, calibrate, report, to_toml
     from estimator.trace_io import injection_from_trace
 
@@ -153,7 +185,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             raise EstimatorError(f"{path}: calibration traces need '# temperature_c=...'")
         traces.append(CalibrationTrace(injection_from_trace(tr), tr.column("s3_m"), temp))
     try:
-        res = calibrate(traces, _params(args), window_s=args.window_us * 1e-6, gamma_v_per_m=args.gamma)
+        res = calibrate(traces, _params(args), window_s=(170.0 if args.window_us is None else args.window_us) * 1e-6, gamma_v_per_m=args.gamma)
     except ValueError as exc:
         raise EstimatorError(str(exc)) from None
     toml = to_toml(res, _params(args))
@@ -185,7 +217,7 @@ def cmd_plot(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     """Run the estimator daemon on a CAN bus."""
     from estimator.service.config import DaemonConfig
-    from estimator.service.daemon import run_daemon
+    from estimator.service.launch import run_daemon
 
     from estimator.service.bus import overrides_from_args
 
@@ -347,19 +379,25 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_params)
 
     s = sub.add_parser("identify", help="identify N_u and L_h from one trace CSV (eq. 28)")
-    s.add_argument("trace", type=Path)
+    s.add_argument("trace", type=Path, help="trace: CSV or MDF4 (.mf4, .mdf)")
     s.add_argument("--json", action="store_true", help="print one JSON object")
     ident_opts(s)
     s.set_defaults(func=cmd_identify)
 
     s = sub.add_parser("track", help="recursive estimator over trace CSVs, one JSON line each")
-    s.add_argument("traces", type=Path, nargs="+")
+    s.add_argument("traces", type=Path, nargs="+", help="traces in order: CSV or MDF4")
     ident_opts(s)
     s.set_defaults(func=cmd_track)
 
-    s = sub.add_parser("calibrate", help="calibrate the PSA parameters from traces with s3_m (eq. 25)")
-    s.add_argument("traces", type=Path, nargs="+")
-    s.add_argument("--window-us", type=float, default=170.0, help="cost window in µs (default 170)")
+    s = sub.add_parser("calibrate", help="calibrate the model's parameters: from traces with s3_m (eq. 25), or "
+                       "--electrical from current and voltage alone")
+    s.add_argument("traces", type=Path, nargs="+", help="traces with the stack displacement at two or more "
+                   "temperatures; with --electrical, any injections of one injector (or lot) at several preload forces")
+    s.add_argument("--electrical", action="store_true", help="fit the 13 structural parameters and each "
+                   "injection's N_u and L_h to the voltage (no displacement channel needed)")
+    s.add_argument("--tolerance", type=float, default=0.10, help="--electrical: relative standard deviation of "
+                   "the prior on each structural parameter (default 0.10)")
+    s.add_argument("--window-us", type=float, default=None, help="cost window in µs (default 170; --electrical 200)")
     s.add_argument("--gamma", type=float, default=1e6, help="weight of the s3 error in V/m (default 1e6)")
     s.add_argument("--out", type=Path, help="write the TOML here (default: print it)")
     s.add_argument("--params", type=Path, default=None, help="starting parameter TOML (default Tables 1-2)")
@@ -378,14 +416,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_run)
 
     s = sub.add_parser("replay", help="run a capture (.log candump -L, .asc, .blf, .trc, .csv, .mf4) through the pipeline")
-    s.add_argument("capture", type=Path)
+    s.add_argument("capture", type=Path, help="capture: .log (candump -L), .asc, .blf, .trc, .csv or .mf4")
     s.add_argument("--out", type=Path, help="write the output frames; format by suffix: .log (candump -L), .asc, .blf, "
                    ".csv, .mf4")
     s.add_argument("--json", type=Path, help="write one JSON line per injection ('-' for stdout)")
     s.add_argument("--csv", type=Path, help="write one CSV row per injection: time, injector, counter, status, "
                    "filtered and raw N_u/L_h, sigmas, prediction ('-' for stdout)")
-    s.add_argument("--config", type=Path)
-    s.add_argument("--dbc", type=Path, default=None)
+    s.add_argument("--config", type=Path, help="TOML file with an [estimator] table (the daemon's settings)")
+    s.add_argument("--dbc", type=Path, default=None, help="CAN database (default: the packaged dbc/injector.dbc)")
     params_opt(s)
     s.set_defaults(func=cmd_replay)
 
@@ -414,11 +452,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_compile)
 
     s = sub.add_parser("check-dbc", help="validate the DBC against the contract")
-    s.add_argument("--dbc", type=Path, default=None)
+    s.add_argument("--dbc", type=Path, default=None, help="CAN database (default: the packaged dbc/injector.dbc)")
     s.set_defaults(func=cmd_check_dbc)
 
     s = sub.add_parser("plot", help="PNG figures: voltage fit and error, cost contour")
-    s.add_argument("trace", type=Path)
+    s.add_argument("trace", type=Path, help="trace: CSV or MDF4")
     s.add_argument("--out", type=Path, required=True, help="output directory")
     s.add_argument("--grid", type=int, default=41, help="contour grid points per axis (default 41)")
     ident_opts(s)

@@ -10,11 +10,12 @@ import io
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from collections.abc import Iterator
 
 import numpy as np
 
 from estimator.errors import TraceError
+from estimator.model.parameters import NOMINAL_PRELOAD_N
 
 
 @dataclass
@@ -126,7 +127,7 @@ def write_trace(path: str | Path, columns: dict[str, np.ndarray], meta: dict[str
     Path(path).write_text("\n".join(lines) + "\n" + buf.getvalue())
 
 
-def injection_from_trace(trace: Trace, default_preload_n: float = 28.0):
+def injection_from_trace(trace: Trace, default_preload_n: float = NOMINAL_PRELOAD_N):
     """The :class:`~estimator.ident.measurement.Injection` of a trace (columns t_s, current_A, voltage_V;
     metadata preload_force_n, temperature_c, injector_id, time_s). Raises TraceError for unusable files."""
     from estimator.ident.measurement import Injection

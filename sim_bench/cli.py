@@ -14,6 +14,7 @@ from estimator.cli_support import base_parser, lean_service_imports, run_cli
 from estimator.errors import EstimatorError
 from estimator.model.drive import DRIVES, Drive, named_drive
 from estimator.trace_io import read_trace, write_trace
+from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench import scenarios, tracking_bench
 
 log = logging.getLogger("sim_bench")
@@ -253,6 +254,18 @@ def cmd_reliability(args: argparse.Namespace) -> int:
     return 1 if rep["failures"] else 0
 
 
+def cmd_electrical_calibration(args: argparse.Namespace) -> int:
+    """Series parts calibrated from their own current and voltage; exit 1 if a target is missed."""
+    from sim_bench import calibration_bench
+
+    if not 1 <= args.parts <= 100:
+        raise EstimatorError(f"--parts {args.parts}: must be within 1..100")
+    rep = calibration_bench.run(args.parts, args.seed)
+    print(calibration_bench.format_report(rep))
+    _write_json(args.json_out, rep)
+    return 0 if rep["passed"] else 1
+
+
 def cmd_fleet_bench(args: argparse.Namespace) -> int:
     """The fleet path on a synthetic lot at 1 and 2 workers: throughput, scaling, accuracy."""
     import os
@@ -304,48 +317,49 @@ def build_parser() -> argparse.ArgumentParser:
     _add_drive_argument(s, "standard")
     s.add_argument("--nu", type=float, default=16.39, help="coupling factor N_u in N/V (default 16.39)")
     s.add_argument("--lh-um", type=float, default=2.5, help="idle stroke L_h in µm (default 2.5)")
-    s.add_argument("--preload-n", type=float, default=28.0, help="valve preload F_open in N (default 28)")
+    s.add_argument("--preload-n", type=float, default=NOMINAL_PRELOAD_N,
+                   help=f"valve preload F_open in N (default {NOMINAL_PRELOAD_N:g}, Table 2)")
     s.add_argument("--t-end-us", type=float, default=500.0, help="simulated time in µs (default 500)")
     s.add_argument("--out", type=Path, required=True, help="output trace CSV")
     s.add_argument("--params", type=Path, default=None, help="model parameter TOML (default Tables 1-2)")
     s.set_defaults(func=cmd_simulate)
 
     s = sub.add_parser("speed-sim", help="benchmark the fast simulator")
-    s.add_argument("--batch", type=int, nargs="+", default=[1, 16, 256])
+    s.add_argument("--batch", type=int, nargs="+", default=[1, 16, 256], help="candidate batch sizes to time (default 1 16 256)")
     s.add_argument("--seconds", type=float, default=2.0, help="time per batch size (s)")
     _add_drive_argument(s, "standard")
-    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "speed-sim.json")
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "speed-sim.json", help="JSON report (default bench-results/speed-sim.json)")
     s.set_defaults(func=cmd_speed_sim)
 
     s = sub.add_parser("table3", help="Table 3: the paper's PSA No. 1 reproduced, then ten simulated actuators identified")
     s.add_argument("--fit-drive", action="store_true", help="re-derive the standard drive amplitude first")
     s.add_argument("--paper-only", action="store_true", help="only the PSA No. 1 reproduction")
     s.add_argument("--matched", action="store_true", help="plant without model error (default: with mismatch)")
-    s.add_argument("--seed", type=int, default=3)
-    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "table3.json")
+    s.add_argument("--seed", type=int, default=3, help="seed of the random draws (default 3)")
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "table3.json", help="JSON report (default bench-results/table3.json)")
     s.set_defaults(func=cmd_table3)
 
     s = sub.add_parser("node", help="the simulated injector node on a CAN bus (any python-can interface)")
     from estimator.service.bus import add_arguments as add_bus_arguments
 
     add_bus_arguments(s)
-    s.add_argument("--scenario", default="nominal", choices=tuple(scenarios.SCENARIOS))
-    s.add_argument("--injectors", type=int, default=None)
+    s.add_argument("--scenario", default="nominal", choices=tuple(scenarios.SCENARIOS), help="what the node simulates (default nominal; see the bench's scenarios)")
+    s.add_argument("--injectors", type=int, default=None, help="number of injectors (default: the scenario's)")
     s.add_argument("--rate", type=float, default=None, help="injections per second per injector")
     s.add_argument("--seconds", type=float, default=None, help="run time (default: the scenario's)")
     s.add_argument("--count", type=int, default=None, help="stop after this many injections per injector")
     _add_drive_argument(s, "the scenario's")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=int, default=0, help="seed of the random draws (default 0)")
     s.set_defaults(func=cmd_node)
 
     s = sub.add_parser("bench", help="end-to-end bench: daemon + node on a real bus, scored")
-    s.add_argument("--scenario", default="nominal", choices=(*scenarios.SCENARIOS, "all"))
+    s.add_argument("--scenario", default="nominal", choices=(*scenarios.SCENARIOS, "all"), help="scenario, or all of them (default nominal)")
     s.add_argument("--bus", default=None, help="default: socketcan:vcan0 if it exists, else a loopback hub")
     s.add_argument("--seconds", type=float, default=None, help="node run time (default: the scenario's)")
-    s.add_argument("--out", type=Path, default=DEFAULT_OUT / "bench")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", type=Path, default=DEFAULT_OUT / "bench", help="directory for the capture, JSON and plots (default bench-results/bench)")
+    s.add_argument("--seed", type=int, default=0, help="seed of the random draws (default 0)")
     s.add_argument("--quiet", action="store_true", help="no live progress line (it goes to stderr, on a terminal only)")
-    s.add_argument("--no-plots", action="store_true")
+    s.add_argument("--no-plots", action="store_true", help="do not draw the PNG figures")
     s.add_argument("--capture-format", choices=("log", "asc", "blf", "csv", "mf4"), default="log",
                    help="format of the bus capture (default log: candump -L)")
     _add_drive_argument(s, "the scenario's")
@@ -353,79 +367,87 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("daemon-bench", help="daemon: ingest rate, latency at 200 injections/s, 2x overload")
     s.add_argument("--rate", type=float, default=200.0, help="injections per second (all injectors)")
-    s.add_argument("--seconds", type=float, default=10.0)
-    s.add_argument("--bus", default=None)
-    s.add_argument("--out", type=Path, default=DEFAULT_OUT / "daemon")
-    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "daemon-bench.json")
+    s.add_argument("--seconds", type=float, default=10.0, help="seconds per phase (default 10)")
+    s.add_argument("--bus", default=None, help="INTERFACE:CHANNEL (default: vcan0 if present, else a loopback hub)")
+    s.add_argument("--out", type=Path, default=DEFAULT_OUT / "daemon", help="directory for the figures (default bench-results/daemon)")
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "daemon-bench.json", help="JSON report (default bench-results/daemon-bench.json)")
     s.set_defaults(func=cmd_daemon_bench)
 
     s = sub.add_parser("fleet-bench", help="fleet on a synthetic lot at 1 and 2 workers: throughput, accuracy")
-    s.add_argument("--injectors", type=int, default=1000)
+    s.add_argument("--injectors", type=int, default=1000, help="injectors in the synthetic lot (default 1000)")
     s.add_argument("--injections", type=int, default=1,
                    help="traces per injector (1: every injection a cold start; more: the first cold, the rest warm)")
     s.add_argument("--captures", action="store_true",
                    help="one BLF capture per injector (its injections as bus frames) instead of CSV traces")
-    s.add_argument("--workers", type=int, nargs="+", default=[1, 2])
-    s.add_argument("--seed", type=int, default=11)
-    s.add_argument("--out", type=Path, default=DEFAULT_OUT / "fleet")
-    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "fleet-bench.json")
+    s.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts to run (default 1 2)")
+    s.add_argument("--seed", type=int, default=11, help="seed of the random draws (default 11)")
+    s.add_argument("--out", type=Path, default=DEFAULT_OUT / "fleet", help="directory for the lot and the results (default bench-results/fleet)")
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "fleet-bench.json", help="JSON report (default bench-results/fleet-bench.json)")
     s.set_defaults(func=cmd_fleet_bench)
 
+    s = sub.add_parser("electrical-calibration", help="series parts calibrated from their own current and voltage, "
+                       "then identified with and without their parameters")
+    s.add_argument("--parts", type=int, default=3, help="series parts to calibrate (default 3)")
+    s.add_argument("--seed", type=int, default=3, help="seed of the first part (default 3)")
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "electrical-calibration.json",
+                   help="JSON report (default bench-results/electrical-calibration.json)")
+    s.set_defaults(func=cmd_electrical_calibration)
+
     s = sub.add_parser("lot", help="a seeded synthetic production lot (traces with serial numbers + truth)")
-    s.add_argument("--injectors", type=int, default=100)
+    s.add_argument("--injectors", type=int, default=100, help="injectors in the lot (default 100)")
     s.add_argument("--injections", type=int, default=1, help="traces per injector (1 s apart)")
     s.add_argument("--captures", action="store_true",
                    help="one BLF capture per injector (captures/SERIAL.blf) instead of CSV traces")
     _add_drive_argument(s, "standard")
-    s.add_argument("--seed", type=int, default=11)
-    s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--seed", type=int, default=11, help="seed of the random draws (default 11)")
+    s.add_argument("--out", type=Path, required=True, help="output directory (traces/, captures/, truth.csv)")
     s.set_defaults(func=cmd_lot)
 
     s = sub.add_parser("reliability", help="daemon under faults: sample periods, stalls, floods, state, commands")
     s.add_argument("--bus", default=None, help="default: socketcan:vcan0 if it exists, else a loopback hub")
-    s.add_argument("--out", type=Path, default=DEFAULT_OUT / "reliability")
-    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "reliability.json")
+    s.add_argument("--out", type=Path, default=DEFAULT_OUT / "reliability", help="directory for the daemon's files (default bench-results/reliability)")
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "reliability.json", help="JSON report (default bench-results/reliability.json)")
     s.set_defaults(func=cmd_reliability)
 
     s = sub.add_parser("hub", help="serve a loopback CAN hub (python-can-remote) on 127.0.0.1")
-    s.add_argument("--port", type=int, default=None)
+    s.add_argument("--port", type=int, default=None, help="TCP port on 127.0.0.1 (default: a free one)")
     s.set_defaults(func=cmd_hub)
 
     s = sub.add_parser("accuracy", help="single-injection accuracy vs the Cramér–Rao bound")
-    s.add_argument("--scenario", choices=("matched", "mismatch", "both"), default="both")
+    s.add_argument("--scenario", choices=("matched", "mismatch", "both"), default="both", help="exact plant, the hysteresis plant, or both (default both)")
     s.add_argument("--sweep", choices=("all", "random", "near-edge", "high-noise", "spread", "spread-chain", "chain"),
                    default="all",
                    help="random truths over the ranges; N_u near the range edges; 0.3 V voltage noise; series "
                         "parts within ±10 %% (spread; spread-chain behind an unmodelled chain); a modelled chain")
     s.add_argument("--n", type=int, default=100, help="number of random injectors per sweep (default 100)")
-    s.add_argument("--seed", type=int, default=1)
-    s.add_argument("--window-us", type=float, default=100.0)
-    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "accuracy.json")
+    s.add_argument("--seed", type=int, default=1, help="seed of the random draws (default 1)")
+    s.add_argument("--window-us", type=float, default=100.0, help="identification window in µs (default 100)")
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "accuracy.json", help="JSON report (default bench-results/accuracy.json)")
     s.set_defaults(func=cmd_accuracy)
 
     s = sub.add_parser("tracking", help="recursive estimator on injection sequences")
-    s.add_argument("--scenario", choices=("all", *tracking_bench.TRACKING), default="all")
+    s.add_argument("--scenario", choices=("all", *tracking_bench.TRACKING), default="all", help="scenario, or all of them (default all)")
     s.add_argument("--plant", choices=("default", "matched", "mismatch", "both"), default="default",
                    help="default: every scenario matched, and " + ", ".join(tracking_bench.DEFAULT_MISMATCH)
                         + " on the hysteresis plant too")
     s.add_argument("--injections", type=int, default=None, help="override the scenario's length")
     _add_drive_argument(s, "the scenario's")
-    s.add_argument("--seed", type=int, default=2)
-    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "tracking.json")
+    s.add_argument("--seed", type=int, default=2, help="seed of the random draws (default 2)")
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "tracking.json", help="JSON report (default bench-results/tracking.json)")
     s.set_defaults(func=cmd_tracking)
 
     s = sub.add_parser("speed", help="update time of the recursive estimator")
-    s.add_argument("--injections", type=int, default=300)
+    s.add_argument("--injections", type=int, default=300, help="warm updates to time (default 300)")
     _add_drive_argument(s, "standard")
-    s.add_argument("--seed", type=int, default=4)
-    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "speed.json")
+    s.add_argument("--seed", type=int, default=4, help="seed of the random draws (default 4)")
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "speed.json", help="JSON report (default bench-results/speed.json)")
     s.set_defaults(func=cmd_speed)
 
     s = sub.add_parser("calibration-traces", help="traces for eq. 25 (no valve, with s3) at several temperatures")
     s.add_argument("--out", type=Path, required=True, help="output directory")
     s.add_argument("--temps", type=float, nargs="+", default=[0.0, 25.0, 50.0, 75.0, 100.0], help="degC")
     s.add_argument("--noise-v", type=float, default=0.02, help="voltage noise (V, 1 sigma)")
-    s.add_argument("--seed", type=int, default=5)
+    s.add_argument("--seed", type=int, default=5, help="seed of the random draws (default 5)")
     _add_drive_argument(s, "standard")
     s.set_defaults(func=cmd_calibration_traces)
     return p

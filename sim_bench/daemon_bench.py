@@ -1,4 +1,4 @@
-"""Benchmarks of the daemon (issue #4): ingest/decode rate, end-to-end latency, 2x overload.
+"""Benchmarks of the daemon: ingest/decode rate, end-to-end latency, 2x overload.
 
 The feeder sends precomputed injections (no plant simulation at run time) on absolute deadlines;
 the daemon runs as its own process on vcan0 or the loopback hub. Latency is measured twice: by the
@@ -21,7 +21,8 @@ from estimator.codec.ingest import Ingest
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateState, EstimatorStatus
 from estimator.service.bus import open_bus, to_frame, to_message
-from estimator.service.daemon import STAGES
+from estimator.service.latency import STAGES
+from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench.bench import resolve_bus
 from sim_bench.procs import DaemonProcess, rss_mb
 from sim_bench.plant import Plant, PlantConfig
@@ -32,9 +33,9 @@ def injection_pool(codec: Codec, injectors: int = 4, per_injector: int = 32, see
     plant = Plant(PlantConfig())
     rng = np.random.default_rng(seed)
     pool = []
-    for k in range(per_injector):
+    for _ in range(per_injector):
         for i in range(injectors):
-            m = plant.measure(16.5 + 0.4 * i, (1.5 + 1.7 * i) * 1e-6, 28.0, rng)
+            m = plant.measure(16.5 + 0.4 * i, (1.5 + 1.7 * i) * 1e-6, NOMINAL_PRELOAD_N, rng)
             pool.append((i, m))
     return pool
 
@@ -142,7 +143,7 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
                 peak = 0.0
                 stop_rss = threading.Event()
 
-                def sample_rss() -> None:
+                def sample_rss(stop_rss: threading.Event = stop_rss) -> None:
                     nonlocal peak
                     while not stop_rss.wait(0.2):
                         peak = max(peak, rss_mb(d.pid))

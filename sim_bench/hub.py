@@ -41,7 +41,7 @@ class Hub:
         """The bus spec clients use."""
         return f"remote:ws://127.0.0.1:{self.port}/"
 
-    def start(self, timeout: float = 15.0) -> "Hub":
+    def start(self, timeout: float = 15.0) -> Hub:
         """Start the server and wait until it accepts connections; HubError if it cannot."""
         try:
             with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
@@ -67,7 +67,7 @@ class Hub:
         stop_process(self.proc, timeout=3)
         self.proc = None
 
-    def __enter__(self) -> "Hub":
+    def __enter__(self) -> Hub:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:

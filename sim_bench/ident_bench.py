@@ -1,4 +1,4 @@
-"""Benchmarks of the identification (issue #3): accuracy vs the Cramér–Rao bound, tracking, Table 3, speed.
+"""Benchmarks of the identification: accuracy vs the Cramér–Rao bound, tracking, Table 3, speed.
 
 Every benchmark is seeded, returns a JSON-ready dict and has a ``format_*`` for the table it prints.
 """
@@ -19,13 +19,14 @@ from estimator.ident.tracker import Tracker
 from estimator.model.drive import Drive
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import load_nominal
+from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench import series_part
 from sim_bench.plant import AdcConfig, Measurement, Plant, PlantConfig
 from sim_bench.table import Column, keyed, plant, render
 
 NU_RANGE = (15.0, 21.0)
 LH_RANGE_UM = (-1.0, 10.0)
-F_OPEN_N = 28.0
+F_OPEN_N = NOMINAL_PRELOAD_N
 
 
 def _injection(m: Measurement, **kw) -> Injection:
@@ -69,7 +70,7 @@ def accuracy(n: int = 60, seed: int = 1, mismatch: bool = False, window_s: float
     rows = []
     for i in range(n):
         nu = float(rng.uniform(*NU_RANGE))
-        if sweep == "near-edge":   # the issue's edges: 15.02..15.3 and 20.7..20.95 N/V
+        if sweep == "near-edge":   # the near-edge ranges: 15.02..15.3 and 20.7..20.95 N/V
             nu = float(rng.uniform(*(NEAR_EDGE_NU[i % 2])))
         lh = float(rng.uniform(*LH_RANGE_UM)) * 1e-6
         if sweep in SPREAD_SWEEPS:
@@ -126,7 +127,7 @@ HIGH_NOISE_V = 0.3
 
 
 def accuracy_failures(s: dict) -> list[str]:
-    """The issue's targets for a sweep (matched plant): what is missed, as readable phrases."""
+    """The targets of a sweep (matched plant): what is missed, as readable phrases."""
     if s["mismatch"]:
         return []
     fails = []

@@ -24,6 +24,7 @@ from estimator.model.drive import Drive, StandardDrive
 from estimator.service.bus import to_message
 from estimator.service.config import DaemonConfig
 from estimator.trace_io import write_trace
+from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench.plant import Plant, PlantConfig
 
 NU_MEAN, NU_SD = 17.5, 0.3
@@ -60,7 +61,7 @@ def make_lot(out: Path, injectors: int, injections: int = 1, seed: int = 11, win
             writer = can.Logger(str(folder / f"{serial}.blf")) if captures else None
             try:
                 for k in range(injections):
-                    f_open = 28.0 + float(rng.uniform(0, 10))
+                    f_open = NOMINAL_PRELOAD_N + float(rng.uniform(0, 10))
                     m = plants[mismatch].measure(nu, lh * 1e-6, f_open, rng)
                     if writer is not None:
                         frames = injection_frames(codec, i % CAPTURE_SLOTS, k, m.dt_s, m.current_a, m.voltage_v,

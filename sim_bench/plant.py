@@ -4,7 +4,7 @@ The plant runs on a grid ``oversample`` times finer than the measurement (so the
 contact events are resolved independently of the estimator's 0.5 µs grid), then the ADC samples
 it: Gaussian noise, 12-bit quantisation over a stated range, clipping.
 
-Mismatch option (issue #3, #5): a real actuator's voltage is not R(N_u)·I on top of the linear
+Mismatch option: a real actuator's voltage is not R(N_u)·I on top of the linear
 model but a rate-independent hysteresis of the charge, H[Q], as in Goldfarb & Celanovic (paper
 section 3.2), plus the resistance of cables and amplifier output stage. With ``mismatch`` the
 plant's voltage is ``U_linear + H[Q] + R_s·I`` where H is a Prandtl–Ishlinskii operator (a weighted
@@ -22,6 +22,7 @@ from estimator.model.chain import NO_CHAIN, MeasurementChain
 from estimator.model.drive import SAMPLE_PERIOD_S, ChopperRipple, Drive, StandardDrive, sample_count, sample_times
 from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
 from estimator.model.parameters import InjectorParameters
+from estimator.model.parameters import NOMINAL_PRELOAD_N
 
 # Prandtl–Ishlinskii operator of the mismatch plant: thresholds in C, weights in V/C. The paper
 # (section 3.3) replaces the rising branch of H[Q] by R(N_u)·I: for a trapezoidal charge, H rises
@@ -122,7 +123,7 @@ class Plant:
 
     def warm_up(self) -> None:
         """One throw-away simulation: loads the compiled kernels before real-time work starts."""
-        self.measure(17.0, 3e-6, 28.0, np.random.default_rng(0))
+        self.measure(17.0, 3e-6, NOMINAL_PRELOAD_N, np.random.default_rng(0))
 
     def measure(self, nu_n_per_v: float, lh_m: float, f_open_n: float, rng: np.random.Generator) -> Measurement:
         """One injection with truth, driven by the configured drive plus the amplifier's ripple."""

@@ -23,7 +23,8 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
+from collections.abc import Callable, Iterator
 
 import can
 
@@ -94,7 +95,7 @@ class NotifySocket:
             self.sock.settimeout(min(left, 0.2))
             try:
                 data = self.sock.recv(4096)
-            except (socket.timeout, BlockingIOError):
+            except (TimeoutError, BlockingIOError):
                 continue
             self.states.extend(data.decode(errors="replace").splitlines())
         return True
@@ -150,7 +151,7 @@ class BusMonitor(threading.Thread):
         if isinstance(rec, EstimatorStatus):
             self.heartbeats.append((now, rec))
 
-    def wait_for(self, predicate: Callable[["BusMonitor"], bool], timeout: float,
+    def wait_for(self, predicate: Callable[[BusMonitor], bool], timeout: float,
                  alive: Callable[[], bool] = lambda: True) -> bool:
         """Until ``predicate(self)`` holds (True), ``alive()`` turns False, or ``timeout`` s pass (False)."""
         t_end = time.monotonic() + timeout
@@ -206,7 +207,7 @@ class DaemonProcess:
     def alive(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
 
-    def start(self) -> "DaemonProcess":
+    def start(self) -> DaemonProcess:
         self.spawned_at = time.monotonic()
         self.proc = spawn(self.args, self.log_path, env={"NOTIFY_SOCKET": self.notify.path})
         return self

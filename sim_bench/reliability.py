@@ -24,6 +24,7 @@ from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, Command, EstimateState, EstimatorCommand, EstimatorStatus
 from estimator.ident.measurement import Injection
 from estimator.service.bus import open_bus, to_message
+from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench.bench import resolve_bus
 from sim_bench.plant import Plant, PlantConfig
 from sim_bench.procs import REPO, BusMonitor, DaemonProcess, rss_mb, watched_daemon
@@ -34,7 +35,7 @@ def _injections(n: int, seed: int) -> list[Injection]:
     rng = np.random.default_rng(seed)
     out = []
     for _ in range(n):
-        m = plant.measure(17.0, 3.0e-6, 28.0, rng)
+        m = plant.measure(17.0, 3.0e-6, NOMINAL_PRELOAD_N, rng)
         out.append(Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n))
     return out
 
@@ -93,7 +94,7 @@ def periods(bus_spec: str, out: Path, n: int = 300) -> dict:
             for k in range(n):
                 _send(bus, codec, k % 8, k % 256, inj, (500 + k) * 1e-9)
                 if k % 8 == 7:
-                    mon.wait_for(lambda m: m.heartbeats and _handled(_hb(m)) >= k - 8, 120, d.alive)
+                    mon.wait_for(lambda m, k=k: m.heartbeats and _handled(_hb(m)) >= k - 8, 120, d.alive)
                     rss.append(rss_mb(d.pid))
             mon.wait_for(lambda m: len(m.of_type(EstimateState)) >= n, 120, d.alive)
         t = np.array([t for t, _ in mon.heartbeats])
@@ -114,7 +115,7 @@ def stall(bus_spec: str, out: Path, n: int = 10, stop_s: float = STALL_S) -> dic
             for k, inj in enumerate(_injections(n, 2)):
                 frames = injection_frames(codec, 3, k, inj.dt_s, inj.current_a, inj.voltage_v)
                 stalled_injection(bus, d, mon, codec, frames, k + 1, stop_s)
-                mon.wait_for(lambda m: m.heartbeats and _hb(m).accepted + _hb(m).rejected_timeout >= k + 1, 60, d.alive)
+                mon.wait_for(lambda m, k=k: m.heartbeats and _hb(m).accepted + _hb(m).rejected_timeout >= k + 1, 60, d.alive)
         live = _hb(mon)
         code = d.stop()
     jl = out / "stall-replay.jsonl"

@@ -16,11 +16,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Generic, Iterator, NamedTuple, TypeVar
+from typing import Generic, NamedTuple, TypeVar
+from collections.abc import Iterator
 
 import numpy as np
 
 from estimator.model.drive import Drive, StandardDrive
+from estimator.model.parameters import NOMINAL_PRELOAD_N
 
 NU_AT_0C = 15.0
 NU_PER_DEGC = 0.06
@@ -54,7 +56,7 @@ class Registry(Generic[S]):
 
     def register(self, sc: S) -> S:
         """Add a scenario; ValueError for a scenario without targets or a name given twice."""
-        name = getattr(sc, "name")
+        name = sc.name
         if not isinstance(getattr(sc, "targets", None), self.targets_type):
             raise ValueError(f"{self.bench} scenario {name!r} has no targets")
         if name in self._by_name:
@@ -147,7 +149,7 @@ class Scenario:
         nu = float(np.clip(nu, 15.0, 21.0))
         lh = self.lh_um[injector % len(self.lh_um)] + self.wear_um * min(t / self.seconds, 1.0)
         mean, std = self.rail_force_n
-        f_open = 28.0 + max(0.0, mean + std * float(rng.standard_normal())) if (mean or std) else 28.0
+        f_open = NOMINAL_PRELOAD_N + max(0.0, mean + std * float(rng.standard_normal())) if (mean or std) else NOMINAL_PRELOAD_N
         return Truth(nu, lh, f_open, temp)
 
 

@@ -10,30 +10,15 @@ computes it from rail pressure), and the hysteresis/series-resistance mismatch o
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from estimator.model.chain import NO_CHAIN, MeasurementChain
-from estimator.model.parameters import InjectorParameters, load_nominal
-
-#: the structural parameters a series part varies: (table, field) of :class:`InjectorParameters`
-STRUCTURAL = (("psa", "m1_kg"), ("psa", "m2_kg"), ("psa", "m3_kg"), ("psa", "kp_n_per_m"), ("psa", "kg1_n_per_m"),
-              ("psa", "kg2_n_per_m"), ("psa", "ks_n_per_m"), ("psa", "rb_v2s_per_mn"), ("psa", "r0a_ohm"),
-              ("valve", "kv1_n_per_m"), ("valve", "sp_m"), ("valve", "m4_kg"), ("valve", "bv_ns_per_m"))
+from estimator.model.parameters import STRUCTURAL, InjectorParameters, load_nominal, scaled
 
 #: the chain of a "chain" series part: a 300 kHz filter on U, and I sampled one sample (0.5 µs) late
 TYPICAL_CHAIN = MeasurementChain.from_cutoffs(u_cutoff_hz=300e3, i_skew_s=0.5e-6)
-
-
-def scaled(params: InjectorParameters, factors: dict[str, float]) -> InjectorParameters:
-    """``params`` with the named fields (``"psa.m1_kg"``, ``"valve.sp_m"``) multiplied by the factors."""
-    psa, valve = {}, {}
-    for key, f in factors.items():
-        table, name = key.split(".")
-        target, src = (psa, params.psa) if table == "psa" else (valve, params.valve)
-        target[name] = getattr(src, name) * f
-    return InjectorParameters(replace(params.psa, **psa), replace(params.valve, **valve))
 
 
 @dataclass(frozen=True)

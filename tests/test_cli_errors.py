@@ -1,4 +1,4 @@
-"""Every CLI error path of issue #10: one readable line and a non-zero exit; batches go on past a
+"""Every CLI error path: one readable line and a non-zero exit; batches go on past a
 bad file and report it; what `calibrate` writes is usable with --params."""
 
 from __future__ import annotations

@@ -75,7 +75,7 @@ def test_output_frames_are_encoded_when_asked_for_and_equal_the_eager_encoding()
     """A Published injection encodes its frames on first access (rows do not need them), once, and they
     are the frames output_frames gives."""
     from estimator.codec.injection_frames import injection_frames
-    from estimator.service.daemon import build_pipeline
+    from estimator.pipeline import build_pipeline
     from estimator.service.config import DaemonConfig
     from estimator.service.processor import output_frames
     from sim_bench.plant import Plant, PlantConfig

@@ -1,4 +1,4 @@
-"""The Drive protocol (issue #13): one definition of the amplifier current used by the plant, the
+"""The Drive protocol: one definition of the amplifier current used by the plant, the
 identifier's valve prediction and every command; a new shape is one class plus its registration."""
 
 from __future__ import annotations

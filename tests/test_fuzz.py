@@ -118,5 +118,5 @@ def test_fuzz_100k_frames():
         faults["drop_block"] + faults["drop_header"] + faults["truncate_block"] + faults["drop_trailer"])
     # the valid injections were estimated, and the estimates converge to each injector's truth
     last = {p.injector_id: p for p in published}
-    for inj, (nu, lh) in injectors.items():
+    for inj, (_nu, lh) in injectors.items():
         assert abs(last[inj].result.lh_m * 1e6 - lh) < 0.3

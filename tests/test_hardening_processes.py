@@ -51,7 +51,7 @@ def test_300_sample_periods_keep_memory_bounded_and_heartbeats_flowing(hub, moni
                     bus.send(to_message(fr))
                 if k % 8 == 7:   # pace by the daemon: wait for the last one's estimate
                     key = (k % 8, k % 256)
-                    assert monitor.wait_for(lambda m: any((r.injector_id, r.counter) == key
+                    assert monitor.wait_for(lambda m, key=key: any((r.injector_id, r.counter) == key
                                                           for r in m.of_type(EstimateState)[-16:]), 120, d.alive), d.why()
                     rss.append(rss_mb(d.pid))
             assert monitor.wait_for(lambda m: last_heartbeat(m).accepted + last_heartbeat(m).rejected_invalid
@@ -83,7 +83,7 @@ def test_a_stall_between_header_and_trailer_is_judged_as_the_replay_judges_it(hu
             for k, inj in enumerate(injs):
                 frames = injection_frames(codec, 3, k, inj.dt_s, inj.current_a, inj.voltage_v)
                 stalled_injection(bus, d, monitor, codec, frames, k + 1)
-                done = lambda m: m.heartbeats and (last_heartbeat(m).accepted + last_heartbeat(m).rejected_timeout  # noqa: E731
+                done = lambda m, k=k: m.heartbeats and (last_heartbeat(m).accepted + last_heartbeat(m).rejected_timeout  # noqa: E731
                                                    >= k + 1)
                 assert monitor.wait_for(done, 60, d.alive), d.why()
             live_status = last_heartbeat(monitor)

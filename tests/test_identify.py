@@ -142,7 +142,7 @@ def test_l1_norm_option(sim):
 
 @pytest.mark.parametrize("mismatch,window_s", [(False, 100e-6), (True, 150e-6)])
 def test_the_plain_and_robust_searches_share_their_grids_without_changing_either(sim, mismatch, window_s):
-    """Issue #14: an automatic cold start simulates each grid both costs ask for once (over the longer
+    """An automatic cold start simulates each grid both costs ask for once (over the longer
     window when the robust one reaches further); each search ends where it ends alone."""
     from estimator.ident.cold_start import SharedGrid, cold_fit
     from estimator.ident.idle_stroke import effective_window_s, search_box
@@ -189,7 +189,7 @@ def _full_grid_profile_start(f, box, config):
 @pytest.mark.parametrize("nu_true,lh_true,slope", [(17.3, 4.1, -20.0), (15.2, -1.4, -20.0), (20.8, 9.6, 3.0),
                                                    (18.0, 0.2, 40.0)])
 def test_zoom_columns_simulate_a_window_of_rows_and_find_the_full_grids_start(nu_true, lh_true, slope):
-    """Issue #14: a zoom column simulates only the rows near its neighbours' minima (widened where
+    """A zoom column simulates only the rows near its neighbours' minima (widened where
     its minimum lands on the window's edge) and the start point is the full grid's, bit for bit,
     for a narrow sloping valley like eq. 28's (slope in µm per N/V)."""
     from estimator.ident.cold_start import profile_start
@@ -246,7 +246,7 @@ def test_a_single_bad_sample_anywhere_rejects_the_trace():
 @pytest.mark.parametrize("nu,lh_um,seed", [(16.0, 1.5, 41), (19.5, 7.0, 42), (17.5, 3.5, 43), (20.6, -0.5, 44),
                                            (15.4, 8.0, 45)])
 def test_local_first_cold_start_finds_the_global_searchs_estimate_with_a_fifth_of_the_simulations(sim, nu, lh_um, seed):
-    """Issue #12: the default cold start refines from the start point and keeps the fit after checking
+    """The default cold start refines from the start point and keeps the fit after checking
     it; on a matched plant that is the global search's estimate (within a fifth of a standard
     deviation: both stop within the convergence tolerance) at a fifth of the simulations or less."""
     inj, _ = measured(nu, lh_um, seed)

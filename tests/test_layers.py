@@ -30,6 +30,15 @@ def imported_modules(path):
             yield node.module
 
 
+def test_only_the_service_layer_imports_the_daemon():
+    """The pipeline is built in :mod:`estimator.pipeline`; the daemon is one of its users, not its source."""
+    for f in [*(REPO / "estimator").rglob("*.py"), *(REPO / "sim_bench").rglob("*.py")]:
+        if f.parent.name == "service" and f.parent.parent.name == "estimator":
+            continue
+        bad = [m for m in imported_modules(f) if m == "estimator.service.daemon"]
+        assert not bad, f"{f.relative_to(REPO)} imports estimator.service.daemon"
+
+
 @pytest.mark.parametrize("package", sorted(FORBIDDEN))
 def test_layer_imports(package):
     files = list((REPO / package).rglob("*.py"))

@@ -1,4 +1,4 @@
-"""One source of truth (issue #13): the record classes are the codec's registry, the automaton's
+"""One source of truth: the record classes are the codec's registry, the automaton's
 constants come from dynamics, the bench scenarios carry their targets."""
 
 from __future__ import annotations

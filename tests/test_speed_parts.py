@@ -10,7 +10,7 @@ from estimator.codec.ingest import Counters
 from estimator.codec.records import Codec
 from estimator.ident.config import TrackerConfig
 from estimator.ident.tracker import Tracker
-from estimator.service.daemon import STAGES, Stats
+from estimator.service.latency import STAGES, Stats
 from estimator.service.processor import Processor
 
 

@@ -1,4 +1,4 @@
-"""systemd units: verified with systemd-analyze where it is installed; the hardening the issue asks for."""
+"""systemd units: verified with systemd-analyze where it is installed; the hardening a deployment needs."""
 
 from __future__ import annotations
 

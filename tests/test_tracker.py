@@ -33,7 +33,7 @@ def test_converges_and_warm_updates_are_cheap(sim):
 
 
 def test_fast_ramp_followed_without_lag_or_rejection(sim):
-    """N_u +0.068 N/V per injection at 1 injection/s (the issue's 15.5 -> 19.5 over 60), no temperature."""
+    """N_u +0.068 N/V per injection at 1 injection/s (15.5 -> 19.5 over 60), no temperature."""
     tr = Tracker(sim=sim)
     nu = lambda k: 16.0 + 0.068 * max(k - 10, 0)   # noqa: E731
     res = [tr.update(at(measured(nu(k), 3.0, 1200 + k)[0], float(k))) for k in range(30)]

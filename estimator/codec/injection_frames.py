@@ -9,10 +9,11 @@ import numpy as np
 from estimator.codec.frame import Frame
 from estimator.codec.records import Codec, InjectionHeader, InjectionTrailer
 from estimator.codec.samples import samples_crc32
+from estimator.model.parameters import NOMINAL_PRELOAD_N
 
 
 def injection_frames(codec: Codec, injector_id: int, counter: int, sample_period_s: float, current_a: np.ndarray,
-                     voltage_v: np.ndarray, preload_force_n: float = 28.0,
+                     voltage_v: np.ndarray, preload_force_n: float = NOMINAL_PRELOAD_N,
                      fuel_temperature_c: float = 40.0) -> list[Frame]:
     """Header, ceil(N/per_block) sample blocks and trailer (with the CRC over the raw samples)."""
     cur_raw, vol_raw = codec.layout.to_raw(current_a, voltage_v)

@@ -56,7 +56,7 @@ class Record:
         """Values of ``CODEC_SIGNALS`` for encoding."""
         return {}
 
-    def from_signals(self, values: dict[str, Any]) -> "Record":
+    def from_signals(self, values: dict[str, Any]) -> Record:
         """The record after decoding, given all decoded signal values (default: itself)."""
         return self
 
@@ -139,7 +139,7 @@ class ValvePrediction(Record):
         """``Valid``: one bit per finite value (NaN has no wire form)."""
         return {"Valid": sum(bit for name, bit in self._VALID_BITS if math.isfinite(getattr(self, name)))}
 
-    def from_signals(self, values: dict[str, Any]) -> "ValvePrediction":
+    def from_signals(self, values: dict[str, Any]) -> ValvePrediction:
         """NaN for the values whose ``Valid`` bit is clear."""
         valid = int(values["Valid"])
         return ValvePrediction(self.injector_id, self.counter,

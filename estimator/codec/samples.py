@@ -43,7 +43,7 @@ class SampleLayout:
     length: int             # frame length in bytes
 
     @classmethod
-    def from_message(cls, msg: Message) -> "SampleLayout":
+    def from_message(cls, msg: Message) -> SampleLayout:
         pairs = sample_pairs(msg)
         if not pairs:
             raise ContractError("InjectionSamples has no Current_k/Voltage_k pairs")

@@ -53,7 +53,7 @@ def _worker_parts(cfg: Any) -> tuple[Any, Any]:
     for k, v in WORKER_ENV.items():
         os.environ.setdefault(k, v)
     keep_heap()
-    from estimator.service.daemon import build_codec, build_pool
+    from estimator.pipeline import build_codec, build_pool
 
     pool_key = (cfg.params, cfg.max_sample_periods, cfg.sample_periods_ns)
     if pool_key not in _POOLS:

@@ -28,6 +28,7 @@ import numpy as np
 from numba import njit
 
 from estimator.ident.cost import MAD_PER_SIGMA, NOISE_FLOOR_V
+from estimator.model.direct_call import DirectCall
 
 SMOOTH_COLUMNS = 24          # cosines 0..23: up to ~115 kHz in a 100 µs window
 LOW_COLUMNS = 8              # cosines 0..7 (up to ~35 kHz): where most structural errors leave their residual
@@ -105,16 +106,48 @@ def assess(residual_v: np.ndarray, fitted: int = 2, structure_threshold: float =
     """Test a fit's residual (V, the samples of its cost window; projected off the nuisance span in
     robust mode) for structure the model left; ``fitted`` is the number of fitted directions (the
     parameters and the nuisance columns), which the residual's degrees of freedom lose."""
-    r = np.asarray(residual_v, dtype=float)
+    r = np.ascontiguousarray(residual_v, dtype=float)
     n = r.size
-    sigma = noise_level_v(r)
-    if not (n > fitted + 2 and math.isfinite(sigma) and np.all(np.isfinite(r))):
+    if n < 3:
+        return Adequacy(float("nan"), float("nan"), float("nan"), float("nan"), False)
+    sigma, structure, low, energy = _STATISTICS(r, _rows(n), TRIM_SIGMA, NOISE_FLOOR_V, LOW_COLUMNS)
+    if not (n > fitted + 2 and math.isfinite(sigma) and math.isfinite(energy)):
         return Adequacy(float("nan"), float("nan"), float("nan"), sigma, False)
-    c = smooth_basis(n).T @ r
-    c2 = c * c / sigma ** 2
-    structure, low = float(c2.sum()), float(c2[:LOW_COLUMNS].sum())
     dof = n - fitted
-    excess = (float(r @ r) / sigma ** 2 - dof) / math.sqrt(2.0 * dof)
+    excess = (energy / sigma ** 2 - dof) / math.sqrt(2.0 * dof)
     adequate = structure <= structure_threshold and low <= structure_threshold * LOW_THRESHOLD / STRUCTURE_THRESHOLD \
         and excess <= excess_threshold
     return Adequacy(structure, low, excess, sigma, adequate)
+
+
+@functools.lru_cache(maxsize=32)
+def _rows(n: int) -> np.ndarray:
+    """:func:`smooth_basis` transposed, C-contiguous (a column per row), read-only."""
+    rows = np.ascontiguousarray(smooth_basis(n).T)
+    rows.setflags(write=False)
+    return rows
+
+
+@njit(cache=True, nogil=True)
+def _statistics(r, rows, trim, floor, low_columns):
+    """(noise level V, structure, low, residual energy V^2) of one residual in one compiled call;
+    ``rows`` the smooth basis's columns as rows."""
+    sigma = _noise_level(r, trim, floor)
+    var = sigma * sigma
+    structure = 0.0
+    low = 0.0
+    for j in range(rows.shape[0]):
+        c = 0.0
+        for k in range(r.shape[0]):
+            c += rows[j, k] * r[k]
+        c2 = c * c / var
+        structure += c2
+        if j < low_columns:
+            low += c2
+    energy = 0.0
+    for k in range(r.shape[0]):
+        energy += r[k] * r[k]
+    return sigma, structure, low, energy
+
+
+_STATISTICS = DirectCall(_statistics)   # r: C float64 1-D, rows: read-only C float64 2-D, floats, an int

@@ -9,6 +9,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from estimator.model.parameters import InjectorParameters
+
+# the search's margin beyond the parameters' N_u range: an injector at 20.99 N/V whose noise puts its
+# estimate at 21.01 is not "at a bound" (the laws of eqs. 21-22 are smooth there)
+NU_SEARCH_MARGIN_N_PER_V = 0.1
+
 
 def _positive(obj: object, *names: str, allow_zero: bool = False) -> None:
     for name in names:
@@ -28,8 +34,8 @@ class IdentConfig:
     norm: str = "l2"
     robust: str = "auto"                   # "auto", "on" or "off"
     model_error_threshold: float = 40.0    # chi-square(6) statistic; P(>40 | correct model) < 1e-6
-    nu_bounds_n_per_v: tuple[float, float] = (14.9, 21.1)   # Table 1's 15..21 N/V and the simulator's margin
-    lh_bounds_um: tuple[float, float] = (-2.0, 10.0)
+    nu_bounds_n_per_v: tuple[float, float] | None = None   # N/V; None: the parameters' N_u range and NU_SEARCH_MARGIN
+    lh_bounds_um: tuple[float, float] | None = None        # µm; None: the parameters' L_h range
     grid: tuple[int, int] = (13, 25)       # N_u x L_h points of the cold-start grid
     zoom_points: int = 9                   # N_u columns per zoom of the cold start's profile search
     zooms: int = 2                         # zooms of the profile search (each 1/4 of the previous span)
@@ -42,7 +48,7 @@ class IdentConfig:
     adequacy_structure: float = 60.0       # chi-square(24) of the residual's smooth part above which the model is inadequate
                                            # (its lowest 8 columns: 0.6 of it)
     adequacy_excess_z: float = 6.0         # the whole residual's energy above noise (sd) above which it is inadequate
-    mismatch_floor: tuple[float, float] = (0.01, 0.3)   # model-error sigma of an inadequate fit: N_u relative, L_h µm
+    mismatch_floor: tuple[float, float] = (0.01, 0.6)   # model-error sigma of an inadequate fit: N_u relative, L_h µm
     mismatch_scale: tuple[float, float] = (0.002, 0.18)  # ... plus this per sqrt(structure chi2 / 24): N_u relative, L_h µm
     preload_rel_sigma: float = 0.0         # relative uncertainty (1 sigma) of the header's PreloadForce; enters sigma
 
@@ -69,12 +75,28 @@ class IdentConfig:
                 raise ValueError(f"{name} {v!r} must be two numbers >= 0 (relative N_u, µm)")
         if not (20e-6 <= self.window_s <= 2e-3):
             raise ValueError(f"window {self.window_s * 1e6:.1f} µs must be within 20..2000 µs")
-        lo, hi = self.nu_bounds_n_per_v
-        if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):
-            raise ValueError(f"N_u bounds {self.nu_bounds_n_per_v} N/V are not an interval")
-        lo, hi = self.lh_bounds_um
-        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-            raise ValueError(f"L_h bounds {self.lh_bounds_um} µm are not an interval")
+        if self.nu_bounds_n_per_v is not None:
+            lo, hi = self.nu_bounds_n_per_v
+            if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):
+                raise ValueError(f"N_u bounds {self.nu_bounds_n_per_v} N/V are not an interval")
+        if self.lh_bounds_um is not None:
+            lo, hi = self.lh_bounds_um
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise ValueError(f"L_h bounds {self.lh_bounds_um} µm are not an interval")
+
+    def nu_range(self, params: InjectorParameters) -> tuple[float, float]:
+        """The N_u search range in N/V: the configured one, else the parameters' range (Table 1's
+        15..21 N/V) widened by :data:`NU_SEARCH_MARGIN_N_PER_V`."""
+        if self.nu_bounds_n_per_v is not None:
+            return self.nu_bounds_n_per_v
+        psa = params.psa
+        return psa.nu_min_n_per_v - NU_SEARCH_MARGIN_N_PER_V, psa.nu_max_n_per_v + NU_SEARCH_MARGIN_N_PER_V
+
+    def lh_range(self, params: InjectorParameters) -> tuple[float, float]:
+        """The L_h search range in µm: the configured one, else the parameters' (Table 2's -2..10 µm)."""
+        if self.lh_bounds_um is not None:
+            return self.lh_bounds_um
+        return params.valve.lh_min_m * 1e6, params.valve.lh_max_m * 1e6
         if min(self.grid) < 3 or self.zoom_points < 3 or self.zooms < 0 or self.max_cycles < 1:
             raise ValueError("grid needs >= 3 points per axis, zoom_points >= 3, zooms >= 0, max_cycles >= 1")
 
@@ -110,6 +132,7 @@ class TrackerConfig:
     robust_on_after: int = 3                # consecutive injections with model error to switch robust on
     robust_off_after: int = 20              # consecutive clean injections to switch it off again
     robust_floor: tuple[float, float] = (0.02, 0.1)  # added raw sigma (N/V, µm) in robust mode: bias
+    mismatch_on_after: int = 2              # consecutive mismatched injections that make an adequate injector mismatched
     mismatch_clear_after: int = 10          # consecutive adequate injections before an injector's model mismatch is cleared
 
     def __post_init__(self) -> None:
@@ -120,7 +143,7 @@ class TrackerConfig:
         if not math.isfinite(self.slope_n_per_v_degc):
             raise ValueError(f"slope_n_per_v_degc = {self.slope_n_per_v_degc!r} must be a number")
         for name in ("max_consecutive_outliers", "warm_cycles", "robust_on_after", "robust_off_after",
-                     "mismatch_clear_after"):
+                     "mismatch_on_after", "mismatch_clear_after"):
             v = getattr(self, name)
             if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
                 raise ValueError(f"{name} = {v!r} must be a whole number >= 1")

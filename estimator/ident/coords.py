@@ -29,12 +29,12 @@ class NuLh(NamedTuple):
         return np.array([self.nu_n_per_v, self.lh_um], dtype=float)
 
     @classmethod
-    def of(cls, x: np.ndarray) -> "NuLh":
+    def of(cls, x: np.ndarray) -> NuLh:
         """From an array ``[N_u N/V, L_h µm]``."""
         return cls(float(x[0]), float(x[1]))
 
     @classmethod
-    def from_si(cls, nu_n_per_v: float, lh_m: float) -> "NuLh":
+    def from_si(cls, nu_n_per_v: float, lh_m: float) -> NuLh:
         """From N_u in N/V and L_h in m."""
         return cls(float(nu_n_per_v), float(lh_m) * UM_PER_M)
 

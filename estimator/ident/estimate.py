@@ -42,6 +42,7 @@ class Estimate:
     structure_chi2: float = float("nan")
     model_error_cov: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
     model_error_d: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    mismatch: bool = False    # the model cannot explain the samples (``model_error_cov`` is then added)
 
     @property
     def point(self) -> NuLh:

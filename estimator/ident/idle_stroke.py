@@ -41,11 +41,12 @@ FLIP_MARGIN = 16.0      # chi-square units: the fit not chosen is ringed too whe
 def search_box(config: IdentConfig, sim: FastSimulator, f_open_n: float) -> Box:
     """The search bounds in (N/V, µm): the configured bounds, the simulator's N_u range, and the
     feasibility limit of L_h (no start in Σ3) with a small margin."""
-    lo_nu = max(config.nu_bounds_n_per_v[0], sim.nu_range[0])
-    hi_nu = min(config.nu_bounds_n_per_v[1], sim.nu_range[1])
+    nu, lh = config.nu_range(sim.params), config.lh_range(sim.params)
+    lo_nu = max(nu[0], sim.nu_range[0])
+    hi_nu = min(nu[1], sim.nu_range[1])
     lh_feasible = dyn.min_feasible_lh_m(sim.params, f_open_n) * UM_PER_M + 0.02
-    lo_lh = max(config.lh_bounds_um[0], lh_feasible)
-    return Box(np.array([lo_nu, lo_lh]), np.array([hi_nu, config.lh_bounds_um[1]]))
+    lo_lh = max(lh[0], lh_feasible)
+    return Box(np.array([lo_nu, lo_lh]), np.array([hi_nu, lh[1]]))
 
 
 def effective_window_s(config: IdentConfig, injection: Injection, robust: bool) -> float:
@@ -240,4 +241,4 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
     diff = x - other if mismatch and other is not None and np.all(np.isfinite(other)) else np.zeros(2)
     return Estimate(float(x[0]), float(x[1] / UM_PER_M), cov_to_si(cov_x), fit.paper_cost_vs, fit.criterion,
                     evaluations + 1, status, msg, robust, stat, fit.sigma_v, tc, to, stroke, fit.jtj, d, structure, bias,
-                    diff)
+                    diff, mismatch)

@@ -15,6 +15,7 @@ from numba import njit
 from estimator.errors import TraceError
 from estimator.model.chain import MeasurementChain
 from estimator.model.drive import SAMPLE_PERIOD_REL_TOL, TableDrive, sample_count
+from estimator.model.parameters import NOMINAL_PRELOAD_N
 
 MIN_WINDOW_S = 40e-6          # shorter windows hold too little of the charging phase to identify anything
 MAX_ABS_CURRENT_A = 100.0     # beyond any injector amplifier
@@ -70,14 +71,14 @@ class Injection:
     current_a: np.ndarray
     voltage_v: np.ndarray
     dt_s: float
-    f_open_n: float = 28.0
+    f_open_n: float = NOMINAL_PRELOAD_N
     injector_id: int = 0
     counter: int = 0
     temperature_c: float = float("nan")
     time_s: float = float("nan")
     chain_corrected: bool = False
 
-    def through_chain(self, chain: MeasurementChain) -> "Injection":
+    def through_chain(self, chain: MeasurementChain) -> Injection:
         """The actuator's own current and voltage with the amplifier's ``chain`` undone (once: an
         injection already corrected, or an identity chain, is returned as it is)."""
         if self.chain_corrected or chain.identity:
@@ -127,7 +128,7 @@ class Injection:
             return "flat current (no charging pulse)"
         return None
 
-    def window(self, t_end_s: float) -> "Injection":
+    def window(self, t_end_s: float) -> Injection:
         """The samples with t <= t_end_s (a view-sized copy)."""
         k = min(self.n, sample_count(t_end_s, self.dt_s))
         return Injection(self.current_a[:k], self.voltage_v[:k], self.dt_s, self.f_open_n,
@@ -135,7 +136,7 @@ class Injection:
 
     @classmethod
     def from_samples(cls, t_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray,
-                     f_open_n: float = 28.0, **kw: object) -> "Injection":
+                     f_open_n: float = NOMINAL_PRELOAD_N, **kw: object) -> Injection:
         """Build from sample times; raises :class:`TraceError` unless they are uniform and start at 0."""
         t = np.asarray(t_s, dtype=float)
         if t.ndim != 1 or t.size < 3:

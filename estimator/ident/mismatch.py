@@ -15,7 +15,7 @@ units over 24 columns), the larger the error: ``g = sqrt(max(1, structure / 24))
 
     outer(d, d) + diag(floor^2 + g^2 scale^2)
 
-(``mismatch_floor`` 1 % of N_u and 0.3 µm, ``mismatch_scale`` 0.2 % and 0.18 µm by default) is added
+(``mismatch_floor`` 1 % of N_u and 0.6 µm, ``mismatch_scale`` 0.2 % and 0.18 µm by default) is added
 to the fit's covariance. The four numbers were measured on seeded series parts with every structural
 parameter within ±10 % of Tables 1-2 and with a measurement chain
 (``python -m sim_bench accuracy --sweep spread``): RMS(error/sigma) about 1 there, where the fit's

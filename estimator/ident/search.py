@@ -7,7 +7,7 @@ batch per step (the fast simulator is ~5x cheaper per candidate in batches than 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 from numba import njit

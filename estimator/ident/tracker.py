@@ -110,6 +110,7 @@ class TrackerState:
     updates: int = 0
     mismatch: bool = False
     mismatch_clean: int = 0
+    mismatch_run: int = 0
     model_error_d: list[float] = field(default_factory=lambda: [0.0, 0.0])
     model_error_structure: float | None = None
     version: int = STATE_VERSION
@@ -119,14 +120,15 @@ class TrackerState:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: Any) -> "TrackerState":
+    def from_dict(cls, d: Any) -> TrackerState:
         """Inverse of :meth:`to_dict`, validating every field; ValueError names the first bad one."""
         if not isinstance(d, dict) or d.get("version") != STATE_VERSION:
             raise ValueError(f"not a tracker state of version {STATE_VERSION}")
         st = cls()
         for name in ("initialized", "robust", "mismatch"):
             setattr(st, name, _check_bool(d, name, getattr(st, name)))
-        for name in ("model_error_run", "clean_run", "doubts", "accepted", "rejected", "updates", "mismatch_clean"):
+        for name in ("model_error_run", "clean_run", "doubts", "accepted", "rejected", "updates", "mismatch_clean",
+                 "mismatch_run"):
             setattr(st, name, _check_count(d, name))
         st.model_error_d = _check_array(d, "model_error_d", (2,), True).tolist() if "model_error_d" in d else [0.0, 0.0]
         st.model_error_structure = _check_optional_float(d, "model_error_structure")
@@ -157,7 +159,7 @@ class TrackerState:
         return st
 
     def with_prior(self, nu_n_per_v: float, lh_um: float, sigma: tuple[float, float] = (0.3, 1.0),
-                   slope: float = 0.06, slope_sigma: float = 0.03) -> "TrackerState":
+                   slope: float = 0.06, slope_sigma: float = 0.03) -> TrackerState:
         """A state that starts from a given prior (used by EstimatorCommand 'set prior')."""
         x, p = kalman.initial(np.array([nu_n_per_v, lh_um], dtype=float), np.diag(np.square(sigma)), 0.01 ** 2,
                               slope, slope_sigma ** 2)
@@ -275,8 +277,11 @@ class TrackResult:
 
 
 def _robust_cov(est: Estimate, config: TrackerConfig) -> np.ndarray:
-    """The raw estimate's covariance in (N/V, µm), with the bias floor of robust mode."""
-    cov = est.cov_um
+    """The raw estimate's measurement covariance for the filter in (N/V, µm): its noise part, with the
+    bias floor of robust mode. A mismatched estimate's model error is left out here: it is the same
+    for every injection of the injector (a bias, not noise), so the filter follows changes as closely
+    as on an adequate model, and the model error is added to what is published (:func:`_widen`)."""
+    cov = est.cov_um - est.model_error_cov
     if est.robust:
         cov = cov + np.diag(np.square(config.robust_floor))
     return cov
@@ -318,7 +323,7 @@ def _cold_estimate(state: TrackerState, inj: Injection, sim: FastSimulator, conf
     return identify(inj, sim, config.ident if mode == config.ident.robust else replace(config.ident, robust=mode))
 
 
-_BOXES: "weakref.WeakKeyDictionary[FastSimulator, dict]" = weakref.WeakKeyDictionary()
+_BOXES: weakref.WeakKeyDictionary[FastSimulator, dict] = weakref.WeakKeyDictionary()
 _BOXES_PER_SIMULATOR = 16
 
 
@@ -403,16 +408,13 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
 
     x_pred, p_pred = held
     inn = kalman.innovation(x_pred, p_pred, z, r)
-    if not (st.mismatch or st.robust) and mismatched(raw):
-        # an injector the model explained, and an injection it cannot: its model-error sigma would
-        # let a glitch through the gate, so gate with the fit's own covariance
-        own = kalman.innovation(x_pred, p_pred, z, r - raw.model_error_cov).d2
-        if own > config.gate_chi2:
-            st.rejected += 1
-            reason = (f"outlier (innovation chi2 {own:.1f} > {config.gate_chi2:.1f} with the model "
-                      f"mismatched on this injection only)")
-            return st, _publish(_widen(held, st, config), raw, Status.REJECTED, reason, sim, inj, predict=True,
-                                outliers=1)
+    if not (st.mismatch or st.robust) and mismatched(raw) and inn.d2 > config.gate_chi2:
+        # an injector the model explained, and an injection it cannot explain that disagrees: a glitch
+        st.rejected += 1
+        reason = (f"outlier (innovation chi2 {inn.d2:.1f} > {config.gate_chi2:.1f}, the model mismatched "
+                  f"on this injection only)")
+        return st, _publish(_widen(held, st, config), raw, Status.REJECTED, reason, sim, inj, predict=True,
+                            outliers=1)
     if inn.d2 <= config.gate_chi2:
         outliers = 0
         if st.pending is not None:     # the injection in doubt was not confirmed: an outlier
@@ -543,19 +545,38 @@ def _embed(r: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 def mismatched(raw: Estimate) -> bool:
     """True if the raw estimate's model could not explain its samples (it carries a model error)."""
-    return raw.robust or bool(np.any(raw.model_error_cov))
+    return raw.robust or raw.mismatch
+
+
+MODEL_ERROR_WEIGHT = 0.2   # weight of the newest injection in an injector's model-error sizing
 
 
 def _note_mismatch(st: TrackerState, raw: Estimate, config: TrackerConfig) -> None:
-    """Keep the injector's model-mismatch flag: set by a mismatched accepted injection, cleared after
-    ``mismatch_clear_after`` adequate ones in a row."""
+    """Keep the injector's model-mismatch flag: set by its first estimate if that is mismatched, else by
+    ``mismatch_on_after`` mismatched accepted injections in a row; cleared after ``mismatch_clear_after``
+    adequate ones in a row."""
     if mismatched(raw):
-        st.mismatch, st.mismatch_clean = True, 0
-        if np.any(raw.model_error_d):
-            st.model_error_d = [float(v) for v in raw.model_error_d]
+        # the injector's model error is the same from one injection to the next, but each injection
+        # sizes it with its own noise: a running mean square of the sizings (the first one alone at first)
+        first = not st.mismatch
+        st.mismatch_run += 1
+        # the first estimate of an injector decides at once; later, one inadequate injection among
+        # adequate ones is the test's false-alarm rate (about 1 in 1000), not this injector's model
+        if st.mismatch or st.accepted <= 1 or st.mismatch_run >= config.mismatch_on_after:
+            st.mismatch = True
+        st.mismatch_clean = 0
+        d = raw.model_error_d
+        if np.any(d):
+            old = np.zeros(2) if first else np.asarray(st.model_error_d)
+            w = 1.0 if first else MODEL_ERROR_WEIGHT
+            st.model_error_d = [float(v) for v in np.sign(d) * np.sqrt((1 - w) * old ** 2 + w * np.square(d))]
         if math.isfinite(raw.structure_chi2):
-            st.model_error_structure = float(raw.structure_chi2)
-    elif st.mismatch:
+            prev = st.model_error_structure
+            st.model_error_structure = float(raw.structure_chi2 if first or prev is None else
+                                             (1 - MODEL_ERROR_WEIGHT) * prev + MODEL_ERROR_WEIGHT * raw.structure_chi2)
+        return
+    st.mismatch_run = 0
+    if st.mismatch:
         st.mismatch_clean += 1
         if st.mismatch_clean >= config.mismatch_clear_after:
             st.mismatch, st.mismatch_clean, st.model_error_d = False, 0, [0.0, 0.0]
@@ -687,9 +708,10 @@ class Tracker:
         state dropped (the dropped ones are gone: the next save will not contain them)."""
         ident = self.config.ident
         psa = self.params.psa
-        nu_lo = max(ident.nu_bounds_n_per_v[0], psa.nu_min_n_per_v - NU_EXTRAPOLATION_N_PER_V)
-        nu_hi = min(ident.nu_bounds_n_per_v[1], psa.nu_max_n_per_v + NU_EXTRAPOLATION_N_PER_V)
-        box = Box(np.array([nu_lo, ident.lh_bounds_um[0]]), np.array([nu_hi, ident.lh_bounds_um[1]]))
+        nu, lh = ident.nu_range(self.params), ident.lh_range(self.params)
+        nu_lo = max(nu[0], psa.nu_min_n_per_v - NU_EXTRAPOLATION_N_PER_V)
+        nu_hi = min(nu[1], psa.nu_max_n_per_v + NU_EXTRAPOLATION_N_PER_V)
+        box = Box(np.array([nu_lo, lh[0]]), np.array([nu_hi, lh[1]]))
         problems = []
         for inj_id, st in states.items():
             why = physical_problem(st, self.config, box)

@@ -54,7 +54,7 @@ class MeasurementChain:
                 raise ParameterError(f"{name} = {v * 1e6:g} µs must be within {low * 1e6:g}..{limit * 1e6:g} µs")
 
     @classmethod
-    def from_cutoffs(cls, u_cutoff_hz: float = 0.0, i_cutoff_hz: float = 0.0, i_skew_s: float = 0.0) -> "MeasurementChain":
+    def from_cutoffs(cls, u_cutoff_hz: float = 0.0, i_cutoff_hz: float = 0.0, i_skew_s: float = 0.0) -> MeasurementChain:
         """A chain from the filters' -3 dB frequencies in Hz (0 = no filter)."""
         def tau(f: float) -> float:
             if not (isinstance(f, (int, float)) and math.isfinite(f) and f >= 0):

@@ -16,7 +16,8 @@ one :func:`register_drive` call): the plant, the scenarios and the commands take
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -138,7 +139,7 @@ class TableDrive(TimeFunction):
     dt_s: float | None = None     # uniform sampling from t = 0 (s), None: arbitrary times
 
     @classmethod
-    def from_table(cls, t_s: np.ndarray, current_a: np.ndarray) -> "TableDrive":
+    def from_table(cls, t_s: np.ndarray, current_a: np.ndarray) -> TableDrive:
         """Raises :class:`TraceError` for NaN values, unequal lengths or non-increasing times."""
         t = np.asarray(t_s, dtype=float)
         i = np.asarray(current_a, dtype=float)
@@ -151,7 +152,7 @@ class TableDrive(TimeFunction):
         return cls(t, i)
 
     @classmethod
-    def sampled(cls, current_a: np.ndarray, dt_s: float) -> "TableDrive":
+    def sampled(cls, current_a: np.ndarray, dt_s: float) -> TableDrive:
         """The current ``current_a`` sampled at 0, dt, 2 dt, ... (A, s); zero after the last sample."""
         i = np.asarray(current_a, dtype=float)
         return cls(np.arange(i.size) * dt_s, i, float(dt_s))

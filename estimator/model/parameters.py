@@ -10,7 +10,8 @@ import math
 import sys
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -100,8 +101,8 @@ class PsaParameters:
     rb_v2s_per_mn: float
     r0a_ohm: float
     r0b_v_per_n: float
-    nu_min_n_per_v: float = 15.0
-    nu_max_n_per_v: float = 21.0
+    nu_min_n_per_v: float
+    nu_max_n_per_v: float
 
     def __post_init__(self) -> None:
         _check_fields(self)
@@ -111,7 +112,7 @@ class PsaParameters:
                 f"nu_max_n_per_v = {self.nu_max_n_per_v} N/V")
 
     @classmethod
-    def from_mapping(cls, values: Mapping[str, Any]) -> "PsaParameters":
+    def from_mapping(cls, values: Mapping[str, Any]) -> PsaParameters:
         """Build from a mapping of field name to SI value (e.g. the TOML table ``[psa]``)."""
         return _from_mapping(cls, values, "PSA")
 
@@ -137,7 +138,7 @@ class PsaParameters:
         """Material damping b_p = R_b N_u^2, in N*s/m."""
         return self.rb_v2s_per_mn * nu_n_per_v ** 2
 
-    def with_nu_range(self, nu_min: float, nu_max: float) -> "PsaParameters":
+    def with_nu_range(self, nu_min: float, nu_max: float) -> PsaParameters:
         """A copy with another admissible N_u range (N/V)."""
         return replace(self, nu_min_n_per_v=nu_min, nu_max_n_per_v=nu_max)
 
@@ -164,9 +165,9 @@ class ValveParameters:
     sp_m: float
     bf_ns_per_m: float
     bv_ns_per_m: float
-    f_open_n: float = 28.0
-    lh_min_m: float = -2e-6
-    lh_max_m: float = 10e-6
+    f_open_n: float
+    lh_min_m: float
+    lh_max_m: float
 
     def __post_init__(self) -> None:
         _check_fields(self)
@@ -175,7 +176,7 @@ class ValveParameters:
                 f"lh_min_m = {self.lh_min_m} m must be below lh_max_m = {self.lh_max_m} m")
 
     @classmethod
-    def from_mapping(cls, values: Mapping[str, Any]) -> "ValveParameters":
+    def from_mapping(cls, values: Mapping[str, Any]) -> ValveParameters:
         """Build from a mapping of field name to SI value (e.g. the TOML table ``[valve]``)."""
         return _from_mapping(cls, values, "valve")
 
@@ -194,7 +195,7 @@ class InjectorParameters:
     chain: MeasurementChain = NO_CHAIN
 
     @classmethod
-    def from_toml(cls, path: str | Path) -> "InjectorParameters":
+    def from_toml(cls, path: str | Path) -> InjectorParameters:
         """Read ``[psa]`` and ``[valve]`` tables (SI values) and an optional ``[chain]`` table
         (``u_filter_tau_s``, ``i_filter_tau_s``, ``i_skew_s``: :class:`MeasurementChain`) from a TOML file."""
         path = Path(path)
@@ -236,3 +237,26 @@ def load_nominal() -> InjectorParameters:
     if _NOMINAL is None:
         _NOMINAL = InjectorParameters.from_toml(NOMINAL_FILE)
     return _NOMINAL
+
+
+#: the structural parameters of an injector that series parts vary and an electrical calibration fits:
+#: (table, field) of :class:`InjectorParameters`
+STRUCTURAL = (("psa", "m1_kg"), ("psa", "m2_kg"), ("psa", "m3_kg"), ("psa", "kp_n_per_m"), ("psa", "kg1_n_per_m"),
+              ("psa", "kg2_n_per_m"), ("psa", "ks_n_per_m"), ("psa", "rb_v2s_per_mn"), ("psa", "r0a_ohm"),
+              ("valve", "kv1_n_per_m"), ("valve", "sp_m"), ("valve", "m4_kg"), ("valve", "bv_ns_per_m"))
+
+
+def scaled(params: InjectorParameters, factors: dict[str, float]) -> InjectorParameters:
+    """``params`` with the named fields (``"psa.m1_kg"``, ``"valve.sp_m"``) multiplied by the factors."""
+    psa: dict[str, float] = {}
+    valve: dict[str, float] = {}
+    for key, f in factors.items():
+        table, name = key.split(".")
+        target, src = (psa, params.psa) if table == "psa" else (valve, params.valve)
+        target[name] = getattr(src, name) * f
+    return replace(params, psa=replace(params.psa, **psa), valve=replace(params.valve, **valve))   # the chain kept
+
+
+#: The valve's nominal preload F_open in N (Table 2, from ``parameters.toml``): what an injection
+#: without a preload force of its own (a trace without ``preload_force_n``) is assumed to have.
+NOMINAL_PRELOAD_N: float = load_nominal().valve.f_open_n

@@ -49,7 +49,7 @@ class BusSpec:
     options: dict[str, Any] = field(default_factory=dict)   # interface-specific keyword arguments
 
     @classmethod
-    def parse(cls, spec: str, **kw: Any) -> "BusSpec":
+    def parse(cls, spec: str, **kw: Any) -> BusSpec:
         """``INTERFACE:CHANNEL`` (the interface one of python-can's); ``kw`` as the dataclass fields."""
         kind, sep, channel = spec.partition(":")
         if not sep or not channel:

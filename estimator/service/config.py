@@ -16,7 +16,8 @@ import os
 import sys
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -151,7 +152,7 @@ class DaemonConfig:
         return int(getattr(logging, self.log_level))
 
     @classmethod
-    def load(cls, path: Path | None, **overrides: Any) -> "DaemonConfig":
+    def load(cls, path: Path | None, **overrides: Any) -> DaemonConfig:
         """Defaults <- TOML file ``[estimator]`` <- non-None overrides (CLI) <- $STATE_DIRECTORY for state_dir."""
         values: dict[str, Any] = {}
         if path is not None:
@@ -182,7 +183,7 @@ class DaemonConfig:
             except EstimatorError as exc:
                 raise ConfigError(f"params = {str(self.params)!r}: {exc}") from None
 
-    def with_bus(self, bus: str) -> "DaemonConfig":
+    def with_bus(self, bus: str) -> DaemonConfig:
         """A copy on another bus."""
         return replace(self, bus=bus)
 

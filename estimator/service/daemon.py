@@ -17,26 +17,20 @@ from __future__ import annotations
 import collections
 import logging
 import signal
-import sys
 import threading
 import time
-from dataclasses import dataclass, replace
-from typing import Callable
+from dataclasses import replace
+from collections.abc import Callable
 
 import can
-import numpy as np
 
-from estimator.codec.bus_clock import BusClock
-from estimator.codec.records import load_database
 from estimator.codec.frame import Frame
-from estimator.codec.ingest import Ingest
-from estimator.codec.records import Codec
 from estimator.errors import EstimatorError
-from estimator.ident.simulators import SimulatorPool
-from estimator.ident.tracker import Tracker
 from estimator.service.bus import open_bus, resolve, to_frame, to_message
+from estimator.ident.tracker import Tracker
+from estimator.pipeline import build_pipeline, build_pool
 from estimator.service.config import ConfigError, DaemonConfig
-from estimator.service.processor import Processor
+from estimator.service.latency import Stats
 from estimator.service.ratelimit import RateLimitedLog
 from estimator.service.sdnotify import SdNotify
 from estimator.service.state_store import keep_rejected, load_states, save_states
@@ -90,76 +84,9 @@ class QueueListener(can.Listener):
                 return None
 
 
-STAGES = ("queue", "assembly", "estimation", "send")   # the parts of the latency, in order
-
-
-@dataclass
-class Stats:
-    """Latency samples (last 10 s, at most 100 000) for the heartbeat's p99s; the worker adds, the
-    heartbeat thread reads (hence the lock).
-
-    One sample per published injection: the total (last frame arrived -> EstimateState sent) and its
-    :data:`STAGES` in seconds: waiting in the input queue, decoding and reassembly, the estimator,
-    handing the frame to the bus.
-    """
-
-    window_s: float = 10.0
-
-    def __post_init__(self) -> None:
-        self.samples: collections.deque[tuple[float, float, tuple[float, ...]]] = collections.deque(maxlen=100_000)
-        self._lock = threading.Lock()
-
-    def add(self, t: float, latency_s: float, stages_s: tuple[float, float, float, float]) -> None:
-        with self._lock:
-            self.samples.append((t, latency_s, stages_s))
-            while self.samples and self.samples[0][0] < t - self.window_s:
-                self.samples.popleft()
-
-    def p99_ms(self) -> float:
-        """p99 of the total latency in ms (0 without samples)."""
-        return self.p99s_ms()[0]
-
-    def p99s_ms(self) -> tuple[float, dict[str, float]]:
-        """p99 of the total and of each stage (ms; 0 without samples)."""
-        with self._lock:
-            rows = [(s, *st) for _, s, st in self.samples]
-        if not rows:
-            return 0.0, dict.fromkeys(STAGES, 0.0)
-        total, *stages = np.percentile(np.array(rows), 99, axis=0) * 1e3
-        return float(total), dict(zip(STAGES, map(float, stages)))
-
-
 # keys a SIGHUP cannot change (they shape the bus connection and the memory already allocated)
 RESTART_KEYS = ("bus", "bitrate", "data_bitrate", "fd", "bus_options", "dbc", "state_dir", "queue_frames",
                 "max_injectors")
-
-
-def build_pool(cfg: DaemonConfig) -> SimulatorPool:
-    """The bounded simulator pool as configured (parameters from ``cfg.params`` or Tables 1-2)."""
-    from estimator.model.parameters import load_parameters
-
-    return SimulatorPool(load_parameters(cfg.params), cfg.max_sample_periods, cfg.sample_periods_ns)
-
-
-def build_tracker(cfg: DaemonConfig, pool: SimulatorPool | None = None) -> Tracker:
-    """The recursive estimator as configured (on ``pool`` if given: its simulators' tables are built once)."""
-    return Tracker(cfg.tracker_config(), pool=pool if pool is not None else build_pool(cfg))
-
-
-def build_codec(cfg: DaemonConfig) -> Codec:
-    """The codec of the configured DBC (``cfg.dbc``, else the packaged one)."""
-    return Codec(load_database(cfg.dbc))
-
-
-def build_pipeline(cfg: DaemonConfig, pool: SimulatorPool | None = None,
-                   codec: Codec | None = None) -> tuple[Codec, Ingest, Processor, BusClock]:
-    """Codec, ingest, processor and bus clock: the same in the live daemon and in the replay. ``pool``
-    and ``codec`` (built from ``cfg`` when not given) hold no state of a run: a fleet worker shares them
-    between its inputs (the simulator tables and the DBC parse cost ≈ 35 ms each)."""
-    codec = codec or build_codec(cfg)
-    ingest = Ingest(codec, cfg.assembly_timeout_ms * 1e-3, cfg.max_injectors)
-    processor = Processor(codec, build_tracker(cfg, pool), ingest.counters, cfg.commands)
-    return codec, ingest, processor, BusClock(cfg.silent_bus_s)
 
 
 class Daemon:
@@ -418,13 +345,3 @@ class Daemon:
                 f"{c.frames_dropped} malformed {c.frames_malformed}, bus errors {c.bus_errors}, commands applied "
                 f"{c.commands_applied} refused {c.commands_refused} unknown {c.commands_unknown}, worker errors "
                 f"{c.worker_errors}")
-
-
-def run_daemon(cfg: DaemonConfig, loader: Callable[[], DaemonConfig] | None = None) -> int:
-    """CLI entry: build, install signal handlers, run (``loader`` re-reads the configuration on SIGHUP)."""
-    # The receive thread must not wait for the worker: the compiled kernels release the GIL, and the
-    # interpreter hands it over every 0.5 ms instead of 5 ms (a 5 ms wait shows up as latency p99).
-    sys.setswitchinterval(0.0005)
-    d = Daemon(cfg, loader)
-    d.install_signal_handlers()
-    return d.run()

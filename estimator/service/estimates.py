@@ -1,5 +1,5 @@
 """The library API: one row per injection from a capture or a trace file, through the same pipeline
-as the daemon and ``replay`` (:func:`estimator.service.daemon.build_pipeline`).
+as the daemon and ``replay`` (:func:`estimator.pipeline.build_pipeline`).
 
 >>> from estimator.service.estimates import iter_estimates
 >>> for row in iter_estimates(Path("bench.blf")):
@@ -14,14 +14,15 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
+from collections.abc import Iterator
 
 from estimator.codec.records import Codec
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.tracker import Tracker
 from estimator.mdf_io import is_mdf, read_any_trace
 from estimator.service.config import DaemonConfig
-from estimator.service.daemon import build_pipeline, build_tracker
+from estimator.pipeline import build_pipeline, build_tracker
 from estimator.service.processor import ROW_FIELDS, result_row
 from estimator.service.replay import CAPTURE_SUFFIXES, iter_capture
 from estimator.trace_io import csv_head, injection_from_trace

@@ -31,7 +31,7 @@ def _tracker():
     """A tracker with the default configuration and its own simulator pool."""
     from estimator.ident.tracker import Tracker
     from estimator.service.config import DaemonConfig
-    from estimator.service.daemon import build_pool
+    from estimator.pipeline import build_pool
 
     cfg = DaemonConfig()
     return Tracker(cfg.tracker_config(), pool=build_pool(cfg))

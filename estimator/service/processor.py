@@ -121,7 +121,7 @@ class Processor:
 
     def prior_problem(self, nu_n_per_v: float, lh_um: float) -> str | None:
         """Why a prior (N/V, µm) is outside the physical ranges (Table 1's N_u, the model's L_h), or None."""
-        lo, hi = self.tracker.config.ident.lh_bounds_um
+        lo, hi = self.tracker.config.ident.lh_range(self.tracker.params)
         try:
             self.tracker.params.psa.check_nu(nu_n_per_v)
         except ParameterError as exc:

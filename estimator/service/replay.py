@@ -16,14 +16,15 @@ import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, TextIO
+from typing import TextIO
+from collections.abc import Iterator
 
 import can
 
 from estimator.codec.ingest import Counters
 from estimator.service.bus import to_frame, to_message
 from estimator.service.config import DaemonConfig
-from estimator.service.daemon import build_pipeline
+from estimator.pipeline import build_pipeline
 from estimator.service.processor import ROW_FIELDS, Published
 
 log = logging.getLogger(__name__)

@@ -2,7 +2,7 @@
 
 Runs natively where vcan0 exists (``ip link add dev vcan0 type vcan && ip link set vcan0 mtu 72 up``)
 and inside the QEMU VM of ../shared/vcan-vm via ``make test-vcan``. Python there is ~16x slower,
-so the suite is one scripted session with generous timeouts.
+so the suite is one scripted run with generous timeouts.
 """
 
 from __future__ import annotations
