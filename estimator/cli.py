@@ -118,12 +118,17 @@ def cmd_track(args: argparse.Namespace) -> int:
 
     from estimator.ident.simulators import SimulatorPool
 
-    tracker = Tracker(TrackerConfig(ident=_config(args)), pool=SimulatorPool(_params(args)))
+    from estimator.ident.selfcal import SelfCalConfig
+
+    selfcal = SelfCalConfig() if args.self_calibrate else None
+    tracker = Tracker(TrackerConfig(ident=_config(args)), pool=SimulatorPool(_params(args)), self_calibration=selfcal)
     nan = float("nan")
     bad = 0
     for path in args.traces:
+        inj = None
         try:
-            res = tracker.update(_load(path, args))
+            inj = _load(path, args)
+            res = tracker.update(inj)
         except TraceError as exc:   # unreadable or not a trace: reported in its line, the batch goes on
             bad += 1
             log.warning("%s", exc)
@@ -134,6 +139,9 @@ def cmd_track(args: argparse.Namespace) -> int:
                                                  "rate_n_per_v_per_s", "slope_n_per_v_per_degc")},
                "status": res.status.value, "reason": res.reason, "outliers": res.outliers,
                "prediction": {k: filt[k] for k in ("t_contact_us", "t_open_us", "stroke_um")}}
+        if selfcal is not None:
+            status = tracker.calibration.get(inj.injector_id) if inj is not None else None
+            out["self_calibration"] = status.to_dict() if status is not None else None
         print(json.dumps(out), flush=True)
     if bad:
         print(f"error: {bad} of {len(args.traces)} file(s) could not be read (see their lines)", file=sys.stderr)
@@ -144,9 +152,14 @@ def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     """The injector's structural parameters from current and voltage alone (no displacement)."""
     from estimator.ident.electrical import calibrate_electrical, to_toml
 
+    from estimator.trace_io import injection_from_trace, injector_key
+
     injections = []
     for path in args.traces:
-        inj = _load(path, args)
+        tr = _trace(path, args)
+        if args.serial is not None and injector_key(tr.meta) != args.serial:
+            continue
+        inj = injection_from_trace(tr)
         problem = inj.problem()
         if problem:
             print(f"skipped {path}: {problem}", file=sys.stderr)
@@ -386,6 +399,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("track", help="recursive estimator over trace CSVs, one JSON line each")
     s.add_argument("traces", type=Path, nargs="+", help="traces in order: CSV or MDF4")
+    s.add_argument("--self-calibrate", action="store_true", help="an injector the model cannot explain learns "
+                   "its own structural parameters from its injections (a window spanning its preload forces; "
+                   "adopted when they explain held-out injections better)")
     ident_opts(s)
     s.set_defaults(func=cmd_track)
 
@@ -395,6 +411,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "temperatures; with --electrical, any injections of one injector (or lot) at several preload forces")
     s.add_argument("--electrical", action="store_true", help="fit the 13 structural parameters and each "
                    "injection's N_u and L_h to the voltage (no displacement channel needed)")
+    s.add_argument("--serial", default=None, help="--electrical: only the traces of this injector (metadata "
+                   "serial= or injector_key=); default: all traces, one structure shared by all (a lot)")
     s.add_argument("--tolerance", type=float, default=0.10, help="--electrical: relative standard deviation of "
                    "the prior on each structural parameter (default 0.10)")
     s.add_argument("--window-us", type=float, default=None, help="cost window in µs (default 170; --electrical 200)")

@@ -18,6 +18,15 @@ from estimator.errors import TraceError
 from estimator.model.parameters import NOMINAL_PRELOAD_N
 
 
+#: metadata that name the injector a trace belongs to (traces with the same value are one injector)
+KEY_FIELDS = ("serial", "injector_key")
+
+
+def injector_key(meta: dict[str, str]) -> str | None:
+    """The injector a trace's metadata names (``serial=``, else ``injector_key=``), None if neither."""
+    return next((meta[k] for k in KEY_FIELDS if meta.get(k)), None)
+
+
 @dataclass
 class Trace:
     """Columns by name (SI units, names carry the unit suffix) plus the ``# key=value`` metadata."""

@@ -118,3 +118,74 @@ def test_a_batch_the_structure_cannot_explain_is_reported_unusable():
     res = calibrate_electrical(injections, max_iterations=8, max_restarts=0)
     assert not res.adequate and res.misfit_z > 4
     assert any("does not explain the batch" in w for w in res.warnings)
+
+
+def test_cli_serial_selects_one_injectors_traces(tmp_path):
+    """--serial keeps the traces whose metadata name that injector; one trace cannot be calibrated."""
+    _, plant, rng = _part_and_plant(3)
+    paths = []
+    for k, (serial, (f, nu)) in enumerate(zip("AAB", BATCH)):
+        m = plant.measure(nu, LH_UM * 1e-6, f, rng)
+        paths.append(tmp_path / f"t{k}.csv")
+        write_trace(paths[-1], {"t_s": np.arange(m.current_a.size) * m.dt_s, "current_A": m.current_a,
+                                "voltage_V": m.voltage_v}, {"preload_force_n": f, "serial": serial})
+    r = subprocess.run([sys.executable, "-m", "estimator", "calibrate", "--electrical", *map(str, paths), "--serial", "B"],
+                       capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert r.returncode == 2 and "at least two usable injections, got 1" in r.stderr
+
+
+def _warm_up_sequence(plant: Plant, rng: np.random.Generator, n: int):
+    """A series injector warming up (N_u 15.5 -> 20 N/V) while the rail pressure cycles (28-300 N)."""
+    for k in range(n):
+        f = BATCH[k % len(BATCH)][0]
+        m = plant.measure(15.5 + 4.5 * k / max(n - 1, 1), LH_UM * 1e-6, f, rng)
+        yield Injection(m.current_a, m.voltage_v, m.dt_s, f, 0, k, float("nan"), 2.0 * k)
+
+
+def test_self_calibration_adopts_the_injectors_own_model_and_then_it_is_ok():
+    """The tracker collects a mismatched injector's injections; once they span the preload forces it
+    calibrates, tests the result on held-out injections, adopts it and re-acquires: from then on the
+    injector is explained (no model_mismatch) and its L_h is within 0.1 µm."""
+    from estimator.ident.selfcal import SelfCalConfig
+    from estimator.ident.tracker import Tracker
+
+    _, plant, rng = _part_and_plant(5)
+    tracker = Tracker(self_calibration=SelfCalConfig(window=10))
+    results, states = [], []
+    for inj in _warm_up_sequence(plant, rng, 24):
+        results.append(tracker.update(inj))
+        states.append(tracker.calibration[0].state)
+    adopted = states.index("adopted")
+    assert 8 <= adopted <= 14 and states[adopted - 1] == "collecting"
+    assert tracker.calibration[0].held_out_chi2 > 25 and 0 in tracker.own_pools
+    assert all(r.status.value != "ok" for r in results[:adopted])
+    after = results[adopted + 2:]
+    assert all(r.status.value in ("ok", "unconfirmed") for r in after)
+    assert max(abs(r.lh_m * 1e6 - LH_UM) for r in after) < 0.1
+
+
+def test_self_calibration_stays_idle_on_an_injector_the_model_explains():
+    from estimator.ident.selfcal import SelfCalConfig
+    from estimator.ident.tracker import Tracker
+
+    rng = np.random.default_rng(8)
+    tracker = Tracker(self_calibration=SelfCalConfig(window=5))
+    for inj in _warm_up_sequence(Plant(PlantConfig(window_s=200e-6)), rng, 8):
+        assert tracker.update(inj).status.value in ("ok", "unconfirmed")
+    assert tracker.calibration[0].state == "idle" and not tracker.own_pools
+
+
+def test_cli_track_self_calibrate(tmp_path):
+    _, plant, rng = _part_and_plant(5)
+    paths = []
+    for inj in _warm_up_sequence(plant, rng, 14):
+        paths.append(tmp_path / f"inj{inj.counter:02d}.csv")
+        write_trace(paths[-1], {"t_s": np.arange(inj.current_a.size) * inj.dt_s, "current_A": inj.current_a,
+                                "voltage_V": inj.voltage_v}, {"preload_force_n": inj.f_open_n, "time_s": inj.time_s})
+    r = subprocess.run([sys.executable, "-m", "estimator", "track", "--self-calibrate", *map(str, paths)],
+                       capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    lines = [json.loads(line) for line in r.stdout.splitlines()]
+    states = [line["self_calibration"]["state"] for line in lines]
+    assert states[0] == "collecting" and states[-1] == "adopted", states
+    assert lines[-1]["status"] in ("ok", "unconfirmed") and abs(lines[-1]["filtered"]["lh_um"] - LH_UM) < 0.1

@@ -16,9 +16,7 @@ from pathlib import Path
 from estimator.mdf_io import MDF_SUFFIXES
 from estimator.service.estimates import is_capture_header
 from estimator.service.replay import CAPTURE_SUFFIXES
-from estimator.trace_io import csv_head
-
-KEY_FIELDS = ("serial", "injector_key")
+from estimator.trace_io import csv_head, injector_key
 TRACE_SUFFIXES = (".csv",) + MDF_SUFFIXES
 
 
@@ -73,7 +71,7 @@ def group(files: list[Path]) -> list[Group]:
     alone: list[Group] = []
     for f in files:
         meta = trace_meta(f)
-        key = next((meta[k] for k in KEY_FIELDS if meta.get(k)), None)
+        key = injector_key(meta)
         if key is None:
             alone.append(Group(None, (str(f),)))
             continue

@@ -46,12 +46,13 @@ from estimator.ident.estimate import Estimate, rejected
 from estimator.ident.idle_stroke import (check_injection, complement_fit, effective_window_s, finish, identify,
                                          predict_valve, search_box)
 from estimator.ident.mismatch import model_error_cov, plain_adequacy
+from estimator.ident.selfcal import CalibrationStatus, CalibrationWindow, SelfCalConfig, self_calibrate
 from estimator.ident.local_fit import refine
 from estimator.ident.measurement import Injection
 from estimator.ident.model_selection import likelihood_ratio
 from estimator.ident.search import Box
 from estimator.ident.simulators import SimulatorPool
-from estimator.ident.status import Status
+from estimator.ident.status import ESTIMATED, Status
 from estimator.model.fast_sim import FastSimulator, remember
 from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters
 
@@ -672,12 +673,17 @@ class Tracker:
     """Thin stateful wrapper: one :class:`TrackerState` per injector id, simulators from a bounded pool."""
 
     def __init__(self, config: TrackerConfig | None = None, sim: FastSimulator | None = None,
-                 pool: SimulatorPool | None = None) -> None:
+                 pool: SimulatorPool | None = None, self_calibration: SelfCalConfig | None = None) -> None:
         self.config = config or TrackerConfig()
         self.pool = pool if pool is not None else SimulatorPool(sim.params if sim is not None else None)
         if sim is not None:
             self.pool.add(sim)
         self.states: dict[int, TrackerState] = {}
+        # self-calibration (None: off): per injector its window, its status and, once adopted, its own model
+        self.self_calibration = self_calibration
+        self.own_pools: dict[int, SimulatorPool] = {}
+        self.calibration: dict[int, CalibrationStatus] = {}
+        self._windows: dict[int, CalibrationWindow] = {}
 
     @property
     def params(self) -> InjectorParameters:
@@ -696,12 +702,39 @@ class Tracker:
         state = self.states.get(inj.injector_id)
         if state is None:
             state = TrackerState()
-        refusal = self.pool.refusal(inj.dt_s)
+        pool = self.own_pools.get(inj.injector_id, self.pool)
+        refusal = pool.refusal(inj.dt_s)
         if refusal is not None:
             return _publish(None, rejected(refusal), Status.REJECTED, refusal, None, inj, False)
-        new_state, result = update(state, inj, self.simulator(inj.dt_s), self.config)
+        new_state, result = update(state, inj, pool.get(inj.dt_s), self.config)
         self.states[inj.injector_id] = new_state
+        if self.self_calibration is not None:
+            self._self_calibrate(inj, new_state, result, self.self_calibration)
         return result
+
+    def _self_calibrate(self, inj: Injection, st: TrackerState, result: TrackResult, config: SelfCalConfig) -> None:
+        """Collect a mismatched injector's accepted injections; calibrate once the window is ready
+        (synchronously: this is for offline use and for a background worker, never a real-time one)."""
+        iid = inj.injector_id
+        status = self.calibration.setdefault(iid, CalibrationStatus())
+        if status.state == "adopted" or not st.mismatch:
+            if status.state == "collecting":   # the model explains this injector again
+                self._windows.pop(iid, None)
+                status.state, status.batch = "idle", 0
+            return
+        if result.status == Status.REJECTED or result.raw.status not in ESTIMATED:
+            return
+        window = self._windows.setdefault(iid, CalibrationWindow(config.window))
+        window.add(inj, result.raw.nu_n_per_v)
+        status.state, status.batch = "collecting", len(window.items)
+        if not window.ready(config):
+            return
+        done, params = self_calibrate(window, self.pool.params, config)
+        self.calibration[iid] = done
+        del self._windows[iid]
+        if params is not None:   # its own model from now on: re-acquired under it
+            self.own_pools[iid] = SimulatorPool(params, self.pool.max_size, self.pool.periods_ns)
+            self.states.pop(iid, None)
 
     def restore(self, states: dict[int, TrackerState]) -> list[str]:
         """Take restored states that are physically possible for this estimator; returns one line per

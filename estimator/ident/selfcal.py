@@ -1,0 +1,143 @@
+"""Self-calibration: an injector whose model is mismatched learns its own structural parameters from
+the injections it makes anyway.
+
+While an injector is ``model_mismatch``, the recursive estimator keeps a bounded window of its
+accepted injections (:class:`CalibrationWindow`), chosen to span its operating points (preload force,
+coupling factor): when the window is full, the injection whose operating point is closest to another
+one's makes room. Once the window holds enough injections over a wide enough range of preload forces,
+:func:`self_calibrate` fits the structural parameters to all but the newest ``held_out`` of them
+(:func:`~estimator.ident.electrical.calibrate_electrical`) and tests the result on those held out:
+each is identified with the current and with the calibrated parameters, and the calibrated set is
+adopted only if it explains them better by more than ``adopt_chi2`` (chi-square units, the sum over
+the held-out injections of the drop in their residual energy over their noise variance) and the
+calibration explains its own batch. A rejected calibration starts a new window.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from estimator.ident.adequacy import noise_level_v
+from estimator.ident.config import IdentConfig
+from estimator.ident.electrical import WINDOW_S, calibrate_electrical
+from estimator.ident.idle_stroke import identify
+from estimator.ident.measurement import Injection
+from estimator.model.fast_sim import FastSimulator
+from estimator.model.parameters import InjectorParameters
+
+STATES = ("idle", "collecting", "calibrating", "adopted", "rejected")
+NU_SCALE_N_PER_V = 1.0       # operating-point distance: 1 N/V of N_u ...
+PRELOAD_SCALE_N = 50.0       # ... counts as much as 50 N of preload force
+
+
+@dataclass(frozen=True)
+class SelfCalConfig:
+    """Settings of the self-calibration (counts of injections; ``min_preload_spread`` relative)."""
+
+    window: int = 12               # injections kept per injector (bounded memory: ≈ 6 kB each)
+    held_out: int = 2              # the newest ones, kept out of the fit to test it
+    min_preload_spread: float = 0.5   # (max - min) / mean of the preload forces before a calibration is tried
+    adopt_chi2: float = 25.0       # held-out improvement needed to adopt (chi-square units)
+    tolerance: float = 0.10        # prior relative standard deviation of each structural parameter
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.window, int) and isinstance(self.held_out, int) and 1 <= self.held_out
+                and self.window >= self.held_out + 3):
+            raise ValueError(f"self-calibration window {self.window!r} must hold held_out {self.held_out!r} "
+                             "injections and at least three more")
+        for name in ("min_preload_spread", "adopt_chi2", "tolerance"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"self-calibration {name} = {v!r} must be a positive number")
+
+
+@dataclass
+class CalibrationStatus:
+    """Where an injector's self-calibration stands (``state`` one of :data:`STATES`)."""
+
+    state: str = "idle"
+    batch: int = 0
+    rms_before_v: float = float("nan")
+    rms_after_v: float = float("nan")
+    held_out_chi2: float = float("nan")
+    message: str = ""
+
+    def to_dict(self) -> dict:
+        """JSON-ready (NaN as None)."""
+        def num(v: float) -> float | None:
+            return round(v, 4) if math.isfinite(v) else None
+        return {"state": self.state, "batch": self.batch, "rms_before_v": num(self.rms_before_v),
+                "rms_after_v": num(self.rms_after_v), "held_out_chi2": num(self.held_out_chi2),
+                "message": self.message}
+
+
+@dataclass
+class CalibrationWindow:
+    """A bounded set of one injector's injections spanning its operating points."""
+
+    capacity: int
+    items: list[tuple[Injection, float]] = field(default_factory=list)   # (injection, its N_u estimate)
+
+    def add(self, inj: Injection, nu_n_per_v: float) -> None:
+        """Keep ``inj`` (its first :data:`~estimator.ident.electrical.WINDOW_S`); when full, drop the
+        older of the two injections whose operating points are closest."""
+        n = min(inj.current_a.size, int(round(WINDOW_S / inj.dt_s)) + 1)
+        kept = Injection(inj.current_a[:n].copy(), inj.voltage_v[:n].copy(), inj.dt_s, inj.f_open_n,
+                         inj.injector_id, inj.counter, inj.temperature_c, inj.time_s, inj.chain_corrected)
+        self.items.append((kept, float(nu_n_per_v)))
+        if len(self.items) > self.capacity:
+            pts = np.array([[i.f_open_n / PRELOAD_SCALE_N, nu / NU_SCALE_N_PER_V] for i, nu in self.items])
+            d = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2) + np.eye(len(pts)) * 1e9
+            a, b = np.unravel_index(int(np.argmin(d)), d.shape)
+            del self.items[min(a, b)]
+
+    def preload_spread(self) -> float:
+        """(max - min) / mean of the preload forces held."""
+        f = np.array([i.f_open_n for i, _ in self.items])
+        return float(np.ptp(f) / np.mean(f)) if f.size else 0.0
+
+    def ready(self, config: SelfCalConfig) -> bool:
+        """Full, and over a wide enough range of preload forces."""
+        return len(self.items) >= config.window and self.preload_spread() >= config.min_preload_spread
+
+
+def self_calibrate(window: CalibrationWindow, base: InjectorParameters,
+                   config: SelfCalConfig) -> tuple[CalibrationStatus, InjectorParameters | None]:
+    """Calibrate on the window but its newest ``held_out`` injections, test on those; the status and
+    the parameters to adopt (None if the calibration is rejected)."""
+    injections = [i for i, _ in window.items]
+    batch, held = injections[:-config.held_out], injections[-config.held_out:]
+    try:
+        res = calibrate_electrical(batch, base, tolerance=config.tolerance)
+    except ValueError as exc:
+        return CalibrationStatus("rejected", len(batch), message=str(exc)), None
+    status = CalibrationStatus("rejected", len(batch), res.rms_before_v, res.rms_after_v)
+    if not res.adequate:
+        status.message = "the calibrated model does not explain the batch"
+        return status, None
+    dt = held[0].dt_s
+    old, new = FastSimulator(base, dt), FastSimulator(res.params, dt)
+    chi2 = 0.0
+    for inj in held:
+        r_old, r_new = _held_out_residual(old, inj), _held_out_residual(new, inj)
+        sigma = noise_level_v(r_new)
+        chi2 += float((r_old @ r_old - r_new @ r_new) / sigma ** 2)
+    status.held_out_chi2 = chi2
+    if not chi2 > config.adopt_chi2:
+        status.message = (f"the calibrated model explains the held-out injections no better (chi-square gain "
+                          f"{chi2:.1f} <= {config.adopt_chi2:g})")
+        return status, None
+    status.state, status.message = "adopted", f"held-out chi-square gain {chi2:.0f}"
+    return status, res.params
+
+
+def _held_out_residual(sim: FastSimulator, inj: Injection) -> np.ndarray:
+    """The residual (V) of ``inj`` over its kept samples at its own cold-start estimate on ``sim``."""
+    est = identify(inj, sim, IdentConfig())
+    if not (math.isfinite(est.nu_n_per_v) and math.isfinite(est.lh_m)):
+        return np.full(inj.voltage_v.size, 1e3)
+    u = sim.simulate(inj.current_a, est.nu_n_per_v, est.lh_m, inj.f_open_n).voltage_v[0]
+    return np.where(np.isfinite(u), u - inj.voltage_v, 1e3)
