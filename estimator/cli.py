@@ -368,7 +368,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="model parameter TOML (what 'calibrate --out' writes; default Tables 1-2)")
 
     def mdf_opts(s: argparse.ArgumentParser, s3: bool = False) -> None:
-        g = s.add_argument_group("MDF4 traces (.mf4/.mdf; resampled to a uniform period, see README)")
+        g = s.add_argument_group("MDF4 traces (.mf4/.mdf; resampled to a uniform period, see the user guide's trace formats)")
         g.add_argument("--current-channel", help="channel with the amplifier current (A)")
         g.add_argument("--voltage-channel", help="channel with the actuator voltage (V)")
         if s3:

@@ -184,7 +184,7 @@ def format_accuracy(reports: list[dict]) -> str:
                   lambda s: "" if s["mismatch"] else ("PASS" if not s["failures"] else "FAIL: " + "; ".join(s["failures"])))
 
 
-# Series-production spread of the ten simulated actuators (documented in the README): N_u normal
+# Series-production spread of the ten simulated actuators: N_u normal
 # around 16.36 N/V with 0.05 N/V standard deviation (Table 3 spans 16.28..16.44), the four idle strokes
 # near the paper's 0.8 / 3.3 / 6.8 / 8.5 µm with 0.3 µm standard deviation.
 TABLE3_NU = (16.36, 0.05)

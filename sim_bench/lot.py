@@ -1,6 +1,6 @@
 """A synthetic production lot for the fleet path: seeded, with truth (``python -m sim_bench lot``).
 
-Series spread (documented here and in the README): N_u ~ 17.5 ± 0.3 N/V at the measuring temperature,
+Series spread: N_u ~ 17.5 ± 0.3 N/V at the measuring temperature,
 L_h ~ 3.5 ± 0.6 µm (1 sigma), preload 28 N + up to 10 N rail share. About 2 % of the injectors are bad
 (L_h 2.5-3.5 µm above the spread: a worn or mis-set valve) and 10 % are measured on the hysteresis plant
 (model mismatch). Each injector gets ``injections`` CSV traces one second apart in ``traces/``

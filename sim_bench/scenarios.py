@@ -6,7 +6,7 @@ scenario has a ``name``, its ``targets`` (required: a scenario without targets c
 ``truth(injector, k, t, rng) -> Truth`` for injection ``k`` of an injector at time ``t``; each bench
 keeps its scenarios in a :class:`Registry`, from which the command lines take their choices.
 
-Temperature law of the simulated actuators (documented in the README): N_u(T) = 15 + 0.06 T
+Temperature law of the simulated actuators (docs/guide/simulator.md): N_u(T) = 15 + 0.06 T
 (N/V, T in degC, so 15 N/V at 0 degC and 21 N/V at 100 degC, Table 1's range), plus a
 per-injector series-production offset. L_h per injector, drifting with wear. The preload is the
 valve spring's 28 N (Table 2) plus a rail-pressure share that varies per injection.

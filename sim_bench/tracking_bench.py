@@ -238,7 +238,7 @@ def score(sc: TrackingScenario, rows: list[dict], mismatch: bool) -> dict:
         sl = slice(w.start, w.stop)
         ok = ~glitch[sl]       # a glitch injection's published value is judged by its status, below
         lh_tol, nu_tol = w.lh_max_um, w.nu_max_pct
-        if mismatch:           # model error: the robust cost's N_u bias (README) and a wider L_h scatter
+        if mismatch:           # model error: the robust cost's N_u bias and a wider L_h scatter
             lh_tol, nu_tol = MISMATCH_LH_FACTOR * lh_tol, max(nu_tol, MISMATCH_NU_PCT)
         if _max_abs(e_lh[sl][ok]) > lh_tol:
             fails.append(f"|dL_h| {_max_abs(e_lh[sl][ok]):.3f} > {lh_tol:.3f} µm in [{w.start}, {w.stop})")

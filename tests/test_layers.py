@@ -50,7 +50,7 @@ def test_layer_imports(package):
 
 
 def test_numpy_runs_one_blas_thread_under_our_entry_points():
-    """Spinning BLAS worker threads stall a loaded machine (README, Reliability): importing the
+    """Spinning BLAS worker threads stall a loaded machine (docs: design decisions): importing the
     package first keeps OpenBLAS to the calling thread, unless the environment says otherwise."""
     import os
     import subprocess

@@ -173,3 +173,27 @@ def test_pipeline_runs_on_the_pool_it_is_given_even_an_empty_one():
     assert len(pool) == 0
     _, _, processor, _ = new_pipeline(cfg, pool)
     assert processor.tracker.pool is pool
+
+
+def test_sd_notify_never_blocks_on_a_receiver_that_does_not_read(tmp_path):
+    """Linux queues 10 datagrams per unix socket by default: a daemon that sent STATUS= every 5 s to a
+    receiver that did not read blocked after 50 s, and then could not stop (SIGKILL after 10 s)."""
+    import socket
+    import time
+
+    from estimator.service.sdnotify import SdNotify
+
+    path = str(tmp_path / "notify.sock")
+    receiver = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    receiver.bind(path)
+    try:
+        sd = SdNotify(path)
+        t0 = time.monotonic()
+        for k in range(40):
+            sd.notify(f"STATUS=line {k}")
+        sd.notify("STOPPING=1")
+        assert time.monotonic() - t0 < 3.0
+        receiver.settimeout(1.0)
+        assert receiver.recv(100) == b"STATUS=line 0"     # what fitted in the queue arrived, in order
+    finally:
+        receiver.close()

@@ -3,7 +3,7 @@
 The record classes are the codec's registry (:data:`REGISTRY`): each names its DBC message and maps
 its fields to signals, and from them come the contract the DBC is checked against
 (:data:`CONTRACT`), the message lookup and the frame-identifier dispatch of :class:`Codec`.
-Adding a message means adding it to the DBC and writing one class here (see the README).
+Adding a message means adding it to the DBC and writing one class here (see "Extending" in docs/design.md).
 
 Encoding is strict (cantools ``strict=True``); values outside a signal's range are saturated to
 the range first, so a publisher never fails on an extreme value (a cost above 6553.5 µV·s is sent

@@ -1,6 +1,6 @@
 """Fleet inputs: globs and directories expanded, and grouped by injector key.
 
-Injector key (documented in the README): a trace's metadata ``serial=...`` (or ``injector_key=...``);
+Injector key (documented in docs/guide/fleet.md): a trace's metadata ``serial=...`` (or ``injector_key=...``);
 traces that share a key are one injector's measurements and are processed in one task, in order of
 their ``time_s`` metadata (then file name), with the recursive estimator's state carried from one to
 the next. Everything else (traces without a key, captures) is independent: a group of its own. A Dask
