@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 VCANVM := ../shared/vcan-vm
 
-.PHONY: demo test test-vcan test-install benches docs lint clean
+.PHONY: demo test test-slow test-vcan test-install benches docs lint clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -21,7 +21,12 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	@$(PY) -m estimator compile --quiet
-	$(PY) -m pytest
+	$(PY) -m pytest -m "not slow"
+
+# The README's quick starts run as written (≈ 40 s; CI runs them after make test).
+test-slow: $(STAMP)
+	@$(PY) -m estimator compile --quiet
+	$(PY) -m pytest -m slow
 
 # The vcan0 + candump suite: natively where vcan0 exists, otherwise inside the QEMU VM of ../shared/vcan-vm.
 test-vcan: $(STAMP)

@@ -24,6 +24,7 @@ def test_the_readme_has_the_three_quick_starts():
     assert set(quick_starts()) == {"hil", "calibration", "eol"}
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(400)
 @pytest.mark.parametrize("name", ["hil", "calibration", "eol"])
 def test_quick_start_runs_as_written(name, tmp_path):
