@@ -23,7 +23,7 @@ test: $(STAMP)
 	@$(PY) -m estimator compile --quiet
 	$(PY) -m pytest -m "not slow"
 
-# The README's quick starts run as written (≈ 40 s; CI runs them after make test).
+# End-to-end runs as a user types them: the README's quick starts, the CLI calibrations (≈ 1 min; CI runs them).
 test-slow: $(STAMP)
 	@$(PY) -m estimator compile --quiet
 	$(PY) -m pytest -m slow

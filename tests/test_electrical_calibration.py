@@ -80,6 +80,7 @@ def test_the_written_parameter_file_loads_and_keeps_the_chain(tmp_path):
     assert back == p
 
 
+@pytest.mark.slow
 def test_cli_calibrate_electrical_then_identify_with_the_result(tmp_path):
     """As a calibration engineer runs it: traces in, a parameter file out, loaded by identify."""
     part, plant, rng = _part_and_plant(5)
@@ -175,6 +176,7 @@ def test_self_calibration_stays_idle_on_an_injector_the_model_explains():
     assert tracker.calibration[0].state == "idle" and not tracker.own_pools
 
 
+@pytest.mark.slow
 def test_cli_track_self_calibrate(tmp_path):
     _, plant, rng = _part_and_plant(5)
     paths = []
