@@ -150,7 +150,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 
 def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     """The injector's structural parameters from current and voltage alone (no displacement)."""
-    from estimator.ident.electrical import calibrate_electrical, to_toml
+    from estimator.ident.electrical import calibrate_electrical
 
     from estimator.trace_io import injection_from_trace, injector_key
 
@@ -173,7 +173,7 @@ def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     header = (f"parameters calibrated electrically (python -m estimator calibrate --electrical) from "
               f"{len(injections)} injections;\nRMS voltage residual {res.rms_before_v * 1e3:.1f} mV before, "
               f"{res.rms_after_v * 1e3:.1f} mV after; SI units.")
-    toml = to_toml(res.params, header)
+    toml = res.params.to_toml(header)
     if args.out:
         args.out.write_text(toml)
         print(f"wrote {args.out}")

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from estimator.ident.electrical import calibrate_electrical, to_toml
+from estimator.ident.electrical import calibrate_electrical
 from estimator.ident.measurement import Injection
 from estimator.model.parameters import InjectorParameters, load_nominal
 from estimator.trace_io import write_trace
@@ -75,7 +75,7 @@ def test_the_written_parameter_file_loads_and_keeps_the_chain(tmp_path):
     p = series_part.scaled(load_nominal(), {"psa.kp_n_per_m": 1.05})
     p = InjectorParameters(p.psa, p.valve, series_part.TYPICAL_CHAIN)
     path = tmp_path / "inj.toml"
-    path.write_text(to_toml(p, "a header\nof two lines"))
+    path.write_text(p.to_toml("a header\nof two lines"))
     back = InjectorParameters.from_toml(path)
     assert back == p
 

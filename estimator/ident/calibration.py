@@ -141,16 +141,10 @@ def calibrate(traces: list[CalibrationTrace], base: InjectorParameters | None = 
 
 def to_toml(result: CalibrationResult, base: InjectorParameters) -> str:
     """The calibrated parameter set as a TOML file in the layout of ``parameters.toml``."""
-    p = result.params(base)
-    lines = ["# PSA parameters calibrated with eq. 25 (python -m estimator calibrate); SI units.",
-             f"# N_u(T) = {result.nu_of_t[0]:.5f} + {result.nu_of_t[1]:.6f} * T [N/V, T in degC]",
-             f"# R(T) = {result.r_of_t[0]:.5f} * exp({result.r_of_t[1]:.6f} * T) [Ohm]", "", "[psa]"]
-    for k, v in p.psa.__dict__.items():
-        lines.append(f"{k} = {float(v)!r}")
-    lines += ["", "[valve]"]
-    for k, v in p.valve.__dict__.items():
-        lines.append(f"{k} = {float(v)!r}")
-    return "\n".join(lines) + "\n"
+    return result.params(base).to_toml(
+        "PSA parameters calibrated with eq. 25 (python -m estimator calibrate); SI units.\n"
+        f"N_u(T) = {result.nu_of_t[0]:.5f} + {result.nu_of_t[1]:.6f} * T [N/V, T in degC]\n"
+        f"R(T) = {result.r_of_t[0]:.5f} * exp({result.r_of_t[1]:.6f} * T) [Ohm]")
 
 
 def report(result: CalibrationResult) -> str:

@@ -151,8 +151,8 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
     if len(dts) > 1:
         raise ValueError("the injections of one calibration must share their sample period")
     dt = usable[0].dt_s
-    usable = [inj.through_chain(base.chain) for inj in usable]
-    n_win = [min(inj.current_a.size, int(round(window_s / dt)) + 1) for inj in usable]
+    usable = [inj.through_chain(base.chain).window(window_s) for inj in usable]
+    n_win = [inj.n for inj in usable]
     k, b = len(names), len(usable)
     sims = _Simulators(base, names, dt)
     sim0 = sims(np.zeros(k))
@@ -169,7 +169,7 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
         nu = est.nu_n_per_v if math.isfinite(est.nu_n_per_v) else ident.start_point[0]
         lh = est.lh_m * 1e6 if math.isfinite(est.lh_m) else ident.start_point[1]
         x0[k + 2 * j:k + 2 * j + 2] = nu, lh
-        r = _voltage(sim0, inj, n_win[j], nu, lh) - inj.voltage_v[:n_win[j]]
+        r = simulated_voltage(sim0, inj, nu, lh) - inj.voltage_v
         sigma[j] = noise_level_v(r)
         before.append(r)
     rms_before = float(np.sqrt(np.mean(np.concatenate(before) ** 2)))
@@ -190,8 +190,8 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
         sim = sims(x[:k])
         parts = []
         for j, inj in enumerate(usable):
-            u = _voltage(sim, inj, n_win[j], x[k + 2 * j], x[k + 2 * j + 1])
-            parts.append((u - inj.voltage_v[:n_win[j]]) / sigma[j])
+            u = simulated_voltage(sim, inj, x[k + 2 * j], x[k + 2 * j + 1])
+            parts.append((u - inj.voltage_v) / sigma[j])
         count[0] += b
         parts.append(x[:k] / prior_sd)
         return np.concatenate(parts)
@@ -209,7 +209,7 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
             nu, lh = x[k + 2 * j], x[k + 2 * j + 1]
             h_nu = FD_NU if nu + FD_NU <= hi[k + 2 * j] else -FD_NU       # stay inside the simulator's range
             h_lh = FD_LH_UM if lh + FD_LH_UM <= hi[k + 2 * j + 1] else -FD_LH_UM
-            res = sim.simulate(inj.current_a[:n_win[j]], np.array([nu, nu + h_nu, nu]),
+            res = sim.simulate(inj.current_a, np.array([nu, nu + h_nu, nu]),
                                np.array([lh, lh, lh + h_lh]) * 1e-6, inj.f_open_n)
             count[0] += 3
             u = np.where(np.isfinite(res.voltage_v), res.voltage_v, 1e3)
@@ -263,7 +263,7 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
         warnings.append(f"{len(weak)} parameter(s) hardly informed by this batch (kept near the tables): "
                         + ", ".join(weak))
     sim = sims(x[:k])
-    after = [_voltage(sim, inj, n_win[j], x[k + 2 * j], x[k + 2 * j + 1]) - inj.voltage_v[:n_win[j]]
+    after = [simulated_voltage(sim, inj, x[k + 2 * j], x[k + 2 * j + 1]) - inj.voltage_v
              for j, inj in enumerate(usable)]
     return ElectricalCalibration(
         sims.params(x[:k]), tuple(names), np.exp(x[:k]), sd_theta, x[k::2].copy(), x[k + 1::2].copy(), rms_before,
@@ -271,19 +271,8 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
         z <= MISFIT_Z, z)
 
 
-def _voltage(sim: FastSimulator, inj: Injection, n: int, nu: float, lh_um: float) -> np.ndarray:
-    """Simulated voltage (V) of the first ``n`` samples of ``inj`` at (N_u N/V, L_h µm); NaN-free
-    (an infeasible candidate gets a large constant so that the search turns away from it)."""
-    u = sim.simulate(inj.current_a[:n], nu, lh_um * 1e-6, inj.f_open_n).voltage_v[0]
+def simulated_voltage(sim: FastSimulator, inj: Injection, nu: float, lh_um: float) -> np.ndarray:
+    """Simulated voltage (V) of ``inj``'s samples at (N_u N/V, L_h µm); NaN-free (an infeasible
+    candidate gets a large constant, so that a search turns away from it)."""
+    u = sim.simulate(inj.current_a, nu, lh_um * 1e-6, inj.f_open_n).voltage_v[0]
     return np.where(np.isfinite(u), u, 1e3)
-
-
-def to_toml(params: InjectorParameters, header: str = "") -> str:
-    """A parameter set in the layout of ``parameters.toml`` (every key; the chain when there is one)."""
-    lines = [f"# {line}" for line in header.splitlines()] + ([""] if header else []) + ["[psa]"]
-    lines += [f"{k} = {float(v)!r}" for k, v in params.psa.__dict__.items()]
-    lines += ["", "[valve]"] + [f"{k} = {float(v)!r}" for k, v in params.valve.__dict__.items()]
-    ch = params.chain
-    if not ch.identity:
-        lines += ["", "[chain]"] + [f"{k} = {float(v)!r}" for k, v in ch.__dict__.items()]
-    return "\n".join(lines) + "\n"

@@ -16,13 +16,13 @@ calibration explains its own batch. A rejected calibration starts a new window.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from estimator.ident.adequacy import noise_level_v
 from estimator.ident.config import IdentConfig
-from estimator.ident.electrical import WINDOW_S, calibrate_electrical
+from estimator.ident.electrical import WINDOW_S, calibrate_electrical, simulated_voltage
 from estimator.ident.idle_stroke import identify
 from estimator.ident.measurement import Injection
 from estimator.model.fast_sim import FastSimulator
@@ -84,10 +84,8 @@ class CalibrationWindow:
     def add(self, inj: Injection, nu_n_per_v: float) -> None:
         """Keep ``inj`` (its first :data:`~estimator.ident.electrical.WINDOW_S`); when full, drop the
         older of the two injections whose operating points are closest."""
-        n = min(inj.current_a.size, int(round(WINDOW_S / inj.dt_s)) + 1)
-        kept = Injection(inj.current_a[:n].copy(), inj.voltage_v[:n].copy(), inj.dt_s, inj.f_open_n,
-                         inj.injector_id, inj.counter, inj.temperature_c, inj.time_s, inj.chain_corrected)
-        self.items.append((kept, float(nu_n_per_v)))
+        w = inj.window(WINDOW_S)   # copied: a view would keep the whole trace alive
+        self.items.append((replace(w, current_a=w.current_a.copy(), voltage_v=w.voltage_v.copy()), float(nu_n_per_v)))
         if len(self.items) > self.capacity:
             pts = np.array([[i.f_open_n / PRELOAD_SCALE_N, nu / NU_SCALE_N_PER_V] for i, nu in self.items])
             d = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2) + np.eye(len(pts)) * 1e9
@@ -139,5 +137,4 @@ def _held_out_residual(sim: FastSimulator, inj: Injection) -> np.ndarray:
     est = identify(inj, sim, IdentConfig())
     if not (math.isfinite(est.nu_n_per_v) and math.isfinite(est.lh_m)):
         return np.full(inj.voltage_v.size, 1e3)
-    u = sim.simulate(inj.current_a, est.nu_n_per_v, est.lh_m, inj.f_open_n).voltage_v[0]
-    return np.where(np.isfinite(u), u - inj.voltage_v, 1e3)
+    return simulated_voltage(sim, inj, est.nu_n_per_v, est.lh_m * 1e6) - inj.voltage_v

@@ -90,8 +90,9 @@ class TrackerState:
     temperature of the last accepted injection, ``p`` its covariance; ``directions`` (columns) and
     ``steps`` the line-search state carried to the next injection; ``pending`` an injection in doubt;
     ``mismatch`` whether the model cannot explain this injector (until ``mismatch_clean`` reaches the
-    configured count of adequate injections), ``model_error_d`` the last plain - robust difference
-    (N/V, µm) and plain residual structure (chi-square) that size its model-error covariance.
+    configured count of adequate injections; ``mismatch_run`` counts mismatched ones in a row),
+    ``model_error_d`` and ``model_error_structure`` running mean squares of the plain - robust
+    differences (N/V, µm) and of the plain residual's structure (chi-square) that size its model error.
     """
 
     initialized: bool = False
@@ -129,7 +130,7 @@ class TrackerState:
         for name in ("initialized", "robust", "mismatch"):
             setattr(st, name, _check_bool(d, name, getattr(st, name)))
         for name in ("model_error_run", "clean_run", "doubts", "accepted", "rejected", "updates", "mismatch_clean",
-                 "mismatch_run"):
+                     "mismatch_run"):
             setattr(st, name, _check_count(d, name))
         st.model_error_d = _check_array(d, "model_error_d", (2,), True).tolist() if "model_error_d" in d else [0.0, 0.0]
         st.model_error_structure = _check_optional_float(d, "model_error_structure")
@@ -375,11 +376,10 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
     now, temp = _known(inj.time_s), _temperature(inj)
     held = _held(st, now, temp, config, noise)
     problem = check_injection(inj, sim, config.ident)
-    if problem is None:
-        inj = inj.through_chain(sim.params.chain)   # once: the cold start and the valve prediction see it too
     if problem:
         st.rejected += 1
         return st, _publish(_widen(held, st, config), rejected(problem), Status.REJECTED, problem, sim, inj, predict=False)
+    inj = inj.through_chain(sim.params.chain)   # once: the cold start and the valve prediction see it too
 
     cold = not (st.initialized and math.isfinite(st.x[0]) and math.isfinite(st.x[1]))   # a prior counts
     x0 = held[0][:2] if held is not None else None
@@ -409,7 +409,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
 
     x_pred, p_pred = held
     inn = kalman.innovation(x_pred, p_pred, z, r)
-    if not (st.mismatch or st.robust) and mismatched(raw) and inn.d2 > config.gate_chi2:
+    if not (st.mismatch or st.robust) and raw.mismatch and inn.d2 > config.gate_chi2:
         # an injector the model explained, and an injection it cannot explain that disagrees: a glitch
         st.rejected += 1
         reason = (f"outlier (innovation chi2 {inn.d2:.1f} > {config.gate_chi2:.1f}, the model mismatched "
@@ -544,11 +544,6 @@ def _embed(r: np.ndarray, p: np.ndarray) -> np.ndarray:
     return q
 
 
-def mismatched(raw: Estimate) -> bool:
-    """True if the raw estimate's model could not explain its samples (it carries a model error)."""
-    return raw.robust or raw.mismatch
-
-
 MODEL_ERROR_WEIGHT = 0.2   # weight of the newest injection in an injector's model-error sizing
 
 
@@ -556,7 +551,7 @@ def _note_mismatch(st: TrackerState, raw: Estimate, config: TrackerConfig) -> No
     """Keep the injector's model-mismatch flag: set by its first estimate if that is mismatched, else by
     ``mismatch_on_after`` mismatched accepted injections in a row; cleared after ``mismatch_clear_after``
     adequate ones in a row."""
-    if mismatched(raw):
+    if raw.mismatch:
         # the injector's model error is the same from one injection to the next, but each injection
         # sizes it with its own noise: a running mean square of the sizings (the first one alone at first)
         first = not st.mismatch

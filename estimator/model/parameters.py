@@ -194,6 +194,16 @@ class InjectorParameters:
     valve: ValveParameters
     chain: MeasurementChain = NO_CHAIN
 
+    def to_toml(self, header: str = "") -> str:
+        """This parameter set as a TOML file in the layout of ``parameters.toml`` (every key of
+        ``[psa]`` and ``[valve]``; ``[chain]`` when there is one), ``header`` as comment lines first."""
+        lines = [f"# {line}" for line in header.splitlines()] + ([""] if header else []) + ["[psa]"]
+        lines += [f"{k} = {float(v)!r}" for k, v in self.psa.__dict__.items()]
+        lines += ["", "[valve]"] + [f"{k} = {float(v)!r}" for k, v in self.valve.__dict__.items()]
+        if not self.chain.identity:
+            lines += ["", "[chain]"] + [f"{k} = {float(v)!r}" for k, v in self.chain.__dict__.items()]
+        return "\n".join(lines) + "\n"
+
     @classmethod
     def from_toml(cls, path: str | Path) -> InjectorParameters:
         """Read ``[psa]`` and ``[valve]`` tables (SI values) and an optional ``[chain]`` table
