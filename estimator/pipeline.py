@@ -10,6 +10,7 @@ from __future__ import annotations
 from estimator.codec.bus_clock import BusClock
 from estimator.codec.ingest import Ingest
 from estimator.codec.records import Codec, load_database
+from estimator.ident.selfcal import Calibrator
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.tracker import Tracker
 from estimator.service.config import DaemonConfig
@@ -23,9 +24,13 @@ def build_pool(cfg: DaemonConfig) -> SimulatorPool:
     return SimulatorPool(load_parameters(cfg.params), cfg.max_sample_periods, cfg.sample_periods_ns)
 
 
-def build_tracker(cfg: DaemonConfig, pool: SimulatorPool | None = None) -> Tracker:
-    """The recursive estimator as configured (on ``pool`` if given: its simulators' tables are built once)."""
-    return Tracker(cfg.tracker_config(), pool=pool if pool is not None else build_pool(cfg))
+def build_tracker(cfg: DaemonConfig, pool: SimulatorPool | None = None,
+                  calibrator: Calibrator | None = None) -> Tracker:
+    """The recursive estimator as configured (on ``pool`` if given: its simulators' tables are built
+    once). With self-calibration on, calibrations run on ``calibrator`` (default: at once, in the
+    caller's thread, as an offline replay wants; the daemon passes its background calibrator)."""
+    return Tracker(cfg.tracker_config(), pool=pool if pool is not None else build_pool(cfg),
+                   self_calibration=cfg.self_calibration_config(), calibrator=calibrator)
 
 
 def build_codec(cfg: DaemonConfig) -> Codec:
@@ -33,12 +38,12 @@ def build_codec(cfg: DaemonConfig) -> Codec:
     return Codec(load_database(cfg.dbc))
 
 
-def build_pipeline(cfg: DaemonConfig, pool: SimulatorPool | None = None,
-                   codec: Codec | None = None) -> tuple[Codec, Ingest, Processor, BusClock]:
+def build_pipeline(cfg: DaemonConfig, pool: SimulatorPool | None = None, codec: Codec | None = None,
+                   calibrator: Calibrator | None = None) -> tuple[Codec, Ingest, Processor, BusClock]:
     """Codec, ingest, processor and bus clock: the same in the live daemon and in the replay. ``pool``
     and ``codec`` (built from ``cfg`` when not given) hold no state of a run: a fleet worker shares them
     between its inputs (the simulator tables and the DBC parse cost ≈ 35 ms each)."""
     codec = codec or build_codec(cfg)
     ingest = Ingest(codec, cfg.assembly_timeout_ms * 1e-3, cfg.max_injectors)
-    processor = Processor(codec, build_tracker(cfg, pool), ingest.counters, cfg.commands)
+    processor = Processor(codec, build_tracker(cfg, pool, calibrator), ingest.counters, cfg.commands)
     return codec, ingest, processor, BusClock(cfg.silent_bus_s)

@@ -19,23 +19,34 @@ from estimator.codec.assembler import Completed
 from estimator.codec.frame import Frame
 from estimator.codec.ingest import Ingest
 from estimator.codec.injection_frames import injection_frames
-from estimator.codec.records import Codec, EstimateState, EstimatorStatus
+from estimator.codec.records import Codec, EstimateState, EstimatorStatus, ModelCalibration
+from estimator.ident.selfcal import STATES
 from estimator.service.bus import open_bus, to_frame, to_message
 from estimator.service.latency import STAGES
 from estimator.model.parameters import NOMINAL_PRELOAD_N
+from sim_bench import series_part
 from sim_bench.bench import resolve_bus
 from sim_bench.procs import DaemonProcess, rss_mb
 from sim_bench.plant import Plant, PlantConfig
 
 
-def injection_pool(codec: Codec, injectors: int = 4, per_injector: int = 32, seed: int = 7) -> list[list[Frame]]:
-    """Frames of precomputed injections, injectors interleaved; counters filled in at send time."""
-    plant = Plant(PlantConfig())
+SERIES_PRELOADS_N = (28.0, 60.0, 100.0, 150.0, 220.0, 300.0)   # the rail pressure cycling (series pool)
+
+
+def injection_pool(codec: Codec, injectors: int = 4, per_injector: int = 32, seed: int = 7,
+                   series: bool = False) -> list[list[Frame]]:
+    """Frames of precomputed injections, injectors interleaved; counters filled in at send time.
+    ``series``: each injector a seeded series part (structure ±10 %, which the nominal model cannot
+    explain), 200 µs sent, the preload force cycling through 28-300 N: what makes the daemon's
+    self-calibration collect and calibrate."""
     rng = np.random.default_rng(seed)
+    plants = [Plant(PlantConfig(window_s=200e-6), series_part.draw(rng).params) if series else Plant(PlantConfig())
+              for _ in range(injectors)]
     pool = []
-    for _ in range(per_injector):
+    for k in range(per_injector):
         for i in range(injectors):
-            m = plant.measure(16.5 + 0.4 * i, (1.5 + 1.7 * i) * 1e-6, NOMINAL_PRELOAD_N, rng)
+            f = SERIES_PRELOADS_N[k % len(SERIES_PRELOADS_N)] if series else NOMINAL_PRELOAD_N
+            m = plants[i].measure(16.5 + 0.4 * i, (1.5 + 1.7 * i) * 1e-6, f, rng)
             pool.append((i, m))
     return pool
 
@@ -67,6 +78,7 @@ class _Watcher(threading.Thread):
         self.latency: list[float] = []
         self.status: EstimatorStatus | None = None
         self.estimates = 0
+        self.calibrations: list[tuple[float, ModelCalibration]] = []
         self.stop = threading.Event()
         self.got_status = threading.Event()
 
@@ -88,6 +100,8 @@ class _Watcher(threading.Thread):
             elif isinstance(rec, EstimatorStatus):
                 self.status = rec
                 self.got_status.set()
+            elif isinstance(rec, ModelCalibration):
+                self.calibrations.append((now, rec))
 
 
 def _feed(bus, codec: Codec, pool, rate: float, seconds: float, watcher: _Watcher) -> dict:
@@ -108,7 +122,7 @@ def _feed(bus, codec: Codec, pool, rate: float, seconds: float, watcher: _Watche
         i, m = pool[k % len(pool)]
         c = counters[i]
         counters[i] = (c + 1) % 256
-        frames = injection_frames(codec, i, c, m.dt_s, m.current_a, m.voltage_v)
+        frames = injection_frames(codec, i, c, m.dt_s, m.current_a, m.voltage_v, m.f_open_n)
         for f in frames[:-1]:
             bus.send(to_message(f))
         watcher.sent[(i, c)] = time.monotonic()
@@ -118,14 +132,21 @@ def _feed(bus, codec: Codec, pool, rate: float, seconds: float, watcher: _Watche
 
 
 def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float = 10.0,
-                             overload_factor: float = 2.0, bus: str | None = None) -> dict:
-    """Latency at ``rate`` injections/s, then ``overload_factor`` x that; returns the report."""
+                             overload_factor: float = 2.0, bus: str | None = None,
+                             self_calibration: bool = False) -> dict:
+    """Latency at ``rate`` injections/s, then ``overload_factor`` x that; returns the report.
+    ``self_calibration``: series injectors and the daemon's self-calibration on, so that its
+    background calibrations run while the latency is measured (the report counts them)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     codec = Codec()
-    pool = injection_pool(codec)
+    pool = injection_pool(codec, series=self_calibration)
     bus, hub = resolve_bus(bus, out_dir)
-    report: dict = {"bus": bus, "rate_per_s": rate, "seconds": seconds}
-    d = DaemonProcess(bus, out_dir / "daemon-bench.log").start()
+    report: dict = {"bus": bus, "rate_per_s": rate, "seconds": seconds, "self_calibration": self_calibration}
+    config = None
+    if self_calibration:
+        config = out_dir / "daemon-bench-selfcal.toml"
+        config.write_text('[estimator]\nself_calibration = "on"\n')
+    d = DaemonProcess(bus, out_dir / "daemon-bench.log", config=config).start()
     try:
         with open_bus(bus) as b:
             w = _Watcher(b, codec)
@@ -139,6 +160,7 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
             for phase, r in (("nominal", rate), ("overload", rate * overload_factor)):
                 w.latency.clear()
                 e0 = w.estimates
+                t_phase = time.monotonic()
                 st0 = w.status
                 peak = 0.0
                 stop_rss = threading.Event()
@@ -167,6 +189,8 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
                                     + st0.rejected_invalid)) if st else 0,
                     "queue_depth_end": st.queue_depth if st else 0, "daemon_rss_peak_mb": peak,
                     "daemon_alive": d.alive(),
+                    "calibration_states": [STATES[c.state] for t, c in w.calibrations if t >= t_phase],
+                    "adopted_injectors": sorted({c.injector_id for _, c in w.calibrations if STATES[c.state] == "adopted"}),
                 }
             w.stop.set()
             w.join(timeout=2)
@@ -219,6 +243,12 @@ def format_report(ing: dict, rep: dict) -> str:
     lines.append("daemon p99 by stage (heartbeat, ms): " + "; ".join(
         f"{phase} " + " ".join(f"{k} {rep[phase]['daemon_stage_p99_ms'][k]:.2f}" for k in STAGES)
         for phase in ("nominal", "overload")))
+    if rep.get("self_calibration"):
+        for phase in ("nominal", "overload"):
+            st = rep[phase]["calibration_states"]
+            lines.append(f"self-calibration during {phase}: {st.count('calibrating')} calibration(s) started, "
+                         f"{st.count('adopted')} adopted, {st.count('rejected')} rejected; injectors with their own "
+                         f"model by the end: {rep[phase]['adopted_injectors']}")
     lines.append("latencies in ms; ext = trailer sent -> EstimateState received (includes the bus), "
                  "daemon = last frame arrived -> EstimateState sent (heartbeat LatencyP99, last 10 s)")
     if rep.get("histogram_png"):

@@ -147,6 +147,25 @@ class ValvePrediction(Record):
 
 
 @dataclass(frozen=True)
+class ModelCalibration(Record):
+    """Where one injector's self-calibration stands (``state``: the index of
+    :data:`estimator.ident.selfcal.STATES`, the DBC's VAL_ table)."""
+
+    injector_id: int
+    state: int
+    batch: int
+    rms_before_v: float
+    rms_after_v: float
+    calibrations: int
+    MESSAGE: ClassVar[str] = "ModelCalibration"
+    CLASSIC: ClassVar[bool] = True
+    OUTPUT: ClassVar[bool] = True
+    SIGNALS: ClassVar[dict[str, str]] = {"injector_id": "InjectorId", "state": "State", "batch": "Batch",
+                                         "rms_before_v": "RmsBefore", "rms_after_v": "RmsAfter",
+                                         "calibrations": "Calibrations"}
+
+
+@dataclass(frozen=True)
 class EstimatorStatus(Record):
     """The heartbeat. Fields made with :func:`counter` are the rolling counters (:data:`HEARTBEAT_COUNTERS`),
     which ``ingest.Counters`` keeps under the same names; the others are gauges."""
@@ -234,7 +253,7 @@ class SampleBlock(Record):
 
 #: every message of the contract, by record class
 REGISTRY: tuple[type[Record], ...] = (InjectionHeader, SampleBlock, InjectionTrailer, EstimateState, EstimateQuality,
-                                      ValvePrediction, EstimatorStatus, EstimatorCommand, SimTruth)
+                                      ValvePrediction, ModelCalibration, EstimatorStatus, EstimatorCommand, SimTruth)
 
 
 def contract_of(registry: tuple[type[Record], ...]) -> dict[str, MessageSpec]:

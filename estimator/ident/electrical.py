@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -36,8 +36,9 @@ from estimator.ident.adequacy import SMOOTH_COLUMNS, assess, noise_level_v
 from estimator.ident.config import IdentConfig
 from estimator.ident.idle_stroke import identify
 from estimator.ident.measurement import Injection
+from estimator.model.chain import MeasurementChain, lowpass
 from estimator.model.fast_sim import FastSimulator
-from estimator.model.parameters import STRUCTURAL, InjectorParameters, load_nominal, scaled
+from estimator.model.parameters import STRUCTURAL, CalibrationUncertainty, InjectorParameters, load_nominal, scaled
 
 WINDOW_S = 200e-6          # the Fisher analysis behind this module used 0-200 µs of the charge
 FD_THETA = 1e-3            # relative step of a structural factor's finite difference
@@ -45,9 +46,14 @@ FD_NU, FD_LH_UM = 2e-3, 2e-3
 WEAK_FRACTION = 0.7        # posterior sd above this fraction of the prior sd: the batch hardly informs it
 CORRELATED = 0.9
 SIMULATORS_KEPT = 16
+NU_STEP = 0.1              # N/V: a coarser table than the estimator's (interpolation error ≈ 1e-10 relative), 5x cheaper to build
 MISFIT_Z = 4.0             # an injection's smooth residual this many sd above noise: the model does not explain the batch
 RESTART_SEED = 20261124    # restarts from a local minimum are seeded: the same traces give the same parameters
 STRUCTURAL_NAMES = tuple(f"{table}.{name}" for table, name in STRUCTURAL)   # what is fitted by default
+CHAIN_NAMES = ("u_filter_tau_s", "i_skew_s")   # the measurement chain's parameters fitted with fit_chain
+CHAIN_PRIOR_SD_US = 1.0    # prior standard deviation of each (µs), at the base chain's value
+CHAIN_BOUNDS_US = {"u_filter_tau_s": (0.0, 3.0), "i_skew_s": (-2.0, 2.0)}
+FD_CHAIN_US = 0.01
 
 
 @dataclass
@@ -70,6 +76,10 @@ class ElectricalCalibration:
     adequate : the calibrated model explains the batch (its residual is white noise within
         :data:`MISFIT_Z` standard deviations); a calibration that is not must not be used.
     misfit_z : that statistic.
+    chain_sigma_us : standard deviation (µs) of each fitted measurement-chain parameter (its value is in
+        ``params.chain``); empty if the chain was not fitted.
+    sigma_nu_n_per_v, sigma_lh_um : each injection's standard deviation of N_u (N/V) and L_h (µm), the
+        structure's uncertainty included.
     """
 
     params: InjectorParameters
@@ -86,6 +96,9 @@ class ElectricalCalibration:
     evaluations: int = 0
     adequate: bool = True
     misfit_z: float = 0.0
+    chain_sigma_us: dict[str, float] = field(default_factory=dict)
+    sigma_nu_n_per_v: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    sigma_lh_um: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def report(self) -> str:
         """A table of the parameters, the residual before and after, and the warnings."""
@@ -94,6 +107,11 @@ class ElectricalCalibration:
                  f"  {'parameter':<22} {'factor':>8} {'sd [%]':>7}"]
         for n, f, s in zip(self.names, self.factors, self.sigma_rel):
             lines.append(f"  {n:<22} {f:8.4f} {100 * s:7.2f}{'  (weakly informed: stays near the prior)' if n in self.weak else ''}")
+        cal = self.params.calibration
+        lines.append(f"  uncertainty left in every estimate with these parameters: N_u {100 * cal.nu_rel_sigma:.3f} %, "
+                     f"L_h {cal.lh_sigma_m * 1e6:.3f} µm (1 sigma; in the parameter file's [calibration])")
+        for n, sd in self.chain_sigma_us.items():
+            lines.append(f"  chain.{n:<16} {getattr(self.params.chain, n) * 1e6:8.3f} µs, sd {sd:.3f} µs")
         for a, b, c in self.correlated:
             lines.append(f"  correlation {a} / {b}: {c:+.2f}")
         lines += [f"  injection {k}: N_u {nu:.4f} N/V, L_h {lh:.3f} µm"
@@ -116,7 +134,7 @@ class _Simulators:
         key = np.asarray(theta, dtype=float).tobytes()
         sim = self._kept.get(key)
         if sim is None:
-            sim = FastSimulator(self.params(theta), self.dt_s)
+            sim = FastSimulator(self.params(theta), self.dt_s, nu_step=NU_STEP)
             self._kept[key] = sim
             if len(self._kept) > SIMULATORS_KEPT:
                 self._kept.popitem(last=False)
@@ -128,13 +146,17 @@ class _Simulators:
 def calibrate_electrical(injections: list[Injection], base: InjectorParameters | None = None,
                          names: tuple[str, ...] = STRUCTURAL_NAMES, tolerance: float = 0.10,
                          window_s: float = WINDOW_S, max_iterations: int = 30,
-                         max_restarts: int = 4) -> ElectricalCalibration:
+                         max_restarts: int = 4, fit_chain: bool = True) -> ElectricalCalibration:
     """Fit the structural parameters ``names`` (shared) and each injection's N_u and L_h to the
     voltage of a batch of injections of one injector (or of one lot, whose injectors share a
-    structure). ``tolerance`` is the prior's relative standard deviation of each parameter. A fit whose
-    residual is not white noise is restarted (up to ``max_restarts`` times) from the structure redrawn
-    within the prior, and the best kept; if none explains the batch the result says so. Raises
-    ValueError for a batch that cannot be fitted (fewer than two usable injections, mixed sample periods)."""
+    structure). ``tolerance`` is the prior's relative standard deviation of each parameter. With
+    ``fit_chain`` the measurement chain's U filter and I skew (:data:`CHAIN_NAMES`) are fitted too
+    (prior at the base chain, :data:`CHAIN_PRIOR_SD_US`); the chain is modelled forwards (the simulated
+    voltage filtered as the amplifier filters it), so the fit sees the measured noise unamplified.
+    A fit whose residual is not white noise is restarted (up to ``max_restarts`` times) with every
+    injection re-identified, on the structure found and on structures redrawn within the prior, and the
+    best kept; if none explains the batch the result says so. Raises ValueError for a batch that cannot
+    be fitted (fewer than two usable injections, mixed sample periods)."""
     base = base or load_nominal()
     if not (isinstance(tolerance, (int, float)) and 0.0 < tolerance <= 1.0):
         raise ValueError(f"tolerance {tolerance!r} must be a relative standard deviation in (0, 1]")
@@ -151,27 +173,57 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
     if len(dts) > 1:
         raise ValueError("the injections of one calibration must share their sample period")
     dt = usable[0].dt_s
-    usable = [inj.through_chain(base.chain).window(window_s) for inj in usable]
+    if any(inj.chain_corrected for inj in usable):   # the chain already undone: nothing left to model
+        usable = [inj.through_chain(base.chain) for inj in usable]
+        chain0, fit_chain = MeasurementChain(), False
+    else:
+        chain0 = base.chain
+    usable = [inj.window(window_s) for inj in usable]
     n_win = [inj.n for inj in usable]
     k, b = len(names), len(usable)
-    sims = _Simulators(base, names, dt)
-    sim0 = sims(np.zeros(k))
+    chain_names = CHAIN_NAMES if fit_chain else ()
+    nc = len(chain_names)
+    p = k + nc                       # shared parameters: structure, then chain (µs)
+    c_base = np.array([getattr(chain0, n) * 1e6 for n in chain_names])
+    sims = _Simulators(replace(base, chain=MeasurementChain()), names, dt)
+
+    def chain_of(c: np.ndarray) -> MeasurementChain:
+        return replace(chain0, **{n: float(v) * 1e-6 for n, v in zip(chain_names, c)})
+
+    def voltages(sim: FastSimulator, inj: Injection, chain: MeasurementChain, nu: np.ndarray,
+                 lh_um: np.ndarray) -> np.ndarray:
+        """The voltage the amplifier would measure (V), shape (len(nu), samples); NaN-free."""
+        cur = chain.correct(inj.current_a, inj.voltage_v, dt)[0]     # the actuator's current
+        u = sim.simulate(cur, nu, lh_um * 1e-6, inj.f_open_n).voltage_v
+        u = np.where(np.isfinite(u), u, 1e3)
+        return lowpass(u, chain.u_filter_tau_s, dt) if chain.u_filter_tau_s > 0 else u
 
     # start: each injection fitted alone with the base parameters; its residual gives its noise level
     ident = IdentConfig()
-    x0 = np.zeros(k + 2 * b)
     sigma = np.empty(b)
-    before = []
     evaluations = 0
-    for j, inj in enumerate(usable):
-        est = identify(inj, sim0, ident)
-        evaluations += est.evaluations
-        nu = est.nu_n_per_v if math.isfinite(est.nu_n_per_v) else ident.start_point[0]
-        lh = est.lh_m * 1e6 if math.isfinite(est.lh_m) else ident.start_point[1]
-        x0[k + 2 * j:k + 2 * j + 2] = nu, lh
-        r = simulated_voltage(sim0, inj, nu, lh) - inj.voltage_v
+
+    def per_injection(theta: np.ndarray, chain: MeasurementChain) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Each injection's (N_u, L_h) from its own cold start on the structure ``theta`` behind
+        ``chain``, and its residual."""
+        nonlocal evaluations
+        sim = sims(theta)
+        start_sim = FastSimulator(replace(sim.params, chain=chain), dt, nu_step=NU_STEP) if not chain.identity else sim
+        out, resid = np.empty(2 * b), []
+        for j, inj in enumerate(usable):
+            est = identify(inj, start_sim, ident)
+            evaluations += est.evaluations
+            nu = est.nu_n_per_v if math.isfinite(est.nu_n_per_v) else ident.start_point[0]
+            lh = est.lh_m * 1e6 if math.isfinite(est.lh_m) else ident.start_point[1]
+            out[2 * j:2 * j + 2] = nu, lh
+            resid.append(voltages(sim, inj, chain, np.array([nu]), np.array([lh]))[0] - inj.voltage_v)
+        return out, resid
+
+    x0 = np.zeros(p + 2 * b)
+    x0[k:p] = c_base
+    x0[p:], before = per_injection(np.zeros(k), chain0)
+    for j, r in enumerate(before):
         sigma[j] = noise_level_v(r)
-        before.append(r)
     rms_before = float(np.sqrt(np.mean(np.concatenate(before) ** 2)))
 
     f_open = np.array([inj.f_open_n for inj in usable])
@@ -181,46 +233,47 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
                         "parameters are weakly determined (calibrate over rail pressures, e.g. 28-300 N)")
     nu_range = (base.psa.nu_min_n_per_v, base.psa.nu_max_n_per_v)
     prior_sd = math.log1p(tolerance)
-    lo = np.concatenate([np.full(k, -4 * prior_sd), np.tile([nu_range[0] - 0.1, base.valve.lh_min_m * 1e6], b)])
-    hi = np.concatenate([np.full(k, 4 * prior_sd), np.tile([nu_range[1] + 0.1, base.valve.lh_max_m * 1e6], b)])
-    x0 = np.clip(x0, lo + 1e-9, hi - 1e-9)
+    prior = np.concatenate([np.full(k, prior_sd), np.full(nc, CHAIN_PRIOR_SD_US)])
+    lo = np.concatenate([np.full(k, -4 * prior_sd), [CHAIN_BOUNDS_US[n][0] for n in chain_names],
+                         np.tile([nu_range[0] - 0.1, base.valve.lh_min_m * 1e6], b)])
+    hi = np.concatenate([np.full(k, 4 * prior_sd), [CHAIN_BOUNDS_US[n][1] for n in chain_names],
+                         np.tile([nu_range[1] + 0.1, base.valve.lh_max_m * 1e6], b)])
     count = [0]
 
     def residual(x: np.ndarray) -> np.ndarray:
-        sim = sims(x[:k])
+        sim, chain = sims(x[:k]), chain_of(x[k:p])
         parts = []
         for j, inj in enumerate(usable):
-            u = simulated_voltage(sim, inj, x[k + 2 * j], x[k + 2 * j + 1])
+            u = voltages(sim, inj, chain, x[p + 2 * j:p + 2 * j + 1], x[p + 2 * j + 1:p + 2 * j + 2])[0]
             parts.append((u - inj.voltage_v) / sigma[j])
         count[0] += b
-        parts.append(x[:k] / prior_sd)
+        parts.append((x[:p] - np.concatenate([np.zeros(k), c_base])) / prior)
         return np.concatenate(parts)
 
     def jacobian(x: np.ndarray) -> np.ndarray:
         r0 = residual(x)
         jac = np.zeros((r0.size, x.size))
-        for i in range(k):   # one simulator per perturbed structural factor, every injection on it
+        for i in range(p):   # one simulator per perturbed structural factor, every injection on it
+            h = FD_THETA if i < k else (FD_CHAIN_US if x[i] + FD_CHAIN_US <= hi[i] else -FD_CHAIN_US)
             xp = x.copy()
-            xp[i] += FD_THETA
-            jac[:, i] = (residual(xp) - r0) / FD_THETA
-        sim = sims(x[:k])
+            xp[i] += h
+            jac[:, i] = (residual(xp) - r0) / h
+        sim, chain = sims(x[:k]), chain_of(x[k:p])
         row = 0
         for j, inj in enumerate(usable):   # each injection's own (N_u, L_h): one batched simulation
-            nu, lh = x[k + 2 * j], x[k + 2 * j + 1]
-            h_nu = FD_NU if nu + FD_NU <= hi[k + 2 * j] else -FD_NU       # stay inside the simulator's range
-            h_lh = FD_LH_UM if lh + FD_LH_UM <= hi[k + 2 * j + 1] else -FD_LH_UM
-            res = sim.simulate(inj.current_a, np.array([nu, nu + h_nu, nu]),
-                               np.array([lh, lh, lh + h_lh]) * 1e-6, inj.f_open_n)
+            nu, lh = x[p + 2 * j], x[p + 2 * j + 1]
+            h_nu = FD_NU if nu + FD_NU <= hi[p + 2 * j] else -FD_NU       # stay inside the simulator's range
+            h_lh = FD_LH_UM if lh + FD_LH_UM <= hi[p + 2 * j + 1] else -FD_LH_UM
+            u = voltages(sim, inj, chain, np.array([nu, nu + h_nu, nu]), np.array([lh, lh, lh + h_lh]))
             count[0] += 3
-            u = np.where(np.isfinite(res.voltage_v), res.voltage_v, 1e3)
-            jac[row:row + n_win[j], k + 2 * j] = (u[1] - u[0]) / h_nu / sigma[j]
-            jac[row:row + n_win[j], k + 2 * j + 1] = (u[2] - u[0]) / h_lh / sigma[j]
+            jac[row:row + n_win[j], p + 2 * j] = (u[1] - u[0]) / h_nu / sigma[j]
+            jac[row:row + n_win[j], p + 2 * j + 1] = (u[2] - u[0]) / h_lh / sigma[j]
             row += n_win[j]
         return jac
 
     def solve(start: np.ndarray):
-        return least_squares(residual, start, jac=jacobian, bounds=(lo, hi), method="trf", x_scale="jac",
-                             max_nfev=max_iterations, xtol=1e-8, ftol=1e-10)
+        return least_squares(residual, np.clip(start, lo + 1e-9, hi - 1e-9), jac=jacobian, bounds=(lo, hi),
+                             method="trf", x_scale="jac", max_nfev=max_iterations, xtol=1e-8, ftol=1e-10)
 
     def misfit_z(f) -> float:
         """The worst injection's smooth residual structure (chi-square of its lowest cosine components,
@@ -229,7 +282,7 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
         for j in range(b):
             r = f.fun[row:row + n_win[j]] * sigma[j]
             row += n_win[j]
-            a = assess(r, 2 + k // b)
+            a = assess(r, 2 + p // b)
             worst = max(worst, (a.structure - SMOOTH_COLUMNS) / math.sqrt(2.0 * SMOOTH_COLUMNS))
         return worst
 
@@ -237,23 +290,28 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
     rng = np.random.default_rng(RESTART_SEED)
     restarts = 0
     while misfit_z(fit) > MISFIT_Z and restarts < max_restarts:
-        # a local minimum (the valve's stiffness and damping trade against each other and L_h):
-        # start again from the best point with the structure redrawn within the prior
+        # a local minimum: the valve's stiffness and damping trade against each other and L_h, and an
+        # injection's (N_u, L_h) can sit in the wrong basin of its own cost. Start again with every
+        # injection re-identified from a cold start (a global search of its own two parameters), first on
+        # the structure found, then on structures redrawn within the prior
         start = fit.x.copy()
-        start[:k] = np.clip(rng.normal(0.0, prior_sd, k), lo[:k] + 1e-9, hi[:k] - 1e-9)
+        if restarts > 0:
+            start[:k] = np.clip(rng.normal(0.0, prior_sd, k), lo[:k] + 1e-9, hi[:k] - 1e-9)
+            start[k:p] = c_base
+        start[p:] = per_injection(start[:k], chain_of(start[k:p]))[0]
         trial = solve(start)
         restarts += 1
         if trial.cost < fit.cost:
             fit = trial
     x = fit.x
-    jac = fit.jac
-    cov = np.linalg.pinv(jac.T @ jac)
-    sd_theta = np.sqrt(np.clip(np.diag(cov)[:k], 0, None))
+    cov = np.linalg.pinv(fit.jac.T @ fit.jac)
+    sd = np.sqrt(np.clip(np.diag(cov)[:p], 0, None))
     d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
     corr = cov / np.outer(d, d)
-    correlated = [(names[i], names[j], float(corr[i, j])) for i in range(k) for j in range(i + 1, k)
+    shared = tuple(names) + tuple(f"chain.{n}" for n in chain_names)
+    correlated = [(shared[i], shared[j], float(corr[i, j])) for i in range(p) for j in range(i + 1, p)
                   if abs(corr[i, j]) > CORRELATED]
-    weak = [names[i] for i in range(k) if sd_theta[i] > WEAK_FRACTION * prior_sd]
+    weak = [shared[i] for i in range(p) if sd[i] > WEAK_FRACTION * prior[i]]
     z = misfit_z(fit)
     if z > MISFIT_Z:
         warnings.append(f"the calibrated model does not explain the batch (residual {z:.0f} standard deviations "
@@ -262,13 +320,29 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
     if weak:
         warnings.append(f"{len(weak)} parameter(s) hardly informed by this batch (kept near the tables): "
                         + ", ".join(weak))
-    sim = sims(x[:k])
-    after = [simulated_voltage(sim, inj, x[k + 2 * j], x[k + 2 * j + 1]) - inj.voltage_v
+    sim, chain = sims(x[:k]), chain_of(x[k:p])
+    after = [voltages(sim, inj, chain, x[p + 2 * j:p + 2 * j + 1], x[p + 2 * j + 1:p + 2 * j + 2])[0] - inj.voltage_v
              for j, inj in enumerate(usable)]
+    # what the shared parameters' uncertainty leaves in each injection's (N_u, L_h): its marginal
+    # covariance less the part its own samples explain (the inverse of its own two columns' J'J)
+    nu_rel, lh_sd = [], []
+    for j in range(b):
+        idx = [p + 2 * j, p + 2 * j + 1]
+        own = fit.jac[:, idx]
+        try:
+            shared_part = cov[np.ix_(idx, idx)] - np.linalg.inv(own.T @ own)
+        except np.linalg.LinAlgError:
+            continue
+        nu_rel.append(math.sqrt(max(shared_part[0, 0], 0.0)) / x[idx[0]])
+        lh_sd.append(math.sqrt(max(shared_part[1, 1], 0.0)))
+    uncertainty = CalibrationUncertainty(min(float(np.sqrt(np.mean(np.square(nu_rel)))) if nu_rel else 0.0, 0.1),
+                                         min(float(np.sqrt(np.mean(np.square(lh_sd)))) * 1e-6 if lh_sd else 0.0, 10e-6))
+    params = replace(sims.params(x[:k]), chain=replace(base.chain, **{n: getattr(chain, n) for n in chain_names}),
+                     calibration=uncertainty)
     return ElectricalCalibration(
-        sims.params(x[:k]), tuple(names), np.exp(x[:k]), sd_theta, x[k::2].copy(), x[k + 1::2].copy(), rms_before,
+        params, tuple(names), np.exp(x[:k]), sd[:k], x[p::2].copy(), x[p + 1::2].copy(), rms_before,
         float(np.sqrt(np.mean(np.concatenate(after) ** 2))), correlated, weak, warnings, evaluations + count[0],
-        z <= MISFIT_Z, z)
+        z <= MISFIT_Z, z, {n: float(v) for n, v in zip(chain_names, sd[k:p])}, d[p::2].copy(), d[p + 1::2].copy())
 
 
 def simulated_voltage(sim: FastSimulator, inj: Injection, nu: float, lh_um: float) -> np.ndarray:

@@ -215,6 +215,8 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
         structure = adequacy.structure
     structure = float("nan") if structure is None else structure
     bias = model_error_cov(x, other, config, structure) if mismatch else np.zeros((2, 2))
+    if not sim.params.calibration.zero:   # what a calibrated parameter set leaves uncertain: a bias too
+        bias = bias + sim.params.calibration.cov(float(x[0]))
     cov_x = fit.cov_x + bias
     if config.preload_rel_sigma > 0 and model is not None:
         cov_x = cov_x + preload_cov(model, fit, config.preload_rel_sigma)

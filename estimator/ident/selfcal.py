@@ -11,12 +11,20 @@ each is identified with the current and with the calibrated parameters, and the 
 adopted only if it explains them better by more than ``adopt_chi2`` (chi-square units, the sum over
 the held-out injections of the drop in their residual energy over their noise variance) and the
 calibration explains its own batch. A rejected calibration starts a new window.
+
+The calibration itself (seconds of computing) is handed to a *calibrator*: :class:`InlineCalibrator`
+runs it at once (offline tracking: deterministic), the daemon's background calibrator
+(:mod:`estimator.service.calibration_worker`) in a process of its own at low priority, so that the
+injection worker never waits for it. Either hands back :class:`CalibrationOutcome` objects that the
+tracker collects at its next update.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -64,6 +72,7 @@ class CalibrationStatus:
     rms_after_v: float = float("nan")
     held_out_chi2: float = float("nan")
     message: str = ""
+    calibrations: int = 0          # calibrations run for this injector so far
 
     def to_dict(self) -> dict:
         """JSON-ready (NaN as None)."""
@@ -71,7 +80,12 @@ class CalibrationStatus:
             return round(v, 4) if math.isfinite(v) else None
         return {"state": self.state, "batch": self.batch, "rms_before_v": num(self.rms_before_v),
                 "rms_after_v": num(self.rms_after_v), "held_out_chi2": num(self.held_out_chi2),
-                "message": self.message}
+                "message": self.message, "calibrations": self.calibrations}
+
+    @property
+    def code(self) -> int:
+        """The wire code of ``state`` (ModelCalibration.State)."""
+        return STATES.index(self.state)
 
 
 @dataclass
@@ -138,3 +152,59 @@ def _held_out_residual(sim: FastSimulator, inj: Injection) -> np.ndarray:
     if not (math.isfinite(est.nu_n_per_v) and math.isfinite(est.lh_m)):
         return np.full(inj.voltage_v.size, 1e3)
     return simulated_voltage(sim, inj, est.nu_n_per_v, est.lh_m * 1e6) - inj.voltage_v
+
+
+@dataclass
+class CalibrationOutcome:
+    """A finished calibration: the injector, its status, the parameters to adopt (None: rejected) and,
+    when the calibrator prepared it, the simulator pool for them (so that no table is built on the
+    injection worker)."""
+
+    injector_id: int
+    status: CalibrationStatus
+    params: InjectorParameters | None
+    prepared: Any = None
+
+
+class Calibrator(Protocol):
+    """Where self-calibrations run (see the module docstring)."""
+
+    def submit(self, injector_id: int, window: CalibrationWindow, base: InjectorParameters,
+               config: SelfCalConfig) -> None: ...
+
+    def poll(self) -> list[CalibrationOutcome]: ...
+
+    def close(self) -> None: ...
+
+
+def calibrate_and_tabulate(window: CalibrationWindow, base: InjectorParameters, config: SelfCalConfig
+                           ) -> tuple[CalibrationStatus, InjectorParameters | None, dict[float, np.ndarray]]:
+    """:func:`self_calibrate`, and for adopted parameters the simulator tables of the window's sample
+    period (built where the calibration runs, so that the estimating process only takes them)."""
+    status, params = self_calibrate(window, base, config)
+    tables = {}
+    if params is not None:
+        dt = window.items[0][0].dt_s
+        tables[dt] = FastSimulator(params, dt).transition_table()
+    return status, params, tables
+
+
+class InlineCalibrator:
+    """Runs each calibration when it is submitted, in the caller's thread; :meth:`poll` hands it back."""
+
+    def __init__(self, prepare: Callable[[InjectorParameters, dict[float, np.ndarray]], Any] | None = None) -> None:
+        self._done: list[CalibrationOutcome] = []
+        self.prepare = prepare
+
+    def submit(self, injector_id: int, window: CalibrationWindow, base: InjectorParameters,
+               config: SelfCalConfig) -> None:
+        status, params = self_calibrate(window, base, config)
+        prepared = self.prepare(params, {}) if params is not None and self.prepare is not None else None
+        self._done.append(CalibrationOutcome(injector_id, status, params, prepared))
+
+    def poll(self) -> list[CalibrationOutcome]:
+        done, self._done = self._done, []
+        return done
+
+    def close(self) -> None:
+        self._done.clear()

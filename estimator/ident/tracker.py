@@ -46,7 +46,8 @@ from estimator.ident.estimate import Estimate, rejected
 from estimator.ident.idle_stroke import (check_injection, complement_fit, effective_window_s, finish, identify,
                                          predict_valve, search_box)
 from estimator.ident.mismatch import model_error_cov, plain_adequacy
-from estimator.ident.selfcal import CalibrationStatus, CalibrationWindow, SelfCalConfig, self_calibrate
+from estimator.ident.selfcal import (Calibrator, CalibrationStatus, CalibrationWindow, InlineCalibrator,
+                                     SelfCalConfig)
 from estimator.ident.local_fit import refine
 from estimator.ident.measurement import Injection
 from estimator.ident.model_selection import likelihood_ratio
@@ -54,7 +55,8 @@ from estimator.ident.search import Box
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.status import ESTIMATED, Status
 from estimator.model.fast_sim import FastSimulator, remember
-from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters
+from estimator.model.drive import SAMPLE_PERIOD_S
+from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, STRUCTURAL, InjectorParameters
 
 STATE_VERSION = 2
 ROBUST_CHECK_EVERY = 4         # in robust mode, every 4th injection also fits the plain model (model-error test)
@@ -378,7 +380,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
     problem = check_injection(inj, sim, config.ident)
     if problem:
         st.rejected += 1
-        return st, _publish(_widen(held, st, config), rejected(problem), Status.REJECTED, problem, sim, inj, predict=False)
+        return st, _publish(_widen(held, st, config, sim), rejected(problem), Status.REJECTED, problem, sim, inj, predict=False)
     inj = inj.through_chain(sim.params.chain)   # once: the cold start and the valve prediction see it too
 
     cold = not (st.initialized and math.isfinite(st.x[0]) and math.isfinite(st.x[1]))   # a prior counts
@@ -386,7 +388,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
     raw = _cold_estimate(st, inj, sim, config) if cold else _warm_estimate(st, x0, inj, sim, config, box)
     if raw.status == Status.REJECTED:
         st.rejected += 1
-        return st, _publish(_widen(held, st, config), raw, Status.REJECTED, raw.message, sim, inj, predict=False)
+        return st, _publish(_widen(held, st, config, sim), raw, Status.REJECTED, raw.message, sim, inj, predict=False)
     if not cold and (raw.status == Status.NOT_CONVERGED or (raw.status == Status.AT_BOUND and not st.robust)):
         # the warm searches ran out of cycles (the injector moved more than expected), or the plain
         # model ran into a bound, which is how it absorbs a model error: decide afresh
@@ -400,7 +402,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
     r = _robust_cov(raw, config)
     if not all(map(math.isfinite, r.ravel().tolist() + z.tolist())):
         st.rejected += 1
-        return st, _publish(_widen(held, st, config), raw, Status.REJECTED, "no curvature at the optimum", sim, inj, predict=False)
+        return st, _publish(_widen(held, st, config, sim), raw, Status.REJECTED, "no curvature at the optimum", sim, inj, predict=False)
 
     if restart:
         _restart(st, z, r, now, temp, config)
@@ -414,7 +416,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
         st.rejected += 1
         reason = (f"outlier (innovation chi2 {inn.d2:.1f} > {config.gate_chi2:.1f}, the model mismatched "
                   f"on this injection only)")
-        return st, _publish(_widen(held, st, config), raw, Status.REJECTED, reason, sim, inj, predict=True,
+        return st, _publish(_widen(held, st, config, sim), raw, Status.REJECTED, reason, sim, inj, predict=True,
                             outliers=1)
     if inn.d2 <= config.gate_chi2:
         outliers = 0
@@ -432,7 +434,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
         st.rejected += 1
         reason = (f"outlier (innovation chi2 {inn.d2:.1f} > {config.gate_chi2:.1f}, model error "
                   f"{raw.model_error_stat:.0f})")
-        return st, _publish(_widen(held, st, config), raw, Status.REJECTED, reason, sim, inj, predict=True, outliers=1)
+        return st, _publish(_widen(held, st, config, sim), raw, Status.REJECTED, reason, sim, inj, predict=True, outliers=1)
 
     if st.pending is not None:
         taken = _confirm_jump(st, z, r, now, temp, config, noise)
@@ -456,7 +458,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
     else:   # marginal: as likely a noise tail as a small change: the filter updated with it (not committed)
         best, whose = kalman.update(x_pred, p_pred, z, r), "the filter's estimate with it"
     reason = f"in doubt (innovation chi2 {inn.d2:.1f} > {config.gate_chi2:.1f}): {whose}"
-    return st, _publish(_widen(best, st, config), raw, Status.UNCONFIRMED, reason, sim, inj, predict=True, outliers=outliers)
+    return st, _publish(_widen(best, st, config, sim), raw, Status.UNCONFIRMED, reason, sim, inj, predict=True, outliers=outliers)
 
 
 def _robust_hysteresis(st: TrackerState, raw: Estimate, config: TrackerConfig, cold: bool) -> bool:
@@ -580,17 +582,22 @@ def _note_mismatch(st: TrackerState, raw: Estimate, config: TrackerConfig) -> No
 
 
 def _widen(filt: tuple[np.ndarray, np.ndarray] | None, st: TrackerState,
-           config: TrackerConfig) -> tuple[np.ndarray, np.ndarray] | None:
+           config: TrackerConfig, sim: FastSimulator) -> tuple[np.ndarray, np.ndarray] | None:
     """The filtered (state, covariance) to publish: while the injector's model is mismatched, its
-    model-error covariance is added. That error is the same for every injection of the injector, so
-    averaging injections does not shrink it: the filter's own covariance would claim it did."""
-    if filt is None or not st.mismatch:
+    model-error covariance is added, and for a calibrated parameter set the uncertainty the
+    calibration leaves. Both are the same for every injection of the injector, so averaging
+    injections does not shrink them: the filter's own covariance would claim it did."""
+    calibration = sim.params.calibration
+    if filt is None or (not st.mismatch and calibration.zero):
         return filt
     x, p = filt
     q = np.array(p, copy=True)
     xi = x[:2]
-    structure = st.model_error_structure if st.model_error_structure is not None else float("nan")
-    q[:2, :2] += model_error_cov(xi, xi - np.asarray(st.model_error_d), config.ident, structure)
+    if st.mismatch:
+        structure = st.model_error_structure if st.model_error_structure is not None else float("nan")
+        q[:2, :2] += model_error_cov(xi, xi - np.asarray(st.model_error_d), config.ident, structure)
+    if not calibration.zero:
+        q[:2, :2] += calibration.cov(float(xi[0]))
     return x, q
 
 
@@ -600,7 +607,7 @@ def _accepted(st: TrackerState, raw: Estimate, r: np.ndarray, sim: FastSimulator
     st.accepted += 1 + confirmed
     _note_mismatch(st, raw, config)
     _carry_search(st, raw, r, config)
-    x, p = _widen((np.array(st.x), np.array(st.p)), st, config)   # type: ignore[misc]
+    x, p = _widen((np.array(st.x), np.array(st.p)), st, config, sim)   # type: ignore[misc]
     if raw.status in (Status.AT_BOUND, Status.NOT_CONVERGED):
         status, reason = raw.status, reason or raw.message
     elif st.mismatch:
@@ -668,7 +675,8 @@ class Tracker:
     """Thin stateful wrapper: one :class:`TrackerState` per injector id, simulators from a bounded pool."""
 
     def __init__(self, config: TrackerConfig | None = None, sim: FastSimulator | None = None,
-                 pool: SimulatorPool | None = None, self_calibration: SelfCalConfig | None = None) -> None:
+                 pool: SimulatorPool | None = None, self_calibration: SelfCalConfig | None = None,
+                 calibrator: Calibrator | None = None) -> None:
         self.config = config or TrackerConfig()
         self.pool = pool if pool is not None else SimulatorPool(sim.params if sim is not None else None)
         if sim is not None:
@@ -679,6 +687,12 @@ class Tracker:
         self.own_pools: dict[int, SimulatorPool] = {}
         self.calibration: dict[int, CalibrationStatus] = {}
         self._windows: dict[int, CalibrationWindow] = {}
+        self.calibrator: Calibrator | None = None
+        if self_calibration is not None:
+            self.calibrator = calibrator if calibrator is not None else InlineCalibrator()
+            if getattr(self.calibrator, "prepare", None) is None:
+                self.calibrator.prepare = self.own_pool   # type: ignore[attr-defined]
+        self._calibration_changed: set[int] = set()
 
     @property
     def params(self) -> InjectorParameters:
@@ -694,6 +708,8 @@ class Tracker:
 
         A sample period the pool refuses gives a ``rejected`` result and leaves the state alone.
         """
+        if self.calibrator is not None:
+            self._collect_calibrations()
         state = self.states.get(inj.injector_id)
         if state is None:
             state = TrackerState()
@@ -708,28 +724,96 @@ class Tracker:
         return result
 
     def _self_calibrate(self, inj: Injection, st: TrackerState, result: TrackResult, config: SelfCalConfig) -> None:
-        """Collect a mismatched injector's accepted injections; calibrate once the window is ready
-        (synchronously: this is for offline use and for a background worker, never a real-time one)."""
+        """Collect a mismatched injector's accepted injections; hand the window to the calibrator once
+        it is ready (which runs it now or in the background, never on this thread's real-time path
+        in the daemon)."""
         iid = inj.injector_id
         status = self.calibration.setdefault(iid, CalibrationStatus())
-        if status.state == "adopted" or not st.mismatch:
+        if status.state in ("adopted", "calibrating"):
+            return
+        if not st.mismatch:
             if status.state == "collecting":   # the model explains this injector again
                 self._windows.pop(iid, None)
-                status.state, status.batch = "idle", 0
+                self._set_calibration(iid, replace(status, state="idle", batch=0))
             return
         if result.status == Status.REJECTED or result.raw.status not in ESTIMATED:
             return
         window = self._windows.setdefault(iid, CalibrationWindow(config.window))
         window.add(inj, result.raw.nu_n_per_v)
-        status.state, status.batch = "collecting", len(window.items)
+        self._set_calibration(iid, replace(status, state="collecting", batch=len(window.items)))
         if not window.ready(config):
             return
-        done, params = self_calibrate(window, self.pool.params, config)
-        self.calibration[iid] = done
         del self._windows[iid]
-        if params is not None:   # its own model from now on: re-acquired under it
-            self.own_pools[iid] = SimulatorPool(params, self.pool.max_size, self.pool.periods_ns)
-            self.states.pop(iid, None)
+        self._set_calibration(iid, replace(self.calibration[iid], state="calibrating"))
+        assert self.calibrator is not None
+        self.calibrator.submit(iid, window, self.pool.params, config)
+        self._collect_calibrations()
+
+    def _set_calibration(self, iid: int, status: CalibrationStatus) -> None:
+        if self.calibration.get(iid) != status:
+            self._calibration_changed.add(iid)
+        self.calibration[iid] = status
+
+    def _collect_calibrations(self) -> None:
+        """Take the calibrator's finished calibrations: adopt those it accepted (the injector is
+        re-acquired under its own model)."""
+        assert self.calibrator is not None
+        for out in self.calibrator.poll():
+            before = self.calibration.get(out.injector_id, CalibrationStatus())
+            self._set_calibration(out.injector_id, replace(out.status, calibrations=before.calibrations + 1))
+            if out.params is not None:
+                self.adopt(out.injector_id, out.params, out.prepared)
+
+    def own_pool(self, params: InjectorParameters, tables: dict[float, np.ndarray] | None = None) -> SimulatorPool:
+        """A simulator pool for an injector's own ``params`` with its simulators' tables: those in
+        ``tables`` (sample period s -> :meth:`FastSimulator.transition_table`, built elsewhere), else
+        the default sample period's built here."""
+        pool = SimulatorPool(params, self.pool.max_size, self.pool.periods_ns)
+        for dt, table in (tables or {}).items():
+            sim = FastSimulator(params, dt)
+            sim.use_table(table)
+            sim.kernel_handle()
+            pool.add(sim)
+        if not tables:
+            pool.get(SAMPLE_PERIOD_S).kernel_handle()
+        return pool
+
+    def adopt(self, injector_id: int, params: InjectorParameters, pool: SimulatorPool | None = None) -> None:
+        """Estimate ``injector_id`` with its own ``params`` from now on (re-acquired from a cold start)."""
+        self.own_pools[injector_id] = pool if isinstance(pool, SimulatorPool) else SimulatorPool(
+            params, self.pool.max_size, self.pool.periods_ns)
+        self.states.pop(injector_id, None)
+        if self.calibration.get(injector_id, CalibrationStatus()).state != "adopted":
+            self._set_calibration(injector_id, replace(self.calibration.get(injector_id, CalibrationStatus()),
+                                                       state="adopted"))
+
+    def take_calibration_changes(self) -> list[tuple[int, CalibrationStatus]]:
+        """The injectors whose self-calibration status changed since the last call, with that status."""
+        changed = sorted(self._calibration_changed)
+        self._calibration_changed.clear()
+        return [(i, self.calibration[i]) for i in changed]
+
+    def own_parameters(self) -> dict[int, InjectorParameters]:
+        """The parameter sets adopted per injector (to persist)."""
+        return {i: p.params for i, p in self.own_pools.items()}
+
+    def restore_calibrations(self, params: dict[int, InjectorParameters]) -> list[str]:
+        """Adopt persisted parameter sets that are a calibration of this estimator's parameters (every
+        structural parameter within the calibration's bounds of the base value); one line per set
+        dropped."""
+        problems = []
+        tol = (self.self_calibration or SelfCalConfig()).tolerance
+        limit = 4 * math.log1p(tol) + 1e-9
+        base = self.pool.params
+        for iid, p in params.items():
+            far = [f"{t}.{n}" for t, n in STRUCTURAL
+                   if abs(math.log(getattr(getattr(p, t), n) / getattr(getattr(base, t), n))) > limit]
+            if far:
+                problems.append(f"injector {iid}: parameter set is not a calibration of the configured one "
+                                f"({', '.join(far[:3])} beyond its bounds)")
+                continue
+            self.adopt(iid, p)
+        return problems
 
     def restore(self, states: dict[int, TrackerState]) -> list[str]:
         """Take restored states that are physically possible for this estimator; returns one line per
@@ -768,6 +852,8 @@ class Tracker:
             scratch.update(Injection(cur, res.voltage_v[1], SAMPLE_PERIOD_S, counter=k, time_s=0.04 * k))
         # a local-first cold start passes its check on this clean trace: load the global search's too
         identify(Injection(cur, res.voltage_v[2], SAMPLE_PERIOD_S), sim, replace(self.config.ident, cold_start="global"))
+        # and the test of the plain model a warm update of a mismatched injector runs
+        plain_model_error(res.voltage_v[0] - res.voltage_v[1], cur, SAMPLE_PERIOD_S, 0.1)
 
     def reset(self, injector_id: int) -> None:
         """Forget everything about one injector."""

@@ -22,6 +22,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import lfilter
 
 from estimator.errors import ParameterError
 
@@ -99,18 +100,13 @@ def unfilter(y: np.ndarray, tau_s: float, dt_s: float) -> np.ndarray:
 
 
 def lowpass(x: np.ndarray, tau_s: float, dt_s: float) -> np.ndarray:
-    """First-order filter ``tau y' + y = x`` from rest, exact for ``x`` linear between samples."""
+    """First-order filter ``tau y' + y = x`` from rest, exact for ``x`` linear between samples; along
+    the last axis of ``x``."""
     x = np.asarray(x, dtype=float)
     a = math.exp(-dt_s / tau_s)
     c = 1.0 - tau_s / dt_s * (1.0 - a)
-    b1, b0 = c, (1.0 - a) - c
-    y = np.empty_like(x)
-    prev_y, prev_x = 0.0, 0.0
-    for k in range(x.size):
-        prev_y = a * prev_y + b0 * prev_x + b1 * x[k]
-        prev_x = x[k]
-        y[k] = prev_y
-    return y
+    # y[k] = a y[k-1] + c x[k] + (1 - a - c) x[k-1], from y = x = 0
+    return lfilter([c, (1.0 - a) - c], [1.0, -a], x, axis=-1)
 
 
 def shift(x: np.ndarray, samples: float) -> np.ndarray:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 from collections.abc import Mapping
@@ -186,13 +186,40 @@ class ValveParameters:
 
 
 @dataclass(frozen=True)
+class CalibrationUncertainty:
+    """How uncertain a calibrated parameter set leaves the estimates made with it (1 sigma, the same
+    for every injection of the injector, so averaging does not shrink it): ``nu_rel_sigma`` of N_u
+    (relative), ``lh_sigma_m`` of L_h (m). Zero for the tables' values, which are taken as exact."""
+
+    nu_rel_sigma: float = 0.0
+    lh_sigma_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name, limit in (("nu_rel_sigma", 0.1), ("lh_sigma_m", 10e-6)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and 0 <= v <= limit):
+                raise ParameterError(f"[calibration] {name} = {v!r} must be a number within 0..{limit:g}")
+
+    @property
+    def zero(self) -> bool:
+        """True for exact parameters (the default)."""
+        return self.nu_rel_sigma == 0.0 and self.lh_sigma_m == 0.0
+
+    def cov(self, nu_n_per_v: float) -> np.ndarray:
+        """The covariance it adds to an estimate at ``nu_n_per_v``, in (N/V, µm)."""
+        return np.diag([(nu_n_per_v * self.nu_rel_sigma) ** 2, (self.lh_sigma_m * 1e6) ** 2])
+
+
+@dataclass(frozen=True)
 class InjectorParameters:
     """The PSA and the valve together: everything the hybrid model needs except N_u, L_h, F_open;
-    and the amplifier's measurement chain between the actuator and the samples (default: none)."""
+    the amplifier's measurement chain between the actuator and the samples (default: none); and,
+    for a calibrated set, the uncertainty the calibration leaves in every estimate."""
 
     psa: PsaParameters
     valve: ValveParameters
     chain: MeasurementChain = NO_CHAIN
+    calibration: CalibrationUncertainty = field(default_factory=CalibrationUncertainty)
 
     def to_toml(self, header: str = "") -> str:
         """This parameter set as a TOML file in the layout of ``parameters.toml`` (every key of
@@ -202,12 +229,34 @@ class InjectorParameters:
         lines += ["", "[valve]"] + [f"{k} = {float(v)!r}" for k, v in self.valve.__dict__.items()]
         if not self.chain.identity:
             lines += ["", "[chain]"] + [f"{k} = {float(v)!r}" for k, v in self.chain.__dict__.items()]
+        if not self.calibration.zero:
+            lines += ["", "[calibration]"] + [f"{k} = {float(v)!r}" for k, v in self.calibration.__dict__.items()]
         return "\n".join(lines) + "\n"
+
+    def to_mapping(self) -> dict[str, dict[str, float]]:
+        """{"psa": {...}, "valve": {...}, "chain": {...}} of SI values (JSON-ready; :meth:`from_mapping`)."""
+        return {"psa": {k: float(v) for k, v in self.psa.__dict__.items()},
+                "valve": {k: float(v) for k, v in self.valve.__dict__.items()},
+                "chain": {k: float(v) for k, v in self.chain.__dict__.items()},
+                "calibration": {k: float(v) for k, v in self.calibration.__dict__.items()}}
+
+    @classmethod
+    def from_mapping(cls, data: Any) -> InjectorParameters:
+        """The inverse of :meth:`to_mapping`, validated like a parameter file; raises ParameterError."""
+        if not isinstance(data, Mapping) or not isinstance(data.get("psa"), Mapping) \
+                or not isinstance(data.get("valve"), Mapping):
+            raise ParameterError("a parameter set needs the tables psa and valve")
+        cal = data.get("calibration", {})
+        if not isinstance(cal, Mapping) or set(cal) - {f.name for f in fields(CalibrationUncertainty)}:
+            raise ParameterError("[calibration] must be a table of nu_rel_sigma and lh_sigma_m")
+        return cls(PsaParameters.from_mapping(data["psa"]), ValveParameters.from_mapping(data["valve"]),
+                   chain_from_mapping(data.get("chain", {})), CalibrationUncertainty(**cal))
 
     @classmethod
     def from_toml(cls, path: str | Path) -> InjectorParameters:
         """Read ``[psa]`` and ``[valve]`` tables (SI values) and an optional ``[chain]`` table
-        (``u_filter_tau_s``, ``i_filter_tau_s``, ``i_skew_s``: :class:`MeasurementChain`) from a TOML file."""
+        (``u_filter_tau_s``, ``i_filter_tau_s``, ``i_skew_s``: :class:`MeasurementChain`) and an optional
+        ``[calibration]`` table (:class:`CalibrationUncertainty`) from a TOML file."""
         path = Path(path)
         try:
             data = tomllib.loads(path.read_text())
@@ -215,8 +264,7 @@ class InjectorParameters:
             raise ParameterError(f"cannot read parameter file {path}: {exc}") from None
         if "psa" not in data or "valve" not in data:
             raise ParameterError(f"parameter file {path} needs the tables [psa] and [valve]")
-        return cls(PsaParameters.from_mapping(data["psa"]), ValveParameters.from_mapping(data["valve"]),
-                   chain_from_mapping(data.get("chain", {})))
+        return cls.from_mapping(data)
 
 
 def chain_from_mapping(values: Any) -> MeasurementChain:

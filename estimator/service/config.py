@@ -27,6 +27,7 @@ else:  # pragma: no cover
 from estimator.codec.assembler import MAX_SAMPLE_PERIOD_NS
 from estimator.errors import EstimatorError
 from estimator.ident.config import IdentConfig, TrackerConfig
+from estimator.ident.selfcal import SelfCalConfig
 from estimator.service.bus import BusSetupError, BusSpec
 from estimator.service.processor import COMMAND_POLICIES
 
@@ -116,6 +117,9 @@ class DaemonConfig:
     cold_start: str = IdentConfig.cold_start   # local-first (a checked local fit, the global search where it fails) | global
     start_nu_n_per_v: float = IdentConfig.start_point[0]   # where a local-first cold start begins: the type's nominal N_u
     start_lh_um: float = IdentConfig.start_point[1]        # ... and L_h
+    self_calibration: str = "off"       # off | on: a mismatched injector learns its own model in the background
+    self_calibration_window: int = SelfCalConfig.window     # injections per calibration (two held out to test it)
+    self_calibration_min_preload_spread: float = SelfCalConfig.min_preload_spread   # (max - min) / mean preload force
     log_level: str = "INFO"
 
     def __post_init__(self) -> None:
@@ -126,6 +130,7 @@ class DaemonConfig:
                 raise ConfigError(f"{name} = {_show(value)}: {problem}")
         try:
             self.tracker_config()
+            self.self_calibration_config()
         except ValueError as exc:   # a combination the identification refuses
             raise ConfigError(f"tracker/identification settings: {exc}") from None
         try:
@@ -139,6 +144,13 @@ class DaemonConfig:
         if self.bus is None:
             return BusSpec(None, None, **base)
         return BusSpec.parse(self.bus, **base)
+
+    def self_calibration_config(self) -> SelfCalConfig | None:
+        """The self-calibration settings (None when ``self_calibration = "off"``)."""
+        if self.self_calibration == "off":
+            return None
+        return SelfCalConfig(window=self.self_calibration_window,
+                             min_preload_spread=self.self_calibration_min_preload_spread)
 
     def tracker_config(self) -> TrackerConfig:
         """The tracker <- identification part of the tree."""
@@ -236,6 +248,9 @@ _RULES: dict[str, Callable[[Any], str | None]] = {
     "cold_start": _choice("local-first", "global"),
     "start_nu_n_per_v": _number(1.0, 100.0),
     "start_lh_um": _number(-100.0, 100.0),
+    "self_calibration": _choice("off", "on"),
+    "self_calibration_window": _whole(5, 64),
+    "self_calibration_min_preload_spread": _number(0.0, 10.0),
     "log_level": _choice(*LOG_LEVELS),
 }
 assert set(_RULES) == {f.name for f in fields(DaemonConfig)}, "every config key needs a rule"

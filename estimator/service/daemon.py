@@ -28,12 +28,13 @@ from estimator.codec.frame import Frame
 from estimator.errors import EstimatorError
 from estimator.service.bus import open_bus, resolve, to_frame, to_message
 from estimator.ident.tracker import Tracker
-from estimator.pipeline import build_pipeline, build_pool
+from estimator.pipeline import build_pipeline, build_pool, build_tracker
 from estimator.service.config import ConfigError, DaemonConfig
 from estimator.service.latency import Stats
 from estimator.service.ratelimit import RateLimitedLog
 from estimator.service.sdnotify import SdNotify
-from estimator.service.state_store import keep_rejected, load_states, save_states
+from estimator.service.calibration_worker import BackgroundCalibrator
+from estimator.service.state_store import keep_rejected, load_calibrations, load_states, save_states
 
 log = logging.getLogger(__name__)
 STATE_FILE = "estimator-state.json"
@@ -95,7 +96,9 @@ class Daemon:
     def __init__(self, cfg: DaemonConfig, loader: Callable[[], DaemonConfig] | None = None) -> None:
         self.cfg = cfg
         self.loader = loader
-        self.codec, self.ingest, self.processor, self.clock = build_pipeline(cfg)
+        # self-calibrations run in a low-priority process of their own, never on the injection worker
+        self.calibrator = BackgroundCalibrator() if cfg.self_calibration == "on" else None
+        self.codec, self.ingest, self.processor, self.clock = build_pipeline(cfg, calibrator=self.calibrator)
         self.stop = threading.Event()
         self.reload_requested = threading.Event()
         self._send_lock = threading.Lock()
@@ -124,6 +127,8 @@ class Daemon:
             return
         states, problem = load_states(self.state_path)
         problems = ([problem] if problem else []) + self.tracker.restore(states)
+        calibrations, problem = load_calibrations(self.state_path)
+        problems += ([problem] if problem else []) + self.tracker.restore_calibrations(calibrations)
         if problems:
             kept = keep_rejected(self.state_path)
             log.warning("state file %s: dropped (starting those injectors cold; original kept as %s): %s",
@@ -136,7 +141,7 @@ class Daemon:
         if self.state_path is None:
             return
         try:
-            save_states(self.state_path, dict(self.tracker.states))
+            save_states(self.state_path, dict(self.tracker.states), self.tracker.own_parameters())
             self._dirty = False
         except OSError as exc:
             self.rlog.log(logging.ERROR, "persist", "cannot write state %s: %s", self.state_path, exc)
@@ -254,8 +259,14 @@ class Daemon:
         same_pool = all(getattr(new, k) == getattr(self.cfg, k) for k in ("params", "max_sample_periods",
                                                                           "sample_periods_ns"))
         # the simulators' tables stay when nothing they depend on changed
-        tracker = Tracker(new.tracker_config(), pool=self.tracker.pool if same_pool else build_pool(new))
-        tracker.states = self.tracker.states
+        if new.self_calibration == "on" and self.calibrator is None:
+            self.calibrator = BackgroundCalibrator()
+        old = self.tracker
+        tracker = build_tracker(new, old.pool if same_pool else build_pool(new),
+                                self.calibrator if new.self_calibration == "on" else None)
+        tracker.states = old.states
+        if same_pool:   # the injectors' own models are calibrations of these parameters
+            tracker.own_pools, tracker.calibration = old.own_pools, old.calibration
         self.processor.tracker = tracker
         self.processor.commands = new.commands
         self.ingest.assembler.timeout_s = new.assembly_timeout_ms * 1e-3
@@ -326,6 +337,8 @@ class Daemon:
                 worker.join(timeout=1.0)
                 beat.join(timeout=1.0)
                 self.persist()
+                if self.calibrator is not None:
+                    self.calibrator.close()
                 log.info("estimator stopped: %s", self.summary())
         return 0
 

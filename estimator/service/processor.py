@@ -14,9 +14,10 @@ from functools import cached_property
 from estimator.codec.assembler import Completed, RejectReason, Rejected
 from estimator.codec.ingest import Counters, Event, Malformed
 from estimator.codec.records import (HEARTBEAT_COUNTERS, Codec, Command, EstimateQuality, EstimateState,
-                                     EstimatorCommand, EstimatorStatus, ValvePrediction)
+                                     EstimatorCommand, EstimatorStatus, ModelCalibration, ValvePrediction)
 from estimator.errors import ParameterError
 from estimator.ident.measurement import Injection
+from estimator.ident.selfcal import CalibrationStatus
 from estimator.ident.status import Status
 from estimator.ident.tracker import Tracker, TrackResult
 from estimator.service.ratelimit import RateLimitedLog
@@ -55,6 +56,12 @@ def output_frames(codec: Codec, injector_id: int, counter: int, res: TrackResult
     ]
 
 
+def calibration_frame(codec: Codec, injector_id: int, status: CalibrationStatus):
+    """The ModelCalibration frame of one injector's self-calibration status."""
+    return codec.encode(ModelCalibration(injector_id, status.code, status.batch, status.rms_before_v,
+                                         status.rms_after_v, status.calibrations & 0xFF))
+
+
 @dataclass(frozen=True)
 class Published:
     """One processed injection: its identification, the result and the frames sent for it."""
@@ -64,13 +71,15 @@ class Published:
     t_last: float
     result: TrackResult
     codec: Codec = field(repr=False, compare=False)
+    calibrations: tuple[tuple[int, CalibrationStatus], ...] = ()   # self-calibration changes (injector, status)
 
     @cached_property
     def frames(self) -> list:
         """The output frames (:func:`output_frames`), encoded when first asked for: the daemon and a
         replay with an output log send them; rows (``replay --csv``, the fleet) do not need them
         (≈ 0.2 ms an injection)."""
-        return output_frames(self.codec, self.injector_id, self.counter, self.result)
+        return output_frames(self.codec, self.injector_id, self.counter, self.result) + [
+            calibration_frame(self.codec, i, st) for i, st in self.calibrations]
 
     def to_row(self, time_s: float) -> dict:
         """One table row (replay ``--csv``, fleet): see :func:`result_row`."""
@@ -176,7 +185,11 @@ class Processor:
             self.counters.reject(RejectReason.INVALID)
             self.rlog.log(logging.WARNING, "reject-estimator", "injector %d counter %d rejected: %s",
                           h.injector_id, h.counter, res.reason)
-        return Published(h.injector_id, h.counter, e.t_last, res, self.codec)
+        changes = tuple(self.tracker.take_calibration_changes()) if self.tracker.calibrator is not None else ()
+        for iid, st in changes:
+            if st.state in ("adopted", "rejected"):
+                log.info("injector %d: self-calibration %s (%s)", iid, st.state, st.message)
+        return Published(h.injector_id, h.counter, e.t_last, res, self.codec, changes)
 
     def status_frame(self, queue_depth: int, latency_p99_ms: float, uptime_s: float,
                      stage_p99_ms: dict[str, float] | None = None):

@@ -1,4 +1,8 @@
-"""Per-injector estimator state on disk: atomic (write, fsync, rename), validated on load."""
+"""Per-injector estimator state on disk: atomic (write, fsync, rename), validated on load.
+
+Beside each injector's tracker state the file holds the parameter set a self-calibration adopted
+for it (``calibrations``), so that a restarted daemon estimates it with its own model at once.
+"""
 
 from __future__ import annotations
 
@@ -10,7 +14,11 @@ import tempfile
 import time
 from pathlib import Path
 
+from typing import Any
+
+from estimator.errors import EstimatorError
 from estimator.ident.tracker import TrackerState
+from estimator.model.parameters import InjectorParameters
 
 log = logging.getLogger(__name__)
 FORMAT = "piezo-injector-estimator-state"
@@ -18,11 +26,15 @@ VERSION = 1
 MAX_BYTES = 1 << 20   # 8 injectors take about 10 kB; anything this large is not ours
 
 
-def save_states(path: Path, states: dict[int, TrackerState]) -> None:
-    """Write all injector states atomically: a crash leaves the old file or the new one, never a mix."""
+def save_states(path: Path, states: dict[int, TrackerState],
+                calibrations: dict[int, InjectorParameters] | None = None) -> None:
+    """Write all injector states (and the injectors' own parameter sets) atomically: a crash leaves
+    the old file or the new one, never a mix."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    doc = {"format": FORMAT, "version": VERSION, "saved_at": time.time(),
-           "injectors": {str(k): v.to_dict() for k, v in sorted(states.items())}}
+    doc: dict[str, Any] = {"format": FORMAT, "version": VERSION, "saved_at": time.time(),
+                           "injectors": {str(k): v.to_dict() for k, v in sorted(states.items())}}
+    if calibrations:
+        doc["calibrations"] = {str(k): p.to_mapping() for k, p in sorted(calibrations.items())}
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w") as f:
@@ -49,16 +61,9 @@ def load_states(path: Path) -> tuple[dict[int, TrackerState], str | None]:
     A corrupt, truncated or foreign file is reported and ignored (the estimator starts cold);
     a single bad injector entry is skipped, the others are kept.
     """
-    if not path.exists():
-        return {}, None
-    try:
-        if path.stat().st_size > MAX_BYTES:
-            return {}, f"state file {path} is larger than {MAX_BYTES} bytes; ignoring it"
-        doc = json.loads(path.read_bytes().decode("utf-8"))
-    except (OSError, ValueError, RecursionError) as exc:
-        return {}, f"state file {path} unreadable ({exc}); starting without it"
-    if not isinstance(doc, dict) or doc.get("format") != FORMAT or doc.get("version") != VERSION:
-        return {}, f"state file {path} is not a {FORMAT} v{VERSION} file; ignoring it"
+    doc, problem = _read(path)
+    if doc is None:
+        return {}, problem
     states: dict[int, TrackerState] = {}
     problems = []
     entries = doc.get("injectors") or {}
@@ -66,13 +71,51 @@ def load_states(path: Path) -> tuple[dict[int, TrackerState], str | None]:
         return {}, f"state file {path}: 'injectors' is not an object; starting without it"
     for key, value in entries.items():
         try:
-            inj = int(key)
-            if not 0 <= inj <= 7:
-                raise ValueError("injector id out of range")
-            states[inj] = TrackerState.from_dict(value)
+            states[_injector(key)] = TrackerState.from_dict(value)
         except (ValueError, TypeError, RecursionError) as exc:
             problems.append(f"injector {key}: {exc}")
     return states, ("; ".join(problems) if problems else None)
+
+
+def load_calibrations(path: Path) -> tuple[dict[int, InjectorParameters], str | None]:
+    """The injectors' own parameter sets from ``path`` and a problem description (None if fine or
+    absent); each set is validated like a parameter file, a bad one is skipped."""
+    doc, problem = _read(path)
+    if doc is None:
+        return {}, problem
+    entries = doc.get("calibrations") or {}
+    if not isinstance(entries, dict):
+        return {}, f"state file {path}: 'calibrations' is not an object; ignoring them"
+    out: dict[int, InjectorParameters] = {}
+    problems = []
+    for key, value in entries.items():
+        try:
+            out[_injector(key)] = InjectorParameters.from_mapping(value)
+        except (ValueError, TypeError, RecursionError, EstimatorError) as exc:
+            problems.append(f"calibration of injector {key}: {exc}")
+    return out, ("; ".join(problems) if problems else None)
+
+
+def _injector(key: str) -> int:
+    inj = int(key)
+    if not 0 <= inj <= 7:
+        raise ValueError("injector id out of range")
+    return inj
+
+
+def _read(path: Path) -> tuple[dict | None, str | None]:
+    """The state document, or None and why (None, None: no file)."""
+    if not path.exists():
+        return None, None
+    try:
+        if path.stat().st_size > MAX_BYTES:
+            return None, f"state file {path} is larger than {MAX_BYTES} bytes; ignoring it"
+        doc = json.loads(path.read_bytes().decode("utf-8"))
+    except (OSError, ValueError, RecursionError) as exc:
+        return None, f"state file {path} unreadable ({exc}); starting without it"
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT or doc.get("version") != VERSION:
+        return None, f"state file {path} is not a {FORMAT} v{VERSION} file; ignoring it"
+    return doc, None
 
 
 def keep_rejected(path: Path) -> Path | None:

@@ -1,0 +1,131 @@
+"""The daemon's background calibrator: self-calibrations in a process of their own, at low priority.
+
+A batch calibration takes seconds of computing; the injection worker must keep its sub-millisecond
+updates meanwhile. :class:`BackgroundCalibrator` runs :func:`~estimator.ident.selfcal.self_calibrate`
+in one worker process (started with the calibrator, ``spawn``: the daemon has threads, a forked copy of them would not be safe),
+niced so that the kernel prefers the daemon's own threads, one calibration at a time. When one
+finishes, a thread of the executor (not the injection worker) builds the simulator tables for the
+adopted parameters; the tracker collects the outcome at its next update with :meth:`poll`, which
+only takes a lock and a list.
+
+The worker process also builds the adopted parameters' simulator table (≈ 26 ms of computing that
+would hold the daemon's interpreter lock), and the daemon takes it as it is.
+
+A worker process that dies (out of memory, killed) loses that calibration (reported as ``rejected``
+with the reason) and is replaced at the next submission.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any
+
+from estimator.ident.selfcal import (CalibrationOutcome, CalibrationStatus, CalibrationWindow, SelfCalConfig,
+                                     calibrate_and_tabulate)
+from estimator.model.parameters import InjectorParameters
+
+log = logging.getLogger(__name__)
+NICE = 10     # added to the worker's niceness: it yields the cores to the daemon's threads
+
+
+def _lower_priority(increment: int) -> None:
+    """In the worker process: lower its priority (best effort), and load the compiled kernels the
+    calibration uses, so that the first calibration does not pay for it."""
+    try:
+        os.nice(increment)
+    except OSError:   # pragma: no cover - a platform without nice
+        pass
+    from estimator.model.drive import SAMPLE_PERIOD_S, StandardDrive
+    from estimator.model.fast_sim import FastSimulator
+
+    cur = StandardDrive().samples(100e-6, SAMPLE_PERIOD_S)
+    FastSimulator().simulate(cur, [17.0, 18.0], [2e-6, 3e-6])
+
+
+class BackgroundCalibrator:
+    """Self-calibrations in a low-priority worker process (see the module docstring).
+
+    ``prepare`` (optional) turns adopted parameters into what the tracker swaps in (its simulator
+    pool with the tables built); it runs on an executor thread, not on the caller's.
+    """
+
+    def __init__(self, prepare: Callable[[InjectorParameters, dict[float, Any]], Any] | None = None,
+                 nice: int = NICE) -> None:
+        self.prepare = prepare
+        self._nice = nice
+        self._lock = threading.Lock()
+        self._done: list[CalibrationOutcome] = []
+        self._running: set[int] = set()
+        self._executor: ProcessPoolExecutor | None = None
+        self._pool().submit(int)   # start the worker process now (at the daemon's start, not in an update)
+
+    def _pool(self) -> ProcessPoolExecutor:
+        if self._executor is None:
+            self._executor = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                                                 initializer=_lower_priority, initargs=(self._nice,))
+        return self._executor
+
+    def submit(self, injector_id: int, window: CalibrationWindow, base: InjectorParameters,
+               config: SelfCalConfig) -> None:
+        """Queue a calibration of ``window`` (returns at once)."""
+        try:
+            fut = self._pool().submit(calibrate_and_tabulate, window, base, config)
+        except (BrokenProcessPool, RuntimeError) as exc:   # a dead worker: start a new one next time
+            self._executor = None
+            self._finish_failed(injector_id, f"calibration worker unavailable ({exc})")
+            return
+        with self._lock:
+            self._running.add(injector_id)
+        fut.add_done_callback(lambda f: self._finish(injector_id, f))
+
+    def _finish(self, injector_id: int, fut: Future) -> None:
+        try:
+            status, params, tables = fut.result()
+        except Exception as exc:   # noqa: BLE001 - whatever killed the calibration, the daemon goes on
+            if isinstance(exc, BrokenProcessPool):
+                self._executor = None
+            log.warning("injector %d: self-calibration failed: %s", injector_id, exc)
+            self._finish_failed(injector_id, f"calibration failed ({type(exc).__name__}: {exc})")
+            return
+        prepared = None
+        if params is not None and self.prepare is not None:
+            try:
+                prepared = self.prepare(params, tables)
+            except Exception as exc:   # noqa: BLE001 - adopted without a prepared pool: built on first use
+                log.warning("injector %d: preparing the calibrated model failed: %s", injector_id, exc)
+        with self._lock:
+            self._running.discard(injector_id)
+            self._done.append(CalibrationOutcome(injector_id, status, params, prepared))
+
+    def _finish_failed(self, injector_id: int, message: str) -> None:
+        with self._lock:
+            self._running.discard(injector_id)
+            self._done.append(CalibrationOutcome(injector_id, CalibrationStatus("rejected", message=message), None))
+
+    def poll(self) -> list[CalibrationOutcome]:
+        """The calibrations finished since the last call (never blocks on a running one)."""
+        with self._lock:
+            done, self._done = self._done, []
+        return done
+
+    @property
+    def running(self) -> int:
+        """Calibrations submitted and not finished."""
+        with self._lock:
+            return len(self._running)
+
+    def close(self) -> None:
+        """Stop the worker process (a running calibration is abandoned)."""
+        ex, self._executor = self._executor, None
+        if ex is not None:
+            processes = list((getattr(ex, "_processes", None) or {}).values())
+            ex.shutdown(wait=False, cancel_futures=True)
+            for p in processes:   # do not wait seconds for a running calibration to finish
+                if p.is_alive():
+                    p.terminate()
