@@ -154,9 +154,14 @@ def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
 
     from estimator.trace_io import injection_from_trace, injector_key
 
-    injections = []
+    injections, bad = [], 0
     for path in args.traces:
-        tr = _trace(path, args)
+        try:
+            tr = _trace(path, args)
+        except EstimatorError as exc:   # a corrupt trace is named and skipped, the others calibrate
+            print(f"skipped {path}: {exc}", file=sys.stderr)
+            bad += 1
+            continue
         if args.serial is not None and injector_key(tr.meta) != args.serial:
             continue
         inj = injection_from_trace(tr)
@@ -180,7 +185,9 @@ def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     else:
         print(toml)
     print(res.report())
-    return 0 if res.adequate else 1
+    if bad:
+        print(f"error: {bad} of {len(args.traces)} file(s) could not be read (skipped, named above)", file=sys.stderr)
+    return 0 if res.adequate and not bad else 1
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
@@ -327,6 +334,16 @@ def cmd_fleet(args: argparse.Namespace) -> int:
     opts = {k: getattr(args, k) for k in ("current_channel", "voltage_channel") if getattr(args, k, None)}
     if args.sample_period_us:
         opts["sample_period_s"] = args.sample_period_us * 1e-6
+    if args.calibrate:
+        from estimator.fleet.calibrate import format_report, run_lot_calibration
+
+        if args.out.suffix.lower() in (".parquet", ".csv"):
+            raise EstimatorError(f"--out {args.out}: with --calibrate, a directory for the parameter files")
+        cal = run_lot_calibration(args.inputs, args.out, args.calibrate, cfg.params, args.tolerance, args.workers,
+                                  args.scheduler, opts)
+        print(format_report(cal))
+        print("\n".join(f"wrote {f}" for f in cal.files))
+        return 1 if cal.refused or cal.missing or any(r.get("skipped") for r in cal.rows) else 0
     res = run_fleet(args.inputs, args.out, cfg, args.workers, args.scheduler, opts, progress=sys.stderr.isatty())
     print(format_fleet(res))
     return 1 if res.errors or res.missing else 0
@@ -452,7 +469,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("fleet", help="many captures/traces on Dask: one row per injection, summary, lot report")
     s.add_argument("inputs", nargs="+", help="files, directories (recursive) and glob patterns (quote them)")
-    s.add_argument("--out", type=Path, required=True, help="RESULTS.parquet or RESULTS.csv (companions beside it)")
+    s.add_argument("--out", type=Path, required=True, help="RESULTS.parquet or RESULTS.csv (companions beside it); "
+                   "with --calibrate a directory")
+    s.add_argument("--calibrate", choices=("per-injector", "per-lot"), default=None,
+                   help="instead of estimating: electrical calibrations as Dask tasks, per injector (traces grouped by "
+                        "serial) or one for the lot; writes each parameter file, calibration.csv and the lot's "
+                        "structural spread (structure-spread.txt/.png) into --out")
+    s.add_argument("--tolerance", type=float, default=0.10,
+                   help="--calibrate: relative standard deviation of each structural parameter's prior (default 0.10)")
     g = s.add_mutually_exclusive_group()
     g.add_argument("--workers", type=int, default=None, help="local cluster processes (default: the cores)")
     g.add_argument("--scheduler", default=None, help="attach to a running cluster, tcp://HOST:PORT")

@@ -27,6 +27,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from typing import Any
+
 import numpy as np
 
 from estimator.ident.electrical import calibrate_electrical
@@ -81,7 +83,8 @@ def run_injector(variant: str, seed: int) -> dict:
             path.write_text(res.params.to_toml(f"electrical calibration of series injector seed {seed}"))
             own_params = InjectorParameters.from_toml(path)
     own, nominal = FastSimulator(own_params), FastSimulator()
-    rows_own, rows_nom = [], []
+    rows_own: list[tuple] = []
+    rows_nom: list[tuple] = []
     for inj, nu in zip(injections[CALIBRATE_FIRST:], truth[CALIBRATE_FIRST:]):
         for sim, out in ((own, rows_own), (nominal, rows_nom)):
             e = identify(inj, sim)
@@ -89,6 +92,9 @@ def run_injector(variant: str, seed: int) -> dict:
                         (e.nu_n_per_v - nu) / e.sigma_nu))
     true_log = np.array([math.log(part.factors[n]) for n in res.names])
     z = (np.log(res.factors) - true_log) / res.sigma_rel
+    # the measurement chain's fitted parameters are calibrated parameters too (absolute, µs)
+    z_chain = [(getattr(res.params.chain, n) - getattr(part.chain, n)) * 1e6 / sd for n, sd in res.chain_sigma_us.items()]
+    z = np.concatenate([z, z_chain])
     lh_err = np.array([r[0] for r in rows_own])
     nu_err = np.array([r[1] for r in rows_own])
     ok = np.array([r[3] == "ok" for r in rows_own])
@@ -103,7 +109,7 @@ def run_injector(variant: str, seed: int) -> dict:
            "statuses": sorted({r[3] for r in rows_own}),
            "lh_max_nominal_um": float(np.max(np.abs([r[0] for r in rows_nom]))),
            "nominal_statuses": sorted({r[3] for r in rows_nom}),
-           "param_z": {n: float(v) for n, v in zip(res.names, z)},
+           "param_z": {n: float(v) for n, v in zip(list(res.names) + [f"chain.{c}" for c in res.chain_sigma_us], z)},
            "param_within": int(np.sum(np.abs(z) <= Z_PARAM)), "params": len(z),
            "nu_calibration_sd_pct": float(np.median(100 * res.sigma_nu_n_per_v / np.array(truth[:CALIBRATE_FIRST]))),
            "chain_us": {n: getattr(res.params.chain, n) * 1e6 for n in res.chain_sigma_us},
@@ -198,7 +204,9 @@ def run_online(injectors: int = 10, seed: int = 11, pace_s: float = ONLINE_PACE_
     time; then an exact (nominal) injector with self-calibration on and off. JSON-ready."""
     from estimator.service.calibration_worker import BackgroundCalibrator
 
-    rows, update_s, during_s = [], [], []
+    rows: list[dict[str, Any]] = []
+    update_s: list[float] = []
+    during_s: list[float] = []
     for p in range(injectors + 1):
         exact = p == injectors
         rng = np.random.default_rng(seed + p)
@@ -214,7 +222,7 @@ def run_online(injectors: int = 10, seed: int = 11, pace_s: float = ONLINE_PACE_
         reference = Tracker() if exact else None
         tracker.warm_up()     # as the daemon does before it reports ready
         try:
-            out = []
+            out: list[dict[str, Any]] = []
             t0 = time.perf_counter()
             for k, inj in enumerate(injections):
                 while time.perf_counter() < t0 + k * pace_s:
@@ -237,7 +245,7 @@ def run_online(injectors: int = 10, seed: int = 11, pace_s: float = ONLINE_PACE_
         adopted_at = states.index("adopted") if "adopted" in states else None
         late = [o for o in out[ONLINE_FROM:]]
         ok_far = [o["k"] for o in out if o["status"] == "ok" and abs(o["lh_err_um"]) > ONLINE_OK_UM]
-        row = {"seed": seed + p, "exact": exact, "lh_true_um": lh, "adopted_at": adopted_at,
+        row: dict[str, Any] = {"seed": seed + p, "exact": exact, "lh_true_um": lh, "adopted_at": adopted_at,
                "calibration": tracker.calibration.get(0, CalibrationStatus()).to_dict(),
                "max_lh_err_from_um": float(max(abs(o["lh_err_um"]) for o in late)),
                "max_nu_err_from_pct": float(max(abs(o["nu_err_pct"]) for o in late)),

@@ -193,7 +193,8 @@ def test_the_daemon_calibrates_a_mismatched_injector_in_the_background_and_keeps
         while "adopted" not in states or len(estimates) < 30:
             assert time.monotonic() < t_end and k < len(injections), f"states {states}"
             _send(bus, codec, injections[k], k)
-            got = _collect(bus, codec, lambda g: any(isinstance(r, EstimateState) and r.counter == k % 256 for r in g), 10.0)
+            got = _collect(bus, codec, lambda g, c=k % 256: any(isinstance(r, EstimateState) and r.counter == c for r in g),
+                           10.0)
             states += [STATES[r.state] for r in got if isinstance(r, ModelCalibration)]
             est = [r for r in got if isinstance(r, EstimateState) and r.counter == k % 256]
             assert est, f"no estimate for injection {k}"
@@ -223,3 +224,55 @@ def test_the_daemon_calibrates_a_mismatched_injector_in_the_background_and_keeps
         d.stop.set()
         t.join(timeout=10)
         bus.shutdown()
+
+
+def _write_series_traces(tmp_path, serial: str, seed: int, n: int = 5):
+    from estimator.trace_io import write_trace
+
+    _, injections = _series_injections(seed, n)
+    paths = []
+    for inj in injections:
+        p = tmp_path / f"{serial}-{inj.counter:02d}.csv"
+        write_trace(p, {"t_s": np.arange(inj.n) * inj.dt_s, "current_A": inj.current_a, "voltage_V": inj.voltage_v},
+                    {"preload_force_n": inj.f_open_n, "serial": serial, "time_s": inj.time_s})
+        paths.append(p)
+    return paths
+
+
+def test_calibrate_electrical_names_and_skips_a_corrupt_trace(tmp_path):
+    import subprocess
+    import sys
+
+    from .conftest import REPO
+
+    paths = _write_series_traces(tmp_path, "A", 5, 4)
+    bad = tmp_path / "A-corrupt.csv"
+    bad.write_text("# serial=A\nt_s,current_A,voltage_V\n0,1,oops\n")
+    r = subprocess.run([sys.executable, "-m", "estimator", "calibrate", "--electrical", *map(str, paths), str(bad),
+                        "--out", str(tmp_path / "a.toml")], capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert r.returncode == 1 and f"skipped {bad}" in r.stderr, r.stderr
+    assert (tmp_path / "a.toml").is_file() and "mV after" in r.stdout       # the others were calibrated
+
+
+@pytest.mark.slow
+def test_fleet_calibrate_per_injector_on_a_local_cluster(tmp_path):
+    """Two series injectors' traces (serial metadata) on a LocalCluster: a parameter file each, the
+    table, and the lot's structural spread; a corrupt trace is named in the report."""
+    import subprocess
+    import sys
+
+    from .conftest import REPO
+
+    paths = _write_series_traces(tmp_path, "A", 5) + _write_series_traces(tmp_path, "B", 6)
+    (tmp_path / "B-bad.csv").write_text("# serial=B\nnot a trace\n")
+    out = tmp_path / "cal"
+    r = subprocess.run([sys.executable, "-m", "estimator", "fleet", str(tmp_path), "--calibrate", "per-injector",
+                        "--out", str(out), "--workers", "2"], capture_output=True, text=True, timeout=600, cwd=REPO)
+    assert r.returncode == 1, r.stdout + r.stderr          # the bad file: named, skipped, and said in the exit code
+    assert (out / "A.toml").is_file() and (out / "B.toml").is_file()
+    report = (out / "structure-spread.txt").read_text()
+    assert "structural spread over 2 calibration(s)" in report and "psa.kp_n_per_m" in report
+    assert "skipped" in report and "B-bad.csv" in report
+    rows = (out / "calibration.csv").read_text().splitlines()
+    assert len(rows) == 3 and rows[1].startswith("A,5,True")
+    assert len(paths) == 10

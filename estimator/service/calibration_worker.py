@@ -26,6 +26,8 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
+import numpy as np
+
 from estimator.ident.selfcal import (CalibrationOutcome, CalibrationStatus, CalibrationWindow, SelfCalConfig,
                                      calibrate_and_tabulate)
 from estimator.model.parameters import InjectorParameters
@@ -45,7 +47,7 @@ def _lower_priority(increment: int) -> None:
     from estimator.model.fast_sim import FastSimulator
 
     cur = StandardDrive().samples(100e-6, SAMPLE_PERIOD_S)
-    FastSimulator().simulate(cur, [17.0, 18.0], [2e-6, 3e-6])
+    FastSimulator().simulate(cur, np.array([17.0, 18.0]), np.array([2e-6, 3e-6]))
 
 
 class BackgroundCalibrator:
