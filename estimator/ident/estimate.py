@@ -43,6 +43,7 @@ class Estimate:
     model_error_cov: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
     model_error_d: np.ndarray = field(default_factory=lambda: np.zeros(2))
     mismatch: bool = False    # the model cannot explain the samples (``model_error_cov`` is then added)
+    excess_z: float = float("nan")   # a mismatched fit's residual excess over white noise (sd, see cold_start)
 
     @property
     def point(self) -> NuLh:

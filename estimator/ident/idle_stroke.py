@@ -241,6 +241,7 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
         tc, to, stroke = predict_valve(sim, injection, x[0], x[1] / UM_PER_M)
     d, _ = fit.directions
     diff = x - other if mismatch and other is not None and np.all(np.isfinite(other)) else np.zeros(2)
+    excess = excess_residual_z(model, fit) if mismatch and model is not None else float("nan")
     return Estimate(float(x[0]), float(x[1] / UM_PER_M), cov_to_si(cov_x), fit.paper_cost_vs, fit.criterion,
                     evaluations + 1, status, msg, robust, stat, fit.sigma_v, tc, to, stroke, fit.jtj, d, structure, bias,
-                    diff, mismatch)
+                    diff, mismatch, excess)

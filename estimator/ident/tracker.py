@@ -94,7 +94,9 @@ class TrackerState:
     ``mismatch`` whether the model cannot explain this injector (until ``mismatch_clean`` reaches the
     configured count of adequate injections; ``mismatch_run`` counts mismatched ones in a row),
     ``model_error_d`` and ``model_error_structure`` running mean squares of the plain - robust
-    differences (N/V, µm) and of the plain residual's structure (chi-square) that size its model error.
+    differences (N/V, µm) and of the plain residual's structure (chi-square) that size its model error;
+    ``excess_z`` a running mean of a mismatched injector's residual excess over white noise (standard
+    deviations), which lets a re-acquisition keep a local fit that leaves as much (see :func:`_cold_estimate`).
     """
 
     initialized: bool = False
@@ -117,6 +119,7 @@ class TrackerState:
     mismatch_run: int = 0
     model_error_d: list[float] = field(default_factory=lambda: [0.0, 0.0])
     model_error_structure: float | None = None
+    excess_z: float | None = None
     version: int = STATE_VERSION
 
     def to_dict(self) -> dict:
@@ -136,6 +139,7 @@ class TrackerState:
             setattr(st, name, _check_count(d, name))
         st.model_error_d = _check_array(d, "model_error_d", (2,), True).tolist() if "model_error_d" in d else [0.0, 0.0]
         st.model_error_structure = _check_optional_float(d, "model_error_structure")
+        st.excess_z = _check_optional_float(d, "excess_z") if "excess_z" in d else None
         st.x = _check_array(d, "x", (kalman.N_STATE,), st.initialized).tolist()
         p = _check_array(d, "p", (kalman.N_STATE, kalman.N_STATE), True)
         if st.initialized and (not np.allclose(p, p.T, rtol=1e-9, atol=1e-15) or np.any(np.linalg.eigvalsh(p) < 0)):
@@ -323,8 +327,22 @@ def _warm_estimate(state: TrackerState, x0: np.ndarray, inj: Injection, sim: Fas
 
 
 def _cold_estimate(state: TrackerState, inj: Injection, sim: FastSimulator, config: TrackerConfig) -> Estimate:
+    """A fresh estimate of ``inj`` (no warm start). For an injector known to be mismatched, the
+    local-first fit starts from the filter's point and is kept if its residual exceeds white noise by
+    no more than :data:`LOCAL_ACCEPT_MARGIN` times the injector's usual excess (it never passes the
+    white-noise check, so each re-acquisition would otherwise run the global search, ≈ 17 ms); the ring
+    around it still guards against another valley."""
     mode = "on" if state.robust else config.ident.robust
-    return identify(inj, sim, config.ident if mode == config.ident.robust else replace(config.ident, robust=mode))
+    ident = config.ident if mode == config.ident.robust else replace(config.ident, robust=mode)
+    start = None
+    if state.mismatch and state.initialized and state.excess_z is not None and math.isfinite(state.x[0]) \
+            and math.isfinite(state.x[1]) and ident.cold_start == "local-first":
+        ident = replace(ident, local_accept_z=max(ident.local_accept_z, LOCAL_ACCEPT_MARGIN * state.excess_z))
+        start = np.array(state.x[:2], dtype=float)
+    return identify(inj, sim, ident, start)
+
+
+LOCAL_ACCEPT_MARGIN = 3.0
 
 
 _BOXES: weakref.WeakKeyDictionary[FastSimulator, dict] = weakref.WeakKeyDictionary()
@@ -572,13 +590,17 @@ def _note_mismatch(st: TrackerState, raw: Estimate, config: TrackerConfig) -> No
             prev = st.model_error_structure
             st.model_error_structure = float(raw.structure_chi2 if first or prev is None else
                                              (1 - MODEL_ERROR_WEIGHT) * prev + MODEL_ERROR_WEIGHT * raw.structure_chi2)
+        if math.isfinite(raw.excess_z):
+            prev = st.excess_z
+            st.excess_z = float(raw.excess_z if first or prev is None else
+                                (1 - MODEL_ERROR_WEIGHT) * prev + MODEL_ERROR_WEIGHT * raw.excess_z)
         return
     st.mismatch_run = 0
     if st.mismatch:
         st.mismatch_clean += 1
         if st.mismatch_clean >= config.mismatch_clear_after:
             st.mismatch, st.mismatch_clean, st.model_error_d = False, 0, [0.0, 0.0]
-            st.model_error_structure = None
+            st.model_error_structure = st.excess_z = None
 
 
 def _widen(filt: tuple[np.ndarray, np.ndarray] | None, st: TrackerState,
