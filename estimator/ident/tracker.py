@@ -59,6 +59,7 @@ from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, STRUCTURAL, InjectorParameters
 
 STATE_VERSION = 2
+LOCAL_ACCEPT_MARGIN = 3.0      # a mismatched injector's re-acquisition keeps a local fit within 3x its usual residual excess
 ROBUST_CHECK_EVERY = 4         # in robust mode, every 4th injection also fits the plain model (model-error test)
 UNKNOWN_TEMPERATURE_C = -49.5   # FuelTemperature's wire minimum (-50 degC) means "not measured"
 
@@ -340,9 +341,6 @@ def _cold_estimate(state: TrackerState, inj: Injection, sim: FastSimulator, conf
         ident = replace(ident, local_accept_z=max(ident.local_accept_z, LOCAL_ACCEPT_MARGIN * state.excess_z))
         start = np.array(state.x[:2], dtype=float)
     return identify(inj, sim, ident, start)
-
-
-LOCAL_ACCEPT_MARGIN = 3.0
 
 
 _BOXES: weakref.WeakKeyDictionary[FastSimulator, dict] = weakref.WeakKeyDictionary()

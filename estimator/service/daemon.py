@@ -261,6 +261,9 @@ class Daemon:
         # the simulators' tables stay when nothing they depend on changed
         if new.self_calibration == "on" and self.calibrator is None:
             self.calibrator = BackgroundCalibrator()
+        elif new.self_calibration == "off" and self.calibrator is not None:
+            self.calibrator.close()
+            self.calibrator = None
         old = self.tracker
         tracker = build_tracker(new, old.pool if same_pool else build_pool(new),
                                 self.calibrator if new.self_calibration == "on" else None)

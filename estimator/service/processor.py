@@ -88,8 +88,11 @@ class Published:
     def to_dict(self) -> dict:
         """JSON-ready line (replay output)."""
         f = self.result.filtered_dict()
-        return {"injector_id": self.injector_id, "counter": self.counter, "status": self.result.status,
-                "reason": self.result.reason, "filtered": f, "raw": self.result.raw.to_dict()}
+        out = {"injector_id": self.injector_id, "counter": self.counter, "status": self.result.status,
+               "reason": self.result.reason, "filtered": f, "raw": self.result.raw.to_dict()}
+        if self.calibrations:   # self-calibration changes with this injection (ModelCalibration frames)
+            out["self_calibration"] = {str(i): st.to_dict() for i, st in self.calibrations}
+        return out
 
 
 class Processor:
