@@ -22,7 +22,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import lfilter
 
 from estimator.errors import ParameterError
 
@@ -102,6 +101,8 @@ def unfilter(y: np.ndarray, tau_s: float, dt_s: float) -> np.ndarray:
 def lowpass(x: np.ndarray, tau_s: float, dt_s: float) -> np.ndarray:
     """First-order filter ``tau y' + y = x`` from rest, exact for ``x`` linear between samples; along
     the last axis of ``x``."""
+    from scipy.signal import lfilter   # here: importing scipy.signal costs ≈ 0.7 s, and only a chain needs it
+
     x = np.asarray(x, dtype=float)
     a = math.exp(-dt_s / tau_s)
     c = 1.0 - tau_s / dt_s * (1.0 - a)
