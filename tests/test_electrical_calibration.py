@@ -12,6 +12,7 @@ import pytest
 
 from estimator.ident.electrical import calibrate_electrical
 from estimator.ident.measurement import Injection
+from estimator.errors import ParameterError
 from estimator.model.parameters import InjectorParameters, load_nominal
 from estimator.trace_io import write_trace
 from sim_bench import series_part
@@ -191,3 +192,38 @@ def test_cli_track_self_calibrate(tmp_path):
     states = [line["self_calibration"]["state"] for line in lines]
     assert states[0] == "collecting" and states[-1] == "adopted", states
     assert lines[-1]["status"] in ("ok", "unconfirmed") and abs(lines[-1]["filtered"]["lh_um"] - LH_UM) < 0.1
+
+
+def test_the_uncertainty_a_calibration_leaves_is_in_every_sigma_and_is_not_averaged_away(tmp_path):
+    """A calibrated parameter set carries how uncertain it leaves N_u and L_h ([calibration] in its
+    file). A single estimate's σ includes it, and so does the filtered σ after many injections: the
+    same for every injection of the injector, averaging must not shrink it below it."""
+    from dataclasses import replace
+
+    from estimator.ident.idle_stroke import identify
+    from estimator.ident.tracker import Tracker
+    from estimator.model.fast_sim import FastSimulator
+    from estimator.model.parameters import CalibrationUncertainty
+
+    exact = load_nominal()
+    calibrated = replace(exact, calibration=CalibrationUncertainty(nu_rel_sigma=0.002, lh_sigma_m=0.08e-6))
+    path = tmp_path / "cal.toml"
+    path.write_text(calibrated.to_toml("calibrated"))
+    assert "[calibration]" in path.read_text() and InjectorParameters.from_toml(path) == calibrated
+    plant = Plant(PlantConfig())
+    rng = np.random.default_rng(21)
+    injections = []
+    for k in range(40):
+        m = plant.measure(17.5, LH_UM * 1e-6, 28.0, rng)
+        injections.append(Injection(m.current_a, m.voltage_v, m.dt_s, 28.0, 0, k, float("nan"), 0.1 * k))
+    plain, cal = identify(injections[0], FastSimulator(exact)), identify(injections[0], FastSimulator(calibrated))
+    assert cal.lh_m == pytest.approx(plain.lh_m)
+    assert cal.sigma_lh_m ** 2 == pytest.approx(plain.sigma_lh_m ** 2 + 0.08e-6 ** 2, rel=1e-6)
+    assert cal.sigma_nu ** 2 == pytest.approx(plain.sigma_nu ** 2 + (cal.nu_n_per_v * 0.002) ** 2, rel=1e-6)
+    tracker = Tracker(sim=FastSimulator(calibrated))
+    results = [tracker.update(inj) for inj in injections]
+    assert all(r.status.value == "ok" for r in results[5:])
+    assert min(r.sigma_lh_m for r in results[5:]) >= 0.08e-6
+    assert min(r.sigma_nu for r in results[5:]) >= 17.5 * 0.002 * 0.99
+    with pytest.raises(ParameterError, match="calibration"):
+        InjectorParameters.from_mapping({**calibrated.to_mapping(), "calibration": {"nu_rel_sigma": -1.0}})
