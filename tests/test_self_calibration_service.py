@@ -113,10 +113,8 @@ def test_the_background_calibrator_runs_in_another_process_and_reports_a_failed_
         t0 = time.monotonic()
         cal.submit(2, window, load_nominal(), SelfCalConfig(window=5, held_out=2))
         assert time.monotonic() - t0 < 1.0 and cal.running == 1
-        outcomes = []
-        while not outcomes and time.monotonic() - t0 < 120:
-            outcomes = cal.poll()
-            time.sleep(0.05)
+        assert cal.wait(timeout=120), "the calibration never came back"
+        outcomes = cal.poll()
         assert len(outcomes) == 1 and outcomes[0].injector_id == 2
         assert outcomes[0].status.state == "rejected" and outcomes[0].params is None
         assert "at least two usable injections" in outcomes[0].status.message
@@ -188,7 +186,7 @@ def test_the_daemon_calibrates_a_mismatched_injector_in_the_background_and_keeps
 
     d, t, bus = start()
     try:
-        states, estimates, k = [], [], 0
+        states, estimates, k, during = [], [], 0, 0
         t_end = time.monotonic() + 240
         while "adopted" not in states or len(estimates) < 30:
             assert time.monotonic() < t_end and k < len(injections), f"states {states}"
@@ -201,7 +199,9 @@ def test_the_daemon_calibrates_a_mismatched_injector_in_the_background_and_keeps
             estimates.append((states[-1] if states else "idle", est[0]))
             k += 1
             if "calibrating" in states and "adopted" not in states:
-                time.sleep(0.2)          # the bench's injection rate: the calibration runs meanwhile
+                during += 1              # answered while the calibration runs in its process
+                if during >= 2:          # then until it comes back: the next injection adopts it
+                    assert d.calibrator is not None and d.calibrator.wait(timeout=180), "calibration never came back"
         assert states[0] == "collecting" and "calibrating" in states
         assert states.index("calibrating") < states.index("adopted")
         after = [e for s, e in estimates if s == "adopted"][3:]

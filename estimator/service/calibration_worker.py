@@ -62,6 +62,7 @@ class BackgroundCalibrator:
         self.prepare = prepare
         self._nice = nice
         self._lock = threading.Lock()
+        self._finished = threading.Condition(self._lock)   # notified when a calibration comes back
         self._done: list[CalibrationOutcome] = []
         self._running: set[int] = set()
         self._executor: ProcessPoolExecutor | None = None
@@ -104,17 +105,25 @@ class BackgroundCalibrator:
         with self._lock:
             self._running.discard(injector_id)
             self._done.append(CalibrationOutcome(injector_id, status, params, prepared))
+            self._finished.notify_all()
 
     def _finish_failed(self, injector_id: int, message: str) -> None:
         with self._lock:
             self._running.discard(injector_id)
             self._done.append(CalibrationOutcome(injector_id, CalibrationStatus("rejected", message=message), None))
+            self._finished.notify_all()
 
     def poll(self) -> list[CalibrationOutcome]:
         """The calibrations finished since the last call (never blocks on a running one)."""
         with self._lock:
             done, self._done = self._done, []
         return done
+
+    def wait(self, timeout: float) -> bool:
+        """Block until no calibration is running (at most ``timeout`` s); True if none is. For
+        benches and tests: the daemon's worker never waits, it polls."""
+        with self._finished:
+            return self._finished.wait_for(lambda: not self._running, timeout)
 
     @property
     def running(self) -> int:
