@@ -50,6 +50,7 @@ NU_STEP = 0.25             # N/V: a coarser table than the estimator's (interpol
 MISFIT_Z = 4.0             # an injection's smooth residual this many sd above noise: the model does not explain the batch
 RESTART_SEED = 20261124    # restarts from a local minimum are seeded: the same traces give the same parameters
 STRUCTURAL_NAMES = tuple(f"{table}.{name}" for table, name in STRUCTURAL)   # what is fitted by default
+BOUND_SDS = 4.0            # a structural factor is bounded to this many prior standard deviations
 CHAIN_NAMES = ("u_filter_tau_s", "i_skew_s")   # the measurement chain's parameters fitted with fit_chain
 CHAIN_PRIOR_SD_US = 1.0    # prior standard deviation of each (µs), at the base chain's value
 CHAIN_BOUNDS_US = {"u_filter_tau_s": (0.0, 3.0), "i_skew_s": (-2.0, 2.0)}
@@ -190,14 +191,6 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
     def chain_of(c: np.ndarray) -> MeasurementChain:
         return replace(chain0, **{n: float(v) * 1e-6 for n, v in zip(chain_names, c)})
 
-    def voltages(sim: FastSimulator, inj: Injection, chain: MeasurementChain, nu: np.ndarray,
-                 lh_um: np.ndarray) -> np.ndarray:
-        """The voltage the amplifier would measure (V), shape (len(nu), samples); NaN-free."""
-        cur = chain.correct(inj.current_a, inj.voltage_v, dt)[0]     # the actuator's current
-        u = sim.simulate(cur, nu, lh_um * 1e-6, inj.f_open_n).voltage_v
-        u = np.where(np.isfinite(u), u, 1e3)
-        return lowpass(u, chain.u_filter_tau_s, dt) if chain.u_filter_tau_s > 0 else u
-
     # start: each injection fitted alone with the base parameters; its residual gives its noise level
     ident = IdentConfig()
     sigma = np.empty(b)
@@ -216,7 +209,7 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
             nu = est.nu_n_per_v if math.isfinite(est.nu_n_per_v) else ident.start_point[0]
             lh = est.lh_m * 1e6 if math.isfinite(est.lh_m) else ident.start_point[1]
             out[2 * j:2 * j + 2] = nu, lh
-            resid.append(voltages(sim, inj, chain, np.array([nu]), np.array([lh]))[0] - inj.voltage_v)
+            resid.append(measured_voltage(sim, inj, np.array([nu]), np.array([lh]), chain)[0] - inj.voltage_v)
         return out, resid
 
     x0 = np.zeros(p + 2 * b)
@@ -234,24 +227,31 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
     nu_range = (base.psa.nu_min_n_per_v, base.psa.nu_max_n_per_v)
     prior_sd = math.log1p(tolerance)
     prior = np.concatenate([np.full(k, prior_sd), np.full(nc, CHAIN_PRIOR_SD_US)])
-    lo = np.concatenate([np.full(k, -4 * prior_sd), [CHAIN_BOUNDS_US[n][0] for n in chain_names],
+    lo = np.concatenate([np.full(k, -BOUND_SDS * prior_sd), [CHAIN_BOUNDS_US[n][0] for n in chain_names],
                          np.tile([nu_range[0] - 0.1, base.valve.lh_min_m * 1e6], b)])
-    hi = np.concatenate([np.full(k, 4 * prior_sd), [CHAIN_BOUNDS_US[n][1] for n in chain_names],
+    hi = np.concatenate([np.full(k, BOUND_SDS * prior_sd), [CHAIN_BOUNDS_US[n][1] for n in chain_names],
                          np.tile([nu_range[1] + 0.1, base.valve.lh_max_m * 1e6], b)])
     count = [0]
+    prior_centre = np.concatenate([np.zeros(k), c_base])
+    last: dict[bytes, np.ndarray] = {}   # the residual last computed (the solver asks for the Jacobian there)
 
     def residual(x: np.ndarray) -> np.ndarray:
         sim, chain = sims(x[:k]), chain_of(x[k:p])
         parts = []
         for j, inj in enumerate(usable):
-            u = voltages(sim, inj, chain, x[p + 2 * j:p + 2 * j + 1], x[p + 2 * j + 1:p + 2 * j + 2])[0]
+            u = measured_voltage(sim, inj, x[p + 2 * j:p + 2 * j + 1], x[p + 2 * j + 1:p + 2 * j + 2], chain)[0]
             parts.append((u - inj.voltage_v) / sigma[j])
         count[0] += b
-        parts.append((x[:p] - np.concatenate([np.zeros(k), c_base])) / prior)
-        return np.concatenate(parts)
+        parts.append((x[:p] - prior_centre) / prior)
+        r = np.concatenate(parts)
+        last.clear()
+        last[x.tobytes()] = r
+        return r
 
     def jacobian(x: np.ndarray) -> np.ndarray:
-        r0 = residual(x)
+        r0 = last.get(x.tobytes())
+        if r0 is None:
+            r0 = residual(x)
         jac = np.zeros((r0.size, x.size))
         for i in range(p):   # one simulator per perturbed structural factor, every injection on it
             h = FD_THETA if i < k else (FD_CHAIN_US if x[i] + FD_CHAIN_US <= hi[i] else -FD_CHAIN_US)
@@ -264,7 +264,7 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
             nu, lh = x[p + 2 * j], x[p + 2 * j + 1]
             h_nu = FD_NU if nu + FD_NU <= hi[p + 2 * j] else -FD_NU       # stay inside the simulator's range
             h_lh = FD_LH_UM if lh + FD_LH_UM <= hi[p + 2 * j + 1] else -FD_LH_UM
-            u = voltages(sim, inj, chain, np.array([nu, nu + h_nu, nu]), np.array([lh, lh, lh + h_lh]))
+            u = measured_voltage(sim, inj, np.array([nu, nu + h_nu, nu]), np.array([lh, lh, lh + h_lh]), chain)
             count[0] += 3
             jac[row:row + n_win[j], p + 2 * j] = (u[1] - u[0]) / h_nu / sigma[j]
             jac[row:row + n_win[j], p + 2 * j + 1] = (u[2] - u[0]) / h_lh / sigma[j]
@@ -275,16 +275,16 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
         return least_squares(residual, np.clip(start, lo + 1e-9, hi - 1e-9), jac=jacobian, bounds=(lo, hi),
                              method="trf", x_scale="jac", max_nfev=max_iterations, xtol=1e-8, ftol=1e-10)
 
+    def voltage_residuals(f) -> list[np.ndarray]:
+        """Each injection's voltage residual (V) at the solution ``f``."""
+        edges = np.cumsum([0] + n_win)
+        return [f.fun[edges[j]:edges[j + 1]] * sigma[j] for j in range(b)]
+
     def misfit_z(f) -> float:
         """The worst injection's smooth residual structure (chi-square of its lowest cosine components,
         :func:`~estimator.ident.adequacy.assess`) in standard deviations above its expectation."""
-        worst, row = 0.0, 0
-        for j in range(b):
-            r = f.fun[row:row + n_win[j]] * sigma[j]
-            row += n_win[j]
-            a = assess(r, 2 + p // b)
-            worst = max(worst, (a.structure - SMOOTH_COLUMNS) / math.sqrt(2.0 * SMOOTH_COLUMNS))
-        return worst
+        return max((assess(r, 2 + p // b).structure - SMOOTH_COLUMNS) / math.sqrt(2.0 * SMOOTH_COLUMNS)
+                   for r in voltage_residuals(f))
 
     fit = solve(x0)
     rng = np.random.default_rng(RESTART_SEED)
@@ -320,9 +320,8 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
     if weak:
         warnings.append(f"{len(weak)} parameter(s) hardly informed by this batch (kept near the tables): "
                         + ", ".join(weak))
-    sim, chain = sims(x[:k]), chain_of(x[k:p])
-    after = [voltages(sim, inj, chain, x[p + 2 * j:p + 2 * j + 1], x[p + 2 * j + 1:p + 2 * j + 2])[0] - inj.voltage_v
-             for j, inj in enumerate(usable)]
+    chain = chain_of(x[k:p])
+    after = voltage_residuals(fit)
     # what the shared parameters' uncertainty leaves in each injection's (N_u, L_h): its marginal
     # covariance less the part its own samples explain (the inverse of its own two columns' J'J)
     nu_rel, lh_sd = [], []
@@ -345,8 +344,29 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
         z <= MISFIT_Z, z, {n: float(v) for n, v in zip(chain_names, sd[k:p])}, d[p::2].copy(), d[p + 1::2].copy())
 
 
-def simulated_voltage(sim: FastSimulator, inj: Injection, nu: float, lh_um: float) -> np.ndarray:
-    """Simulated voltage (V) of ``inj``'s samples at (N_u N/V, L_h µm); NaN-free (an infeasible
-    candidate gets a large constant, so that a search turns away from it)."""
-    u = sim.simulate(inj.current_a, nu, lh_um * 1e-6, inj.f_open_n).voltage_v[0]
-    return np.where(np.isfinite(u), u, 1e3)
+def beyond_bounds(params: InjectorParameters, base: InjectorParameters, tolerance: float,
+                  names: tuple[str, ...] = STRUCTURAL_NAMES) -> list[str]:
+    """The structural parameters of ``params`` outside the bounds a calibration of ``base`` with this
+    ``tolerance`` keeps them in (empty: ``params`` can be such a calibration)."""
+    limit = BOUND_SDS * math.log1p(tolerance) + 1e-9
+    out = []
+    for n in names:
+        table, field_name = n.split(".")
+        ratio = getattr(getattr(params, table), field_name) / getattr(getattr(base, table), field_name)
+        if abs(math.log(ratio)) > limit:
+            out.append(n)
+    return out
+
+
+def measured_voltage(sim: FastSimulator, inj: Injection, nu: np.ndarray | float, lh_um: np.ndarray | float,
+                     chain: MeasurementChain | None = None) -> np.ndarray:
+    """The voltage (V) the amplifier would measure for ``inj``'s measured current at (N_u N/V, L_h µm),
+    shape (candidates, samples): the actuator's current recovered through ``chain`` (default the
+    simulator's own), simulated, and its voltage filtered as the chain filters it. NaN-free (an
+    infeasible candidate gets a large constant, so that a search turns away from it)."""
+    chain = sim.params.chain if chain is None else chain
+    cur = chain.actuator_current(inj.current_a, inj.dt_s)
+    u = sim.simulate(cur, np.atleast_1d(np.asarray(nu, dtype=float)),
+                     np.atleast_1d(np.asarray(lh_um, dtype=float)) * 1e-6, inj.f_open_n).voltage_v
+    u = np.where(np.isfinite(u), u, 1e3)
+    return lowpass(u, chain.u_filter_tau_s, inj.dt_s) if chain.u_filter_tau_s > 0 else u

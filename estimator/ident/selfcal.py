@@ -30,7 +30,7 @@ import numpy as np
 
 from estimator.ident.adequacy import noise_level_v
 from estimator.ident.config import IdentConfig
-from estimator.ident.electrical import WINDOW_S, calibrate_electrical, simulated_voltage
+from estimator.ident.electrical import WINDOW_S, calibrate_electrical, measured_voltage
 from estimator.ident.idle_stroke import identify
 from estimator.ident.measurement import Injection
 from estimator.model.fast_sim import FastSimulator
@@ -120,6 +120,13 @@ def self_calibrate(window: CalibrationWindow, base: InjectorParameters,
                    config: SelfCalConfig) -> tuple[CalibrationStatus, InjectorParameters | None]:
     """Calibrate on the window but its newest ``held_out`` injections, test on those; the status and
     the parameters to adopt (None if the calibration is rejected)."""
+    status, sim = _calibrate(window, base, config)
+    return status, (sim.params if sim is not None else None)
+
+
+def _calibrate(window: CalibrationWindow, base: InjectorParameters,
+               config: SelfCalConfig) -> tuple[CalibrationStatus, FastSimulator | None]:
+    """:func:`self_calibrate`, with the simulator of the adopted parameters it tested them on."""
     injections = [i for i, _ in window.items]
     batch, held = injections[:-config.held_out], injections[-config.held_out:]
     try:
@@ -143,15 +150,16 @@ def self_calibrate(window: CalibrationWindow, base: InjectorParameters,
                           f"{chi2:.1f} <= {config.adopt_chi2:g})")
         return status, None
     status.state, status.message = "adopted", f"held-out chi-square gain {chi2:.0f}"
-    return status, res.params
+    return status, new
 
 
 def _held_out_residual(sim: FastSimulator, inj: Injection) -> np.ndarray:
-    """The residual (V) of ``inj`` over its kept samples at its own cold-start estimate on ``sim``."""
+    """The residual (V) of ``inj`` over its kept samples at its own cold-start estimate on ``sim``, the
+    measurement chain of ``sim``'s parameters included (a calibrated set carries its own)."""
     est = identify(inj, sim, IdentConfig())
     if not (math.isfinite(est.nu_n_per_v) and math.isfinite(est.lh_m)):
         return np.full(inj.voltage_v.size, 1e3)
-    return simulated_voltage(sim, inj, est.nu_n_per_v, est.lh_m * 1e6) - inj.voltage_v
+    return measured_voltage(sim, inj, est.nu_n_per_v, est.lh_m * 1e6)[0] - inj.voltage_v
 
 
 @dataclass
@@ -167,7 +175,10 @@ class CalibrationOutcome:
 
 
 class Calibrator(Protocol):
-    """Where self-calibrations run (see the module docstring)."""
+    """Where self-calibrations run (see the module docstring). ``prepare`` turns adopted parameters
+    and their tables (sample period s -> table) into what the tracker swaps in; the tracker sets it."""
+
+    prepare: Callable[[InjectorParameters, dict[float, np.ndarray]], Any] | None
 
     def submit(self, injector_id: int, window: CalibrationWindow, base: InjectorParameters,
                config: SelfCalConfig) -> None: ...
@@ -179,14 +190,12 @@ class Calibrator(Protocol):
 
 def calibrate_and_tabulate(window: CalibrationWindow, base: InjectorParameters, config: SelfCalConfig
                            ) -> tuple[CalibrationStatus, InjectorParameters | None, dict[float, np.ndarray]]:
-    """:func:`self_calibrate`, and for adopted parameters the simulator tables of the window's sample
-    period (built where the calibration runs, so that the estimating process only takes them)."""
-    status, params = self_calibrate(window, base, config)
-    tables = {}
-    if params is not None:
-        dt = window.items[0][0].dt_s
-        tables[dt] = FastSimulator(params, dt).transition_table()
-    return status, params, tables
+    """:func:`self_calibrate`, and for adopted parameters the simulator table of the window's sample
+    period (the one the held-out test built, handed over so that the estimating process only takes it)."""
+    status, sim = _calibrate(window, base, config)
+    if sim is None:
+        return status, None, {}
+    return status, sim.params, {sim.dt_s: sim.transition_table()}
 
 
 class InlineCalibrator:
@@ -198,8 +207,8 @@ class InlineCalibrator:
 
     def submit(self, injector_id: int, window: CalibrationWindow, base: InjectorParameters,
                config: SelfCalConfig) -> None:
-        status, params = self_calibrate(window, base, config)
-        prepared = self.prepare(params, {}) if params is not None and self.prepare is not None else None
+        status, params, tables = calibrate_and_tabulate(window, base, config)
+        prepared = self.prepare(params, tables) if params is not None and self.prepare is not None else None
         self._done.append(CalibrationOutcome(injector_id, status, params, prepared))
 
     def poll(self) -> list[CalibrationOutcome]:

@@ -42,6 +42,7 @@ from estimator.ident import kalman
 from estimator.ident.config import TrackerConfig
 from estimator.ident.coords import NuLh
 from estimator.ident.cost import CostModel, plain_model_error
+from estimator.ident.electrical import beyond_bounds
 from estimator.ident.estimate import Estimate, rejected
 from estimator.ident.idle_stroke import (check_injection, complement_fit, effective_window_s, finish, identify,
                                          predict_valve, search_box)
@@ -56,7 +57,7 @@ from estimator.ident.simulators import SimulatorPool
 from estimator.ident.status import ESTIMATED, Status
 from estimator.model.fast_sim import FastSimulator, remember
 from estimator.model.drive import SAMPLE_PERIOD_S
-from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, STRUCTURAL, InjectorParameters
+from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters
 
 STATE_VERSION = 2
 LOCAL_ACCEPT_MARGIN = 3.0      # a mismatched injector's re-acquisition keeps a local fit within 3x its usual residual excess
@@ -710,8 +711,8 @@ class Tracker:
         self.calibrator: Calibrator | None = None
         if self_calibration is not None:
             self.calibrator = calibrator if calibrator is not None else InlineCalibrator()
-            if getattr(self.calibrator, "prepare", None) is None:
-                self.calibrator.prepare = self.own_pool   # type: ignore[attr-defined]
+            if self.calibrator.prepare is None:
+                self.calibrator.prepare = self.own_pool
         self._calibration_changed: set[int] = set()
 
     @property
@@ -803,9 +804,9 @@ class Tracker:
         self.own_pools[injector_id] = pool if isinstance(pool, SimulatorPool) else SimulatorPool(
             params, self.pool.max_size, self.pool.periods_ns)
         self.states.pop(injector_id, None)
-        if self.calibration.get(injector_id, CalibrationStatus()).state != "adopted":
-            self._set_calibration(injector_id, replace(self.calibration.get(injector_id, CalibrationStatus()),
-                                                       state="adopted"))
+        status = self.calibration.get(injector_id, CalibrationStatus())
+        if status.state != "adopted":
+            self._set_calibration(injector_id, replace(status, state="adopted"))
 
     def take_calibration_changes(self) -> list[tuple[int, CalibrationStatus]]:
         """The injectors whose self-calibration status changed since the last call, with that status."""
@@ -823,11 +824,8 @@ class Tracker:
         dropped."""
         problems = []
         tol = (self.self_calibration or SelfCalConfig()).tolerance
-        limit = 4 * math.log1p(tol) + 1e-9
-        base = self.pool.params
         for iid, p in params.items():
-            far = [f"{t}.{n}" for t, n in STRUCTURAL
-                   if abs(math.log(getattr(getattr(p, t), n) / getattr(getattr(base, t), n))) > limit]
+            far = beyond_bounds(p, self.pool.params, tol)
             if far:
                 problems.append(f"injector {iid}: parameter set is not a calibration of the configured one "
                                 f"({', '.join(far[:3])} beyond its bounds)")

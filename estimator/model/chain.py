@@ -69,10 +69,14 @@ class MeasurementChain:
 
     def correct(self, current_a: np.ndarray, voltage_v: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
         """The actuator's current (A) and voltage (V) at the sample times, from the measured ones."""
-        cur = shift(current_a, self.i_skew_s / dt_s) if self.i_skew_s else current_a
-        cur = unfilter(cur, self.i_filter_tau_s, dt_s) if self.i_filter_tau_s else cur
         volt = unfilter(voltage_v, self.u_filter_tau_s, dt_s) if self.u_filter_tau_s else voltage_v
-        return cur, volt
+        return self.actuator_current(current_a, dt_s), volt
+
+    def actuator_current(self, current_a: np.ndarray, dt_s: float) -> np.ndarray:
+        """The actuator's current (A) at the sample times, from the measured one (the current half of
+        :meth:`correct`)."""
+        cur = shift(current_a, self.i_skew_s / dt_s) if self.i_skew_s else current_a
+        return unfilter(cur, self.i_filter_tau_s, dt_s) if self.i_filter_tau_s else cur
 
     def apply(self, current_a: np.ndarray, voltage_v: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
         """What the ADCs see of the actuator's current (A) and voltage (V) sampled every ``dt_s`` s

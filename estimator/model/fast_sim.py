@@ -188,9 +188,9 @@ class FastSimulator:
     def transition_table(self) -> np.ndarray:
         """The tabulated one-sample transition matrices (read-only; ≈ 3 MB, ≈ 26 ms to build), to hand
         to :meth:`use_table` of a simulator of the same parameters and sample period elsewhere."""
-        table = self._table()
-        table.setflags(write=False)
-        return table
+        view = self._table().view()
+        view.setflags(write=False)
+        return view
 
     def use_table(self, table: np.ndarray) -> None:
         """Take a table built by :meth:`transition_table` of an equal simulator (e.g. in another
@@ -200,7 +200,8 @@ class FastSimulator:
             raise ParameterError("the simulator's table is in use already")
         if not (isinstance(table, np.ndarray) and table.shape == shape and table.dtype == np.float64):
             raise ParameterError(f"transition table of shape {getattr(table, 'shape', None)}, expected {shape}")
-        self._phi_table = np.ascontiguousarray(table)
+        # the compiled kernels take a writable array: a read-only view (this process) is copied
+        self._phi_table = np.ascontiguousarray(table) if table.flags.writeable else np.array(table, order="C")
 
     def _table(self) -> np.ndarray:
         if self._phi_table is None:
