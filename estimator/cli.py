@@ -151,25 +151,15 @@ def cmd_track(args: argparse.Namespace) -> int:
 def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     """The injector's structural parameters from current and voltage alone (no displacement)."""
     from estimator.ident.electrical import calibrate_electrical
+    from estimator.mdf_io import read_injections
 
-    from estimator.trace_io import injection_from_trace, injector_key
-
-    injections, bad = [], 0
-    for path in args.traces:
-        try:
-            tr = _trace(path, args)
-        except EstimatorError as exc:   # a corrupt trace is named and skipped, the others calibrate
-            print(f"skipped {path}: {exc}", file=sys.stderr)
-            bad += 1
-            continue
-        if args.serial is not None and injector_key(tr.meta) != args.serial:
-            continue
-        inj = injection_from_trace(tr)
-        problem = inj.problem()
-        if problem:
-            print(f"skipped {path}: {problem}", file=sys.stderr)
-            continue
-        injections.append(inj)
+    meta = {k: str(v) for k, v in (("preload_force_n", args.preload_n), ("temperature_c", args.temperature_c))
+            if v is not None}
+    found = read_injections(args.traces, args.current_channel, args.voltage_channel,
+                            args.sample_period_us * 1e-6 if args.sample_period_us else None, meta, args.serial)
+    for line in found.unreadable + found.unusable:   # a corrupt trace is named and skipped, the others calibrate
+        print(f"skipped {line}", file=sys.stderr)
+    injections, bad = found.injections, len(found.unreadable)
     try:
         res = calibrate_electrical(injections, _params(args), tolerance=args.tolerance,
                                    window_s=(200.0 if args.window_us is None else args.window_us) * 1e-6)

@@ -14,11 +14,12 @@ Metadata come from the MDF header comment as ``key=value`` lines (the keys of th
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from estimator.errors import TraceError
+from estimator.errors import EstimatorError, TraceError
 from estimator.trace_io import Trace
 
 MDF_SUFFIXES = (".mf4", ".mdf")
@@ -86,6 +87,41 @@ def read_any_trace(path: str | Path, current_channel: str | None = None, voltage
     if not is_mdf(path):
         return read_trace(path)
     return read_mdf_trace(path, current_channel or "", voltage_channel or "", s3_channel, sample_period_s, meta)
+
+
+@dataclass
+class Injections:
+    """What :func:`read_injections` found: the usable injections, and one line (``path: why``) per file
+    that could not be read and per trace that cannot be used."""
+
+    injections: list = field(default_factory=list)
+    unreadable: list[str] = field(default_factory=list)
+    unusable: list[str] = field(default_factory=list)
+
+
+def read_injections(paths: list, current_channel: str | None = None, voltage_channel: str | None = None,
+                    sample_period_s: float | None = None, meta: dict[str, str] | None = None,
+                    serial: str | None = None) -> Injections:
+    """Injections from trace files (CSV or MDF4, :func:`read_any_trace`), those of injector ``serial``
+    only if given; a file that cannot be read or a trace that cannot be used is listed, not raised."""
+    from estimator.trace_io import injection_from_trace, injector_key
+
+    out = Injections()
+    for path in paths:
+        try:
+            tr = read_any_trace(path, current_channel, voltage_channel, None, sample_period_s, meta)
+        except (EstimatorError, OSError, ValueError) as exc:
+            out.unreadable.append(f"{path}: {exc}")
+            continue
+        if serial is not None and injector_key(tr.meta) != serial:
+            continue
+        inj = injection_from_trace(tr)
+        problem = inj.problem()
+        if problem:
+            out.unusable.append(f"{path}: {problem}")
+        else:
+            out.injections.append(inj)
+    return out
 
 
 def _text(comment: str) -> str:

@@ -23,6 +23,7 @@ import numpy as np
 
 from estimator.errors import EstimatorError
 from estimator.fleet.inputs import expand, group
+from estimator.fleet.cluster import dask_client
 from estimator.fleet.tasks import WORKER_ENV
 
 MODES = ("per-injector", "per-lot")
@@ -52,24 +53,12 @@ def calibrate_group(key: str, paths: tuple[str, ...], params_path: str | None, t
     for k, v in WORKER_ENV.items():
         os.environ.setdefault(k, v)
     from estimator.ident.electrical import calibrate_electrical
-    from estimator.mdf_io import read_any_trace
+    from estimator.mdf_io import read_injections
     from estimator.model.parameters import load_parameters
-    from estimator.trace_io import injection_from_trace
 
-    injections, skipped = [], []
-    for p in paths:
-        try:
-            tr = read_any_trace(p, trace_options.get("current_channel"), trace_options.get("voltage_channel"),
-                                None, trace_options.get("sample_period_s"))
-            inj = injection_from_trace(tr)
-        except (EstimatorError, OSError, ValueError) as exc:
-            skipped.append(f"{p}: {exc}")
-            continue
-        problem = inj.problem()
-        if problem:
-            skipped.append(f"{p}: {problem}")
-            continue
-        injections.append(inj)
+    found = read_injections(list(paths), trace_options.get("current_channel"), trace_options.get("voltage_channel"),
+                            trace_options.get("sample_period_s"))
+    injections, skipped = found.injections, found.unreadable + found.unusable
     row: dict[str, Any] = {"key": key, "injections": len(injections), "skipped": skipped, "adequate": False}
     if len(injections) < MIN_INJECTIONS:
         row["error"] = f"{len(injections)} usable injection(s), at least {MIN_INJECTIONS} needed"
@@ -126,20 +115,9 @@ def run_lot_calibration(inputs: list[str], out_dir: Path, mode: str = "per-injec
 
 def _compute(jobs: list[tuple[str, tuple[str, ...]]], params: str | None, tolerance: float,
              trace_options: dict[str, Any], workers: int | None, scheduler: str | None) -> list[dict]:
-    from dask.distributed import Client, LocalCluster, as_completed
+    from dask.distributed import as_completed
 
-    for k, v in WORKER_ENV.items():
-        os.environ.setdefault(k, v)
-    if scheduler:
-        client, cluster = Client(scheduler), None
-    else:
-        n = workers or os.cpu_count() or 1
-        if not 1 <= n <= 256:
-            raise EstimatorError(f"--workers {n} must be within 1..256")
-        cluster = LocalCluster(n_workers=min(n, len(jobs)), threads_per_worker=1, processes=True,
-                               host="127.0.0.1", dashboard_address=None, silence_logs=40)
-        client = Client(cluster)
-    try:
+    with dask_client(workers, scheduler, most=len(jobs)) as client:
         futures = {client.submit(calibrate_group, key, paths, params, tolerance, trace_options, pure=False): key
                    for key, paths in jobs}
         rows = []
@@ -150,10 +128,6 @@ def _compute(jobs: list[tuple[str, tuple[str, ...]]], params: str | None, tolera
                 rows.append({"key": futures[fut], "adequate": False, "injections": 0, "skipped": [],
                              "error": f"task failed: {type(exc).__name__}: {exc}"[:300]})
         return rows
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
 
 
 def spread(rows: list[dict]) -> list[dict]:

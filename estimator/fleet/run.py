@@ -8,7 +8,6 @@ The default cluster is a local one on this machine (``workers`` processes, one t
 from __future__ import annotations
 
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -17,7 +16,8 @@ from typing import Any
 
 from estimator.errors import EstimatorError
 from estimator.fleet.inputs import Group, expand, group
-from estimator.fleet.tasks import WORKER_ENV, process_groups, warm_worker
+from estimator.fleet.cluster import dask_client
+from estimator.fleet.tasks import process_groups, warm_worker
 from estimator.ident.status import ESTIMATED_WORDS
 from estimator.service.config import DaemonConfig
 from estimator.service.estimates import FIELDS
@@ -106,21 +106,9 @@ def _compute(groups: list[Group], cfg: DaemonConfig, trace_options: dict, worker
              ) -> tuple[list[dict], int, float, float]:
     """The rows, the number of workers, and when (``perf_counter``) every worker was ready and the last
     result had come (before the client and the local cluster are closed)."""
-    from dask.distributed import Client, LocalCluster, as_completed
+    from dask.distributed import as_completed
 
-    for k, v in WORKER_ENV.items():   # inherited by the local cluster's worker processes
-        os.environ.setdefault(k, v)
-    if scheduler:
-        client = Client(scheduler)
-        cluster = None
-    else:
-        n = workers or os.cpu_count() or 1
-        if not 1 <= n <= 256:
-            raise EstimatorError(f"--workers {n} must be within 1..256")
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                               dashboard_address=None, silence_logs=40)
-        client = Client(cluster)
-    try:
+    with dask_client(workers, scheduler) as client:
         n_workers = len(client.scheduler_info()["workers"])
         client.run(warm_worker, cfg)   # every worker: pool, codec, kernels (else its first task pays for them)
         ready = time.perf_counter()
@@ -144,10 +132,6 @@ def _compute(groups: list[Group], cfg: DaemonConfig, trace_options: dict, worker
         if progress:
             print(file=sys.stderr)
         return rows, n_workers, ready, time.perf_counter()
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
 
 
 def _num(v: Any) -> float:
