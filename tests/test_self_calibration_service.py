@@ -175,8 +175,11 @@ def test_the_daemon_calibrates_a_mismatched_injector_in_the_background_and_keeps
 
     def start():
         channel = f"test-{uuid.uuid4().hex[:8]}"
+        # the sender is a thread of this process, which the daemon's worker can keep from the
+        # interpreter lock for tens of ms (a cold start): its frames' timestamps, by which the daemon
+        # judges the assembly timeout, would then spread out as no amplifier's do
         cfg = DaemonConfig(bus=f"virtual:{channel}", state_dir=tmp_path, persist_period_s=0.2,
-                           self_calibration="on", self_calibration_window=8)
+                           self_calibration="on", self_calibration_window=8, assembly_timeout_ms=2000.0)
         d = Daemon(cfg)
         t = threading.Thread(target=d.run, daemon=True)
         t.start()
