@@ -1,7 +1,7 @@
 """Where numba keeps the compiled kernels: a directory named after the compiled sources.
 
 numba checks a cached function against the time stamp of its own source file only. A compiled
-function that calls one in another file (``compiled_cycle.warm_cycle`` calling ``kernel.run_batch``,
+function that calls one in another file (``fit_kernel.warm_cycle`` calling ``kernel.run_batch``,
 the kernel calling ``automaton`` and ``dynamics``) is therefore loaded stale from the cache after
 that other file changed: silently the old arithmetic. Keying the cache directory by a hash of every
 source file that defines compiled functions makes any change start a fresh cache.

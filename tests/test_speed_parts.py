@@ -87,82 +87,6 @@ def test_grid_voltages_check_their_inputs(sim):
         sim.grid_voltages(cur, np.full(4, 17.0), np.full(3, 3e-6), 35.0)
 
 
-def _cycle_case(sim, mismatch: bool, seed: int):
-    from sim_bench.ident_bench import F_OPEN_N, _injection
-    from sim_bench.plant import Plant, PlantConfig
-    plant = Plant(PlantConfig(mismatch=mismatch, window_s=150e-6 if mismatch else 100e-6))
-    return _injection(plant.measure(16.0 + seed, (2.0 + seed) * 1e-6, F_OPEN_N, np.random.default_rng(seed)))
-
-
-@pytest.mark.parametrize("mismatch, robust, norm", [(False, False, "l2"), (True, True, "l2"), (False, False, "l1")])
-def test_compiled_cycle_is_the_python_cycle(sim, mismatch, robust, norm):
-    """One warm cycle in one compiled call gives what the Python stencil, vertex and Gauss–Newton fit
-    give (to rounding: its sums run in another order), in plain, robust and L1 mode."""
-    from estimator.ident import compiled_cycle as cc
-    from estimator.ident.cost import CostModel
-    from estimator.ident.local_fit import _stencil_cycle, fit_with_jacobian
-    from estimator.ident.search import Box
-    from estimator.ident.config import IdentConfig
-    from estimator.ident.idle_stroke import identify
-    from estimator.ident.idle_stroke import effective_window_s
-    box = Box(np.array([14.9, 0.5]), np.array([21.1, 20.0]))
-    fits = 0
-    for seed in (1, 2, 3):
-        inj = _cycle_case(sim, mismatch, seed)
-        config = IdentConfig(robust="on" if robust else "off", norm=norm)
-        est = identify(inj, sim, config)
-        window = effective_window_s(config, inj, robust)
-        d = est.directions       # a warm start: the cold start's conjugate directions, near its optimum
-        sd = np.sqrt(np.diag(d.T @ est.cov_um @ d))
-        for shift in ((0.5, -0.5), (-1.0, 0.3)):
-            x0, st = est.point.array() + d @ (np.array(shift) * sd), 2.0 * sd
-            m_py = CostModel(sim, inj, window, norm, robust)
-            m_c = CostModel(sim, inj, window, norm, robust)
-            x_py, ok_py, jac_py = _stencil_cycle(m_py, x0, d, st, box)
-            cf = cc.run_cycle(m_c, x0, d, st, box)
-            np.testing.assert_allclose(cf.x, x_py, rtol=1e-12)
-            assert np.array_equal(cf.ok, ok_py)
-            if jac_py is None:
-                assert cf.code == cc.CYCLE_PARTIAL and np.isnan(cf.jac).all()
-                continue
-            fits += 1
-            assert cf.code == cc.CYCLE_FIT
-            np.testing.assert_allclose(cf.jac, jac_py, rtol=1e-7, atol=1e-9 * np.abs(jac_py).max())
-            fit = fit_with_jacobian(m_py, x_py, jac_py)
-            assert m_c.evaluations == m_py.evaluations == 6 and cf.success
-            for name in ("criterion", "paper_cost_vs", "sigma_v", "t_contact_s", "t_open_s"):
-                assert getattr(cf, name) == pytest.approx(getattr(fit, name), rel=1e-9), name
-            for name in ("jtj", "gn_step", "cov_x", "residual"):
-                np.testing.assert_allclose(getattr(cf, name), getattr(fit, name), rtol=1e-7,
-                                           atol=1e-9 * np.abs(getattr(fit, name)).max(), err_msg=name)
-            v, w = fit.directions
-            np.testing.assert_allclose(cf.eigenvalues, w, rtol=1e-9)
-            np.testing.assert_allclose(np.abs(cf.directions.T @ v), np.eye(2), atol=1e-9)   # up to sign
-    assert fits >= 4
-
-
-def test_compiled_cycle_hands_the_unusual_cases_to_python(sim):
-    """A stencil that leaves the box gives the vertex and the directions that found it, no fit; a
-    stencil point with L_h <= 0 (a pre-compressed start) is not simulated by the compiled cycle."""
-    from estimator.ident import compiled_cycle as cc
-    from estimator.ident.cost import CostModel
-    from estimator.ident.local_fit import _stencil_cycle
-    from estimator.ident.search import Box
-    inj = _cycle_case(sim, False, 1)
-    d = np.array([[0.96, -0.28], [0.28, 0.96]])
-    box = Box(np.array([14.9, 2.95]), np.array([21.1, 20.0]))
-    x0, st = np.array([17.0, 3.0]), np.array([0.03, 0.15])
-    cf = cc.run_cycle(CostModel(sim, inj), x0, d, st, box)
-    x_py, ok_py, jac_py = _stencil_cycle(CostModel(sim, inj), x0, d, st, box)
-    assert cf.code == cc.CYCLE_PARTIAL and jac_py is None and np.isnan(cf.jac).all()
-    np.testing.assert_allclose(cf.x, x_py, rtol=1e-12)
-    assert np.array_equal(cf.ok, ok_py)
-    low = Box(np.array([14.9, -3.0]), np.array([21.1, 20.0]))
-    m = CostModel(sim, inj)
-    cf = cc.run_cycle(m, np.array([17.0, 0.05]), d, st, low)
-    assert cf.code == cc.CYCLE_FALLBACK and m.evaluations == 0
-
-
 def test_compiled_nuisance_span_is_the_numpy_one():
     """The compiled nuisance columns are the numpy formulas bit for bit; the residual energy in their
     span is the least-squares projection's, with raw columns (normal equations) and with the
@@ -186,32 +110,6 @@ def test_compiled_nuisance_span_is_the_numpy_one():
     assert model_error_statistic(res, cols, 0.1) == pytest.approx(energy / 0.01, rel=1e-9)
     assert model_error_statistic(res, nuisance_basis(cur, dt), 0.1) == pytest.approx(energy / 0.01, rel=1e-9)
     assert model_error_statistic(res, np.empty((201, 0)), 0.1) == 0.0
-
-
-@pytest.mark.parametrize("robust", [False, True])
-def test_compiled_forward_fit_is_the_python_one(sim, robust):
-    """local_fit's compiled three-point fit equals its Python twin (at the upper bounds the steps turn
-    back); a point whose neighbour needs a pre-compressed start stays in Python."""
-    from estimator.ident.cost import CostModel
-    from estimator.ident.local_fit import _forward_fit, local_fit
-    from estimator.ident.search import Box
-    inj = _cycle_case(sim, robust, 2)
-    box = Box(np.array([14.9, 0.001]), np.array([18.0, 4.0]))
-    for x in (np.array([18.0, 4.0]), np.array([17.97, 3.9])):
-        m_c, m_py = CostModel(sim, inj, 100e-6, "l2", robust), CostModel(sim, inj, 100e-6, "l2", robust)
-        got, want = local_fit(m_c, x, box), _forward_fit(m_py, x, box)
-        assert m_c.evaluations == m_py.evaluations == 3 and got.success and want.success
-        for name in ("criterion", "paper_cost_vs", "sigma_v", "t_contact_s", "t_open_s"):
-            assert getattr(got, name) == pytest.approx(getattr(want, name), rel=1e-9), name
-        for name in ("jtj", "gn_step", "cov_x", "residual"):
-            np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-7,
-                                       atol=1e-9 * np.abs(getattr(want, name)).max(), err_msg=name)
-    m = CostModel(sim, inj)
-    from estimator.ident import compiled_cycle as cc
-    low = Box(np.array([14.9, -3.0]), np.array([21.1, 20.0]))
-    assert cc.run_forward_fit(m, np.array([17.0, -0.001]), np.array([2e-3, 2e-3]), low).code == cc.CYCLE_FALLBACK
-    fit = local_fit(m, np.array([17.0, -0.001]), low)    # pre-compressed: in Python
-    assert m.evaluations == 3 and fit.success and np.isfinite(fit.criterion)
 
 
 @pytest.mark.parametrize("n", [201, 200])
@@ -300,8 +198,8 @@ def test_refine_step_rules_in_floats_are_the_numpy_rules():
 
 def _cycle(x: np.ndarray, criterion: float, gn_sigmas: tuple[float, float]):
     """A compiled cycle's outcome at ``x`` with unit variances and a Gauss–Newton step of ``gn_sigmas``."""
-    from estimator.ident.compiled_cycle import CYCLE_FIT, CycleFit
-    return CycleFit(CYCLE_FIT, 6, np.array(x, dtype=float), np.array([True, True]), np.full((2, 3), np.nan), criterion,
+    from estimator.ident.fit_kernel import FIT, KernelFit
+    return KernelFit(FIT, 6, np.array(x, dtype=float), np.array([True, True]), np.full((2, 3), np.nan), criterion,
                     0.0, np.eye(2), np.array(gn_sigmas, dtype=float), 1.0, np.eye(2), np.zeros(3), np.nan, np.nan, True,
                     np.eye(2), np.ones(2))
 
@@ -411,61 +309,3 @@ def test_direct_calls_work_with_numbas_jit_switched_off():
     compiled = FastSimulator().valve_prediction(StandardDrive().samples(490e-6), 17.0, 4e-6, 28.0)
     assert all(np.isfinite(compiled))
     np.testing.assert_allclose(python_run, compiled, rtol=1e-9)
-
-
-def test_compiled_gauss_newton_loop_is_the_python_loop(sim, monkeypatch):
-    """The cold start's Gauss–Newton loop, compiled, takes the Python loop's steps (``compiled=False``)
-    to the bit: from a lot-like start, and where a point needs a pre-compressed start (L_h <= 0) and the loop goes on
-    in Python, at the first point or after some compiled steps; a small trust region that runs out
-    of steps included, and first trust regions widened to the first fit's standard deviations
-    (``radius_sd``) in both."""
-    from estimator.ident import cold_start
-    from estimator.ident import compiled_cycle as cc
-    from estimator.ident.config import IdentConfig
-    from estimator.ident.cost import CostModel
-    from estimator.ident.idle_stroke import search_box
-    from sim_bench.ident_bench import F_OPEN_N, _injection
-    from sim_bench.plant import Plant, PlantConfig
-    from .helpers import record_codes
-    codes = record_codes(monkeypatch, cold_start, "run_gauss_newton")
-    cfg = IdentConfig()
-    cases = [(0.2, (16.5, 3.0), None, False, 0.0), (0.05, (16.5, 1.0), None, False, 0.0),
-             (0.3, (16.5, -0.5), None, False, 0.0), (-0.2, (16.2, 2.0), None, True, 0.0),
-             (3.0, (17.5, 6.0), (0.002, 0.01), False, 0.0), (3.0, (16.4, 3.6), (0.002, 0.01), True, 4.0),
-             (0.3, (16.5, -0.5), (0.002, 0.01), True, 4.0)]
-    widened = []
-    for k, (lh_um, start, radius, robust, radius_sd) in enumerate(cases):
-        plant = Plant(PlantConfig())
-        inj = _injection(plant.measure(16.2, lh_um * 1e-6, F_OPEN_N, np.random.default_rng(k)))
-        box = search_box(cfg, sim, inj.f_open_n)
-        m_c, m_py = CostModel(sim, inj, 100e-6, "l2", robust), CostModel(sim, inj, 100e-6, "l2", robust)
-        r = None if radius is None else np.array(radius)
-        got, conv = cold_start.gauss_newton_fit(m_c, np.array(start), box, cfg, r, radius_sd=radius_sd)
-        want, conv_py = cold_start.gauss_newton_fit(m_py, np.array(start), box, cfg, r, compiled=False,
-                                                    radius_sd=radius_sd)
-        if radius_sd:   # the widening changes the run: without it, more steps
-            m_0 = CostModel(sim, inj, 100e-6, "l2", robust)
-            cold_start.gauss_newton_fit(m_0, np.array(start), box, cfg, r, compiled=False)
-            widened.append(m_0.evaluations - m_py.evaluations)
-        assert m_c.evaluations == m_py.evaluations, k
-        assert np.array_equal(got.x, want.x) and got.criterion == want.criterion and conv == conv_py, k
-        assert np.array_equal(got.cov_x, want.cov_x) and got.success == want.success
-    assert {cc.GN_DONE, cc.GN_FIRST_FIT, cc.GN_STEP_FIT} <= set(codes)
-    assert max(widened) > 0, widened
-
-
-@pytest.mark.parametrize("robust", [False, True])
-def test_compiled_point_costs_are_the_cost_models(sim, robust):
-    """The ring's compiled costs are the cost model's (to rounding: sums in another order), evaluations
-    counted; points with one at L_h <= 0 are left to Python (nothing simulated)."""
-    from estimator.ident import compiled_cycle as cc
-    from estimator.ident.cost import CostModel
-    from estimator.ident.local_fit import cost_fn
-    inj = _cycle_case(sim, robust, 1)
-    m_c, m_py = CostModel(sim, inj, 100e-6, "l2", robust), CostModel(sim, inj, 100e-6, "l2", robust)
-    pts = np.column_stack([np.linspace(16.0, 18.5, 9), np.linspace(0.5, 40.0, 9)])
-    got, want = cc.run_point_costs(m_c, pts), cost_fn(m_py)(pts)
-    np.testing.assert_allclose(got, want, rtol=1e-10)
-    assert m_c.evaluations == m_py.evaluations == 9 and np.all(np.isfinite(got[:5]))
-    pts[3, 1] = -0.2
-    assert cc.run_point_costs(m_c, pts) is None and m_c.evaluations == 9

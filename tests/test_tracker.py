@@ -212,12 +212,12 @@ def test_prior_and_reset(sim):
 
 
 def test_warm_up_runs_a_cold_start_and_compiled_warm_updates_without_touching_the_states(monkeypatch):
-    from estimator.ident import compiled_cycle, local_fit
+    from estimator.ident import fit_kernel, local_fit
     codes = record_codes(monkeypatch, local_fit, "run_cycle")
     tr = Tracker(TrackerConfig())
     tr.set_prior(3, 17.0, 2.0)
     before = tr.states[3].to_dict()
     tr.warm_up()
     assert list(tr.states) == [3] and tr.states[3].to_dict() == before
-    assert codes == [compiled_cycle.CYCLE_FIT] * 2      # both warm updates took the compiled cycle
+    assert codes == [fit_kernel.FIT] * 2      # both warm updates were one compiled cycle each
     assert len(tr.pool) == 1                           # the default sample period's simulator, shared

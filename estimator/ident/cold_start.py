@@ -40,8 +40,8 @@ import numpy as np
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M
 from estimator.ident.cost import CostModel, noise_sigma_v
-from estimator.ident.compiled_cycle import GN_DONE, GN_FIRST_FIT, run_gauss_newton, run_point_costs
-from estimator.ident.local_fit import FD_STEP, LocalFit, cost_fn, from_cycle_fit, local_fit, refine
+from estimator.ident.fit_kernel import GaussNewtonRules, run_gauss_newton, run_point_costs
+from estimator.ident.local_fit import FD_STEP, LocalFit, cost_fn, from_kernel_fit, refine
 from estimator.ident.search import Box, CostFn
 
 START_STEPS = (0.3, 0.5)   # N/V, µm: first line-search steps where Gauss–Newton stalls (about a lot's series spread)
@@ -169,75 +169,32 @@ def bound_tolerance(config: IdentConfig) -> tuple[float, float]:
 
 
 def gauss_newton_fit(model: CostModel, start: np.ndarray, box: Box, config: IdentConfig,
-                     radius: np.ndarray | None = None, compiled: bool = True,
-                     radius_sd: float = 0.0) -> tuple[LocalFit, bool]:
+                     radius: np.ndarray | None = None, radius_sd: float = 0.0) -> tuple[LocalFit, bool]:
     """Gauss–Newton steps from ``start`` (N/V, µm; clipped into the box) in a trust region; (fit, converged).
 
-    Each step is one :func:`local_fit` (the point and its two forward-difference neighbours, one
-    compiled call): the step is the Gauss–Newton step, shortened to fit ``radius`` (N/V, µm; default
-    :data:`START_RADIUS`), each radius at least ``radius_sd`` of the first fit's own standard
-    deviations (:func:`widened_radius`; 0: as given). A step that lowers the cost is taken and the radius doubles; one that does
-    not shrinks the radius to :data:`SHRINK` times that step. Converged when the Gauss–Newton step is
-    within :data:`GN_CONVERGED_SD` standard deviations (or the tolerance) of the point, or within
-    :data:`GN_CLOSE_SD` (:func:`refine`'s criterion) and taking it did not lower the cost; not
-    converged after :data:`GN_MAX_STEPS` steps, when a step no longer moves the point (a bound), or
-    when a simulation fails. In the narrow valley of eq. 28 the residual's Jacobian knows the valley's
-    direction where the cost's one-dimensional sections do not: from the nominal start a lot's
-    injector converges in 2–5 steps (6–15 simulations) where the line searches took 40.
-
-    The loop runs compiled (:func:`compiled_cycle.gauss_newton`: the same decisions in the same float
-    operations, one call; with the ring's compiled costs the cold start's median in ``speed`` went
-    1.5 -> 1.2 ms); where it meets a point that needs a pre-compressed start (L_h <= 0) it returns its
-    state and the loop below goes on from there (all of it with ``compiled=False``: the tests' reference)."""
+    Each step is one :func:`~estimator.ident.local_fit.local_fit` (the point and its two
+    forward-difference neighbours): the step is the Gauss–Newton step, shortened to fit ``radius``
+    (N/V, µm; default :data:`START_RADIUS`), each radius at least ``radius_sd`` of the first fit's own
+    standard deviations (0: as given). A step that lowers the cost is taken and the radius doubles;
+    one that does not shrinks the radius to :data:`SHRINK` times that step. Converged when the
+    Gauss–Newton step is within :data:`GN_CONVERGED_SD` standard deviations (or the tolerance) of the
+    point, or within :data:`GN_CLOSE_SD` (:func:`refine`'s criterion) and taking it did not lower the
+    cost; not converged after :data:`GN_MAX_STEPS` steps, when a step no longer moves the point (a
+    bound), or when a simulation fails. In the narrow valley of eq. 28 the residual's Jacobian knows
+    the valley's direction where the cost's one-dimensional sections do not: from the nominal start a
+    lot's injector converges in 2–5 steps (6–15 simulations) where the line searches took 40. The loop
+    is one compiled call (:func:`fit_kernel.gauss_newton`)."""
     x = box.clip(np.asarray(start, dtype=float))
     rad = np.array(START_RADIUS if radius is None else radius, dtype=float)
-    tol = np.asarray(config.tol, dtype=float)
-    gn = (run_gauss_newton(model, x, FD_STEP, box, rad, radius_sd, RING_MIN_SD, tol, GN_MAX_STEPS, GN_CONVERGED_SD,
-                           GN_CLOSE_SD, SHRINK) if compiled else None)
-    if gn is not None and gn.code == GN_DONE:
-        return from_cycle_fit(gn.fit), gn.converged
-    x_new: np.ndarray | None = None
-    if gn is None or gn.code == GN_FIRST_FIT:
-        fit, first = local_fit(model, x, box), 0
-        rad = widened_radius(rad, fit, radius_sd)
-    else:   # GN_STEP_FIT: the step to x_new is decided, its fit is Python's
-        x, fit, rad, first, x_new, scale = gn.x, from_cycle_fit(gn.fit), gn.radius, gn.steps, gn.x_new, gn.scale
-    for _ in range(first, GN_MAX_STEPS):
-        step = fit.gn_step
-        sd = fit.sd_x
-        if x_new is None:
-            if not fit.success:
-                return fit, False
-            if np.all(np.abs(step) <= np.maximum(tol, GN_CONVERGED_SD * sd)):
-                return fit, True
-            scale = min(1.0, float(np.min(rad / np.maximum(np.abs(step), 1e-300))))
-            x_new = box.clip(x + scale * step)
-        moved = np.abs(x_new - x)
-        if np.all(moved <= tol):
-            return fit, False
-        fit_new = local_fit(model, x_new, box)
-        if fit_new.success and fit_new.criterion < fit.criterion:
-            x, fit, rad = x_new, fit_new, 2.0 * rad
-        elif scale == 1.0 and np.all(np.abs(step) <= np.maximum(tol, GN_CLOSE_SD * sd)):
-            return fit, True   # the minimum is this close, and the step to it did not lower the cost (noise)
-        else:
-            rad = SHRINK * moved + tol
-        x_new = None
-    return fit, False
+    rules = GaussNewtonRules(float(radius_sd), RING_MIN_SD, np.asarray(config.tol, dtype=float), GN_MAX_STEPS,
+                             GN_CONVERGED_SD, GN_CLOSE_SD, SHRINK)
+    run = run_gauss_newton(model, x, FD_STEP, box, rad, rules)
+    return from_kernel_fit(run.fit), run.converged
 
 
 def sd_radius(fit: LocalFit, k: float) -> np.ndarray:
     """A trust region of ``k`` of the fit's standard deviations (N/V, µm), each at least :data:`RING_MIN_SD`."""
     return k * np.maximum(fit.sd_x, RING_MIN_SD)
-
-
-def widened_radius(radius: np.ndarray, fit: LocalFit, k: float) -> np.ndarray:
-    """``radius`` (N/V, µm), each entry raised to :func:`sd_radius` ``(fit, k)`` where that is larger
-    and finite; ``k <= 0``: unchanged (:func:`compiled_cycle.widened_radius` is its compiled twin)."""
-    if k <= 0.0:
-        return radius
-    r = sd_radius(fit, k)
-    return np.where((r > radius) & (r < np.inf), r, radius)
 
 
 def unchecked_fit(model: CostModel, start: np.ndarray, box: Box, config: IdentConfig,
@@ -292,8 +249,6 @@ def probe_ring(model: CostModel, fit: LocalFit, box: Box) -> np.ndarray | None:
         return None
     pts = box.clip(fit.x[None, :] + RING * sd_radius(fit, 1.0)[None, :])
     j = run_point_costs(model, pts)   # one compiled call (the fit's own cost is summed the same way)
-    if j is None:                     # a probe at L_h <= 0: in Python
-        j = cost_fn(model)(pts)
     k = int(np.argmin(j))
     return pts[k] if j[k] < fit.criterion else None
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -30,6 +31,7 @@ from estimator.ident.measurement import Injection
 from estimator.model.direct_call import DirectCall, c_float
 from estimator.model.drive import sample_count
 from estimator.model.fast_sim import BatchResult, FastSimulator
+from estimator.model.kernel import KernelModel
 
 NUISANCE_THRESHOLDS = (0.04, 0.10, 0.25, 0.50)   # fractions of the window's final charge
 MAD_PER_SIGMA = 0.6744897501960817   # median absolute deviation of a unit normal
@@ -207,6 +209,53 @@ def _span_energy(r, b):
     return br @ np.linalg.solve(g, br)
 
 
+@njit(cache=True, nogil=True)
+def residuals_into(measured, u, basis, project, out):
+    """``out`` (B, N) = ``measured`` (N,) - ``u`` (B, >= N) in V, each row projected off ``basis``
+    (N, K, orthonormal) if ``project``."""
+    nb, n = out.shape
+    for b in range(nb):
+        for k in range(n):
+            out[b, k] = measured[k] - u[b, k]
+    if project:
+        nk = basis.shape[1]
+        c = np.empty(nk)
+        for b in range(nb):
+            for q in range(nk):
+                s = 0.0
+                for k in range(n):
+                    s += out[b, k] * basis[k, q]
+                c[q] = s
+            for k in range(n):
+                s = 0.0
+                for q in range(nk):
+                    s += c[q] * basis[k, q]
+                out[b, k] -= s
+
+
+@njit(cache=True, nogil=True)
+def costs_of(r, weights, l1, success):
+    """The cost of each row of residuals ``r`` (B, N) in V with quadrature ``weights`` (s): V^2 s, or
+    V s if ``l1``; +inf where not ``success`` or not finite."""
+    nb, n = r.shape
+    j = np.empty(nb)
+    for b in range(nb):
+        s = 0.0
+        for k in range(n):
+            v = r[b, k]
+            s += (abs(v) if l1 else v * v) * weights[k]
+        j[b] = s if (success[b] and np.isfinite(s)) else np.inf
+    return j
+
+
+@njit(cache=True, nogil=True)
+def residual_costs(measured, u, basis, project, weights, l1, success):
+    """:func:`costs_of` the residuals :func:`residuals_into` gives."""
+    r = np.empty((u.shape[0], measured.shape[0]))
+    residuals_into(measured, u, basis, project, r)
+    return costs_of(r, weights, l1, success)
+
+
 @functools.lru_cache(maxsize=32)
 def trapezoid_weights(n: int, dt_s: float) -> np.ndarray:
     """Trapezoidal-rule weights (s) of ``n`` samples ``dt_s`` apart, kept per (n, dt_s): shared by every
@@ -215,6 +264,29 @@ def trapezoid_weights(n: int, dt_s: float) -> np.ndarray:
     w = np.full(n, dt_s)
     w[[0, -1]] *= 0.5
     return w
+
+
+class Problem(NamedTuple):
+    """One cost window as compiled code reads it (:mod:`estimator.ident.fit_kernel`): the simulator's
+    kernel, the window's samples and the cost's settings. Its types never change (float64 C arrays,
+    floats, bools), so compiled calls on it can skip numba's dispatch (:class:`DirectCall`)."""
+
+    model: KernelModel
+    automaton: tuple
+    table: np.ndarray       # the simulator's transition-matrix table (scaled units)
+    h_us: float             # sample period in the kernel's time unit (µs)
+    nu_lo: float            # the simulator's N_u range (N/V)
+    nu_hi: float
+    current: np.ndarray     # (N,) A
+    f_open_n: float         # N
+    measured: np.ndarray    # (N,) V
+    weights: np.ndarray     # (N,) s, trapezoidal
+    basis: np.ndarray       # (N, K) orthonormal nuisance basis if robust, else (0, 0)
+    robust: bool
+    l1: bool
+
+
+_NO_BASIS = np.empty((0, 0))
 
 
 @dataclass
@@ -247,7 +319,19 @@ class CostModel:
         self.weights = trapezoid_weights(self.n, self.dt)
         self._basis: np.ndarray | None = None
         self._basis_of: CostModel | None = None   # another model of the same samples: its basis is this one's
+        self._problem: Problem | None = None
         self.evaluations = 0
+
+    @property
+    def problem(self) -> Problem:
+        """This window as compiled code reads it (built on first use)."""
+        if self._problem is None:
+            h = self.sim.kernel_handle()
+            self._problem = Problem(h.model, h.automaton, h.table, h.h_us, h.nu_lo, h.nu_hi, self.current,
+                                    float(self.injection.f_open_n), self.measured, self.weights,
+                                    c_float(self.basis) if self.robust else _NO_BASIS, bool(self.robust),
+                                    self.norm == "l1")
+        return self._problem
 
     @property
     def basis(self) -> np.ndarray:
@@ -270,42 +354,29 @@ class CostModel:
         self.evaluations += int(np.broadcast(nu, np.atleast_1d(lh)).size)
         return self.sim.simulate(self.current, nu, lh, self.injection.f_open_n)
 
-    def residuals(self, res: BatchResult, robust: bool | None = None) -> np.ndarray:
-        """U_m − U_sim (V), (B, N) over this window (a longer simulation is cut to it); projected when
-        robust. NaN rows for failed candidates."""
-        return self.residuals_of(res.voltage_v, robust)
-
     def without_nuisance(self, r: np.ndarray) -> np.ndarray:
         """One residual (N,) in V with this window's nuisance span projected out."""
         return r - self.basis @ (self.basis.T @ r)
-
-    def residuals_of(self, voltage_v: np.ndarray, robust: bool | None = None) -> np.ndarray:
-        """:meth:`residuals` of simulated voltages (B, >= N) in V."""
-        r = self.measured[None, :] - voltage_v[:, : self.n]
-        if self.robust if robust is None else robust:
-            r = r - (r @ self.basis) @ self.basis.T
-        return r
 
     def from_result(self, res: BatchResult) -> np.ndarray:
         """The cost of simulated candidates: V^2*s (l2) or V*s (l1); +inf where infeasible."""
         return self.cost_of(res.voltage_v, res.success)
 
     def cost_of(self, voltage_v: np.ndarray, success: np.ndarray | None = None) -> np.ndarray:
-        """The cost of simulated voltages (B, >= N) in V; +inf where not ``success`` or not finite."""
-        r = self.residuals_of(voltage_v)
-        j = (r * r if self.norm == "l2" else np.abs(r)) @ self.weights
-        bad = ~np.isfinite(j)
-        if success is not None:
-            bad |= ~success
-        j[bad] = np.inf
-        return j
+        """The cost of simulated voltages (B, >= N) in V; +inf where not ``success`` or not finite
+        (the compiled fits' own cost, :func:`residual_costs`)."""
+        p = self.problem
+        u = np.ascontiguousarray(voltage_v[:, : self.n], dtype=float)
+        ok = np.ones(u.shape[0], dtype=bool) if success is None else np.ascontiguousarray(success, dtype=bool)
+        return residual_costs(p.measured, u, p.basis, p.robust, p.weights, p.l1, ok)
 
     def __call__(self, nu: np.ndarray, lh: np.ndarray) -> np.ndarray:
         return self.from_result(self.simulate(nu, lh))
 
     def paper_cost_vs(self, res: BatchResult) -> np.ndarray:
-        """The paper's J = ∫|U_m − U_sim| dt in V*s, unprojected (eq. 28)."""
-        return np.abs(self.measured[None, :] - res.voltage_v[:, : self.n]) @ self.weights
+        """The paper's J = ∫|U_m − U_sim| dt in V*s, unprojected (eq. 28); +inf where not finite."""
+        u = np.ascontiguousarray(res.voltage_v[:, : self.n], dtype=float)
+        return residual_costs(self.measured, u, _NO_BASIS, False, self.weights, True, np.ones(u.shape[0], dtype=bool))
 
 
 _PLAIN_MODEL_ERROR = DirectCall(_plain_model_error)   # its argument types are fixed in plain_model_error

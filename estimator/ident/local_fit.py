@@ -13,11 +13,11 @@ from functools import cached_property
 
 import numpy as np
 
-from estimator.ident.compiled_cycle import CYCLE_FALLBACK, CYCLE_FIT, CycleFit, run_cycle, run_forward_fit
+from estimator.ident.fit_kernel import FIT, KernelFit, run_cycle, run_forward_fit
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M
-from estimator.ident.cost import CostModel, noise_sigma_v
-from estimator.ident.search import Box, conjugate_directions, conjugate_stencil, conjugate_vertex, line_search
+from estimator.ident.cost import CostModel
+from estimator.ident.search import Box, line_search
 
 FD_STEP = np.array([2e-3, 2e-3])   # finite-difference steps: N/V, µm
 
@@ -27,11 +27,6 @@ def cost_fn(model: CostModel):
     def f(x: np.ndarray) -> np.ndarray:
         return model(x[:, 0], x[:, 1] / UM_PER_M)
     return f
-
-
-def simulate_at(model: CostModel, pts: np.ndarray):
-    """The model's simulation of (B, 2) points in (N/V, µm)."""
-    return model.simulate(pts[:, 0], pts[:, 1] / UM_PER_M)
 
 
 @dataclass(frozen=True)
@@ -49,82 +44,25 @@ class LocalFit:
     t_contact_s: float
     t_open_s: float
     success: bool
+    directions: tuple[np.ndarray, np.ndarray]   # eigenvectors (columns) and eigenvalues of jtj, weakest first
 
     @cached_property
     def sd_x(self) -> np.ndarray:
         """Standard deviations of (N_u, L_h) in (N/V, µm): the square roots of ``cov_x``'s diagonal."""
         return np.sqrt(np.abs(np.diag(self.cov_x)))
 
-    @cached_property
-    def directions(self) -> tuple[np.ndarray, np.ndarray]:
-        """Conjugate directions (columns) and eigenvalues of ``jtj``, weakest first (computed once)."""
-        return conjugate_directions(self.jtj)
-
 
 def local_fit(model: CostModel, x: np.ndarray, box: Box) -> LocalFit:
-    """Simulate x and two forward-difference neighbours in one batch (steps toward the box inside);
-    compiled (:func:`compiled_cycle.forward_fit`) unless a point needs a pre-compressed start."""
-    cf = run_forward_fit(model, x, FD_STEP, box)
-    return from_cycle_fit(cf) if cf.code == CYCLE_FIT else _forward_fit(model, x, box)
+    """The Gauss–Newton model at x (N/V, µm): x and two forward-difference neighbours (steps toward
+    the box's inside) simulated in one batch (:func:`fit_kernel.forward_fit`)."""
+    return from_kernel_fit(run_forward_fit(model, x, FD_STEP, box))
 
 
-def _forward_fit(model: CostModel, x: np.ndarray, box: Box) -> LocalFit:
-    """:func:`local_fit` in Python (any L_h: pre-compressed starts included)."""
-    steps = np.where(x + FD_STEP <= box.hi, FD_STEP, -FD_STEP)
-    pts = np.array([x, x + [steps[0], 0.0], x + [0.0, steps[1]]])
-    res = simulate_at(model, pts)
-    r = model.residuals(res)
-    jac = -(r[1:] - r[0]) / steps[:, None]            # dU_sim/dx, (2, N)
-    return _fit_from(model, x, res, r[0], jac, bool(res.success.all()))
-
-
-def fit_with_jacobian(model: CostModel, x: np.ndarray, jac: np.ndarray) -> LocalFit:
-    """Local fit at x with a Jacobian known from elsewhere (the conjugate stencil): one simulation."""
-    res = simulate_at(model, x[None, :])
-    return _fit_from(model, x, res, model.residuals(res)[0], jac, bool(res.success[0]))
-
-
-def _fit_from(model: CostModel, x: np.ndarray, res, r0: np.ndarray, jac: np.ndarray, ok: bool) -> LocalFit:
-    """Gauss–Newton model from the residual r0 at x (candidate 0 of ``res``) and dU/dx ``jac`` (2, N)."""
-    crit = model.from_result(res)
-    raw = model.measured - res.voltage_v[0]
-    jtj = jac @ jac.T
-    ok = ok and bool(np.isfinite(jtj).all())
-    sigma = noise_sigma_v(r0) if ok else float("nan")
-    det = float(jtj[0, 0] * jtj[1, 1] - jtj[0, 1] * jtj[1, 0]) if ok else 0.0
-    if ok and det > 1e-14 * float(jtj[0, 0] * jtj[1, 1]):
-        inv = np.array([[jtj[1, 1], -jtj[0, 1]], [-jtj[1, 0], jtj[0, 0]]]) / det
-        cov = sigma ** 2 * inv
-        step = inv @ (jac @ r0)
-    else:
-        cov, step = np.full((2, 2), np.inf), np.zeros(2)
-    return LocalFit(x.copy(), float(crit[0]), float(model.paper_cost_vs(res)[0]), jtj, step, sigma, cov,
-                    raw, float(res.t_contact_s[0]), float(res.t_open_s[0]), ok)
-
-
-def _stencil_cycle(model: CostModel, x: np.ndarray, d: np.ndarray, st: np.ndarray,
-                   box: Box) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """The batched cycle's stencil in Python: the vertex, which directions gave it, and the
-    Jacobian (None unless the stencil was inside the box, both vertices found and all simulated)."""
-    pts, inside = conjugate_stencil(x, d, st, box)
-    res = simulate_at(model, pts)
-    xv, ok = conjugate_vertex(pts, model.from_result(res), x, d, st, box)
-    if not (inside and ok.all() and res.success.all()):
-        return xv, ok, None
-    # the stencil's central differences along d1, d2 are the Gauss–Newton Jacobian:
-    # dU/dx = D (dU/dalpha), with alpha the coordinates along the directions
-    r = model.residuals(res)
-    jac_a = np.stack([-(r[2] - r[1]) / (2 * st[0]), -(r[4] - r[3]) / (2 * st[1])])
-    return xv, ok, d @ jac_a
-
-
-def from_cycle_fit(cf: CycleFit) -> LocalFit:
-    """The LocalFit of a compiled cycle (its conjugate directions already computed)."""
-    fit = LocalFit(cf.x.copy(), float(cf.criterion), float(cf.paper_cost_vs), cf.jtj, cf.gn_step, float(cf.sigma_v),
-                   cf.cov_x, cf.residual, float(cf.t_contact_s), float(cf.t_open_s), bool(cf.success))
-    if cf.success:
-        fit.__dict__["directions"] = (cf.directions, cf.eigenvalues)   # the cached_property's slot
-    return fit
+def from_kernel_fit(kf: KernelFit) -> LocalFit:
+    """The LocalFit of a compiled fit (its conjugate directions already computed)."""
+    return LocalFit(kf.x.copy(), float(kf.criterion), float(kf.paper_cost_vs), kf.jtj, kf.gn_step, float(kf.sigma_v),
+                    kf.cov_x, kf.residual, float(kf.t_contact_s), float(kf.t_open_s), bool(kf.success),
+                    (kf.directions, kf.eigenvalues))
 
 
 def _within(v: np.ndarray, tol: tuple[float, float], k: float, cov: np.ndarray | None = None) -> bool:
@@ -163,8 +101,8 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
     """Cycles of line searches along conjugate directions; returns (fit, converged, cycles).
 
     ``batched``: the directions are already conjugate (warm start), so both line searches of a
-    cycle are evaluated in one batch (:func:`conjugate_stencil`, :func:`conjugate_vertex`); a direction whose parabola is not
-    convex or leaves the trust region falls back to the bracketing line search.
+    cycle are evaluated in one batch (:func:`fit_kernel.warm_cycle`); a direction whose parabola is
+    not convex or leaves the trust region falls back to the bracketing line search.
     """
     x, j = box.clip(x0.astype(float)), j0
     d, st = directions, steps
@@ -175,19 +113,15 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
     for cycles in range(1, (max_cycles or config.max_cycles) + 1):
         start = x.copy()
         todo = [0, 1]
-        jac = None
-        fit = None
+        fit: LocalFit | None = None
         if batched:
-            # the common case in one compiled call (compiled_cycle); what it cannot do, Python does
-            cf = run_cycle(model, x, d, st, box)
-            if cf.code == CYCLE_FALLBACK:
-                x, ok, jac = _stencil_cycle(model, x, d, st, box)
-            else:
-                x, ok = cf.x, cf.ok
-                jac = cf.jac if np.isfinite(cf.jac[0, 0]) else None
-                if cf.code == CYCLE_FIT:
-                    fit = from_cycle_fit(cf)
-            todo = [i for i in range(2) if not ok[i]]
+            # stencil, both vertices and the fit at the vertex in one compiled call; a direction whose
+            # parabola it could not use is searched below, and the fit made where that search ends
+            cycle = run_cycle(model, x, d, st, box)
+            x = cycle.x
+            if cycle.code == FIT:
+                fit = from_kernel_fit(cycle)
+            todo = [i for i in range(2) if not cycle.ok[i]]
             j = None
         for i in todo:
             # the vertex of the first search is the centre of the second, and the vertex of the
@@ -195,7 +129,7 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
             lr = line_search(f, x, d[:, i], float(st[i]), box, j0=j if i == 0 else None, evaluate_vertex=False)
             x, j = lr.x, None
         if fit is None:
-            fit = fit_with_jacobian(model, x, jac) if jac is not None else local_fit(model, x, box)
+            fit = local_fit(model, x, box)
         if not fit.success:
             return fit, False, cycles
         # converged when the last cycle hardly moved, or when the Gauss–Newton model puts the

@@ -20,7 +20,7 @@ from estimator.model import kernel
 from estimator.model.automaton import build_automaton
 from estimator.model.direct_call import DirectCall
 from estimator.model.drive import SAMPLE_PERIOD_S
-from estimator.model.dynamics import STATUS_INFEASIBLE, STATUS_TEXT
+from estimator.model.dynamics import STATUS_TEXT
 from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters, check_nu_in, load_nominal
 
 PLATEAU_WINDOW_S = (215e-6, 490e-6)  # Table 3: mean plunger stroke s_4,s over 215-490 µs
@@ -136,7 +136,6 @@ class FastSimulator:
         self.dt_s = float(dt_s)
         self.structure = dyn.build_structure(self.params)
         self._d = dyn.Z_SCALE
-        self._springs = dyn.spring_constants(self.params)
         self.automaton = build_automaton(self.structure, self._d)
         psa = self.params.psa
         margin = 2 * nu_step + NU_EXTRAPOLATION_N_PER_V
@@ -146,8 +145,6 @@ class FastSimulator:
         self._phi_table: np.ndarray | None = None
         self._no_idx = np.zeros((1, 4), dtype=np.int64)
         self._no_w = np.zeros((1, 4))
-        self._no_z0 = np.full((1, dyn.NZ), np.nan)
-        self._no_z0.setflags(write=False)
         self._t_cache: dict[int, np.ndarray] = {}
         per_region = (dyn.N_REGIONS, dyn.NZ, dyn.NZ)
         a_const = np.ascontiguousarray(self._scaled(self.structure.a_const))
@@ -157,6 +154,7 @@ class FastSimulator:
             nu0=float(self._nu0), dnu=float(self._dnu), a_const=a_const, a_coup=a_coup, a_damp=a_damp,
             ks=float(psa.ks_n_per_m), rb=float(psa.rb_v2s_per_mn), r0a=float(psa.r0a_ohm),
             r0b=float(psa.r0b_v_per_n), z_scale=np.ascontiguousarray(self._d),
+            springs=np.ascontiguousarray(dyn.spring_constants(self.params), dtype=float),
             a_pattern=kernel.sparsity(a_const, a_coup, a_damp))
         # a plain dict, not functools.lru_cache on a bound method: that makes a reference cycle, and
         # a simulator dropped from a pool would then stay in memory until the cyclic GC runs
@@ -275,27 +273,15 @@ class FastSimulator:
             except ValueError:
                 raise ParameterError(f"candidate arrays of sizes {nu.size}, {lh.size}, {fo.size} "
                                      "do not broadcast") from None
-        n_neg = self._check_inputs(cur, nu, lh, fo)
+        self._check_inputs(cur, nu, lh, fo)
         n = cur.size
-        d = self._d
-        z0_given = self._no_z0 if nb == 1 else np.full((nb, dyn.NZ), np.nan)
-        region0 = np.zeros(nb, dtype=np.int64)
-        feasible = None
-        if n_neg:   # pre-compressed starts: the static equilibrium (dynamics.initial_state, compiled)
-            z0_given = np.full((nb, dyn.NZ), np.nan)
-            feasible = dyn.precompressed_starts(self._springs, nu, lh, fo, d, z0_given, region0)
         if exact:
             src, idx, w = self._phi_source(nu, True)
         else:
             src, idx, w = self._table(), self._no_idx, self._no_w
+        # starts at rest and pre-compressed starts (L_h <= 0) alike, infeasible ones marked, in the kernel
         u, s3, s4, mode, tc, to, status, success = kernel.run_batch(
-            self._model, self.automaton, src, not exact, idx, w, nu, lh, fo, z0_given, region0, cur,
-            self.dt_s * dyn.TIME_SCALE)
-        if feasible is not None and not feasible.all():
-            status[~feasible] = STATUS_INFEASIBLE
-            success[~feasible] = False
-            for arr in (u, s3, s4, tc, to):
-                arr[~feasible] = np.nan
+            self._model, self.automaton, src, not exact, idx, w, nu, lh, fo, cur, self.dt_s * dyn.TIME_SCALE)
         return BatchResult(t_s=self._times(n), current_a=cur, nu_n_per_v=nu, lh_m=lh, f_open_n=fo, voltage_v=u,
                            s3_m=s3, s4_m=s4, mode=mode, t_contact_s=tc, t_open_s=to, success=success, status=status)
 
@@ -305,9 +291,6 @@ class FastSimulator:
         the numbers :meth:`simulate` and :meth:`BatchResult.plateau_stroke_m` give (to rounding), without
         building the trajectories in Python (the per-injection valve prediction)."""
         cur = _current(current_a)
-        if not lh_m > 0.0:    # a pre-compressed start: the general path
-            res = self.simulate(cur, nu_n_per_v, lh_m, f_open_n)
-            return float(res.t_contact_s[0]), float(res.t_open_s[0]), float(res.plateau_stroke_m(window_s)[0])
         nu, lh, fo = np.array([nu_n_per_v], dtype=float), np.array([lh_m], dtype=float), np.array([f_open_n], dtype=float)
         key = (cur.size, (float(window_s[0]), float(window_s[1])))
         ks = self._plateau.get(key)

@@ -16,8 +16,9 @@ import numpy as np
 from numba import njit
 
 from estimator.model.automaton import apply_reset, dot, guard_value, in_contact, rearmed
-from estimator.model.dynamics import (MODE_OPEN, NX, NZ, S3, S4, STATUS_EVENT_CAP, STATUS_OK, V4, Z1, ZF, ZI,
-                                      ZID, ZL, coupling_jit, damping_jit, output_row_into)
+from estimator.model.dynamics import (MODE_OPEN, NX, NZ, S3, S4, STATUS_EVENT_CAP, STATUS_INFEASIBLE, STATUS_OK, V4,
+                                      Z1, ZF, ZI, ZID, ZL, coupling_jit, damping_jit, output_row_into,
+                                      precompressed_starts)
 
 MAX_EVENTS_PER_SAMPLE = 12
 # the sample step in simulate_kernel is written out for these nine physical states, the plunger last
@@ -43,6 +44,7 @@ class KernelModel(NamedTuple):
     r0a: float              # R_0a in Ohm
     r0b: float              # R_0b in V/N
     z_scale: np.ndarray     # (NZ,) dynamics.Z_SCALE
+    springs: np.ndarray     # (6,) dynamics.spring_constants (SI): the static pre-compression of L_h <= 0
     a_pattern: np.ndarray   # (6, ZI + 1, NZ + 2) uint64: the non-zero columns of the region matrices (sparsity)
 
 
@@ -600,12 +602,13 @@ def _candidates(model, idx, w, nu, lh, fo, z0_given, region0):
 
 
 @njit(cache=True, nogil=True)
-def run_batch(model, aut, src, stencil, idx_in, w_in, nu, lh, fo, z0_given, region0, cur, h):
+def run_batch(model, aut, src, stencil, idx_in, w_in, nu, lh, fo, cur, h):
     """One call for a whole batch: set up each candidate, interpolate its matrices, simulate.
 
     ``stencil``: interpolate the table ``src`` at ``nu`` (else ``idx_in``/``w_in`` select exact
-    matrices). Rows of ``z0_given`` with a finite first entry are initial states given in scaled
-    units (pre-compressed starts); the others start at rest. Returns
+    matrices). A candidate with L_h > 0 starts at rest; one with L_h <= 0 starts pre-compressed
+    (the static equilibrium, :func:`dynamics.precompressed_starts`), and fails with
+    ``STATUS_INFEASIBLE`` and NaN outputs where its valve would start open. Returns
     (u, s3, s4, mode, t_contact, t_open, status, success) with s3, s4 in m and times in s.
     """
     nb = nu.shape[0]
@@ -614,6 +617,9 @@ def run_batch(model, aut, src, stencil, idx_in, w_in, nu, lh, fo, z0_given, regi
         idx, w = lagrange_stencil(nu, model.nu0, model.dnu)
     else:
         idx, w = idx_in, w_in
+    z0_given = np.full((nb, NZ), np.nan)
+    region0 = np.zeros(nb, dtype=np.int64)
+    feasible = precompressed_starts(model.springs, nu, lh, fo, model.z_scale, z0_given, region0)
     cand = _candidates(model, idx, w, nu, lh, fo, z0_given, region0)
     out = Trajectories(np.empty((nb, n)), np.empty((nb, n)), np.empty((nb, n)), np.empty((nb, n), dtype=np.int8),
                        np.empty(nb), np.empty(nb), np.empty(nb, dtype=np.int64))
@@ -621,6 +627,14 @@ def run_batch(model, aut, src, stencil, idx_in, w_in, nu, lh, fo, z0_given, regi
     u, s3, s4, mode, tc, to, status = out
     success = np.empty(nb, dtype=np.bool_)
     for b in range(nb):
+        if not feasible[b]:
+            status[b] = STATUS_INFEASIBLE
+            tc[b] = np.nan
+            to[b] = np.nan
+            for k in range(n):
+                u[b, k] = np.nan
+                s3[b, k] = np.nan
+                s4[b, k] = np.nan
         for k in range(n):
             s3[b, k] *= 1e-6
             s4[b, k] *= 1e-6
@@ -631,22 +645,20 @@ def run_batch(model, aut, src, stencil, idx_in, w_in, nu, lh, fo, z0_given, regi
 
 
 @njit(cache=True, nogil=True)
-def run_from_rest(model, aut, src, nu, lh, fo, cur, h):
-    """:func:`run_batch` for candidates that start at rest (L_h > 0) with N_u interpolated in the table."""
-    nb = nu.shape[0]
-    return run_batch(model, aut, src, True, np.zeros((1, 4), dtype=np.int64), np.zeros((1, 4)), nu, lh, fo,
-                     np.full((nb, NZ), np.nan), np.zeros(nb, dtype=np.int64), cur, h)
+def run_table(model, aut, src, nu, lh, fo, cur, h):
+    """:func:`run_batch` with every candidate's N_u interpolated in the table ``src``."""
+    return run_batch(model, aut, src, True, np.zeros((1, 4), dtype=np.int64), np.zeros((1, 4)), nu, lh, fo, cur, h)
 
 
 @njit(cache=True, nogil=True)
 def valve_prediction(model, aut, src, nu, lh, fo, cur, h, k0, k1, nu_min, nu_max):
     """(code, contact time, opening time (s), mean plunger stroke (m) over samples k0 <= k < k1 (NaN if
-    k0 >= k1)) of one candidate (``nu``, ``lh``, ``fo`` of size 1, L_h > 0) from rest; ``code`` is
+    k0 >= k1)) of one candidate (``nu``, ``lh``, ``fo`` of size 1); ``code`` is
     :func:`check_inputs`' (nothing is simulated unless ``INPUTS_OK``)."""
     code, _ = check_inputs(cur, nu, lh, fo, nu_min, nu_max)
     if code != INPUTS_OK:
         return code, np.nan, np.nan, np.nan
-    _, _, s4, _, tc, to, _, _ = run_from_rest(model, aut, src, nu, lh, fo, cur, h)
+    _, _, s4, _, tc, to, _, _ = run_table(model, aut, src, nu, lh, fo, cur, h)
     stroke = np.nan
     if k1 > k0:
         stroke = np.mean(s4[0, k0:k1])
