@@ -2,6 +2,6 @@
 
 import sys
 
-from estimator.cli import main
+from estimator.runtime import console_main
 
-sys.exit(main())
+sys.exit(console_main())

@@ -32,7 +32,7 @@ def _config(args: argparse.Namespace):
 
 def _trace(path: Path, args: argparse.Namespace | None = None):
     """A trace: CSV, or MDF4 (.mf4/.mdf) with the channel options."""
-    from estimator.mdf_io import read_any_trace
+    from estimator.io.mdf import read_any_trace
 
     meta = {k: str(v) for k, v in (("preload_force_n", getattr(args, "preload_n", None)),
                                    ("temperature_c", getattr(args, "temperature_c", None))) if v is not None}
@@ -42,7 +42,7 @@ def _trace(path: Path, args: argparse.Namespace | None = None):
 
 
 def _load(path: Path, args: argparse.Namespace | None = None):
-    from estimator.trace_io import injection_from_trace
+    from estimator.io.traces import injection_from_trace
 
     return injection_from_trace(_trace(path, args))
 
@@ -151,7 +151,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     """The injector's structural parameters from current and voltage alone (no displacement)."""
     from estimator.ident.electrical import calibrate_electrical
-    from estimator.mdf_io import read_injections
+    from estimator.io.mdf import read_injections
 
     meta = {k: str(v) for k, v in (("preload_force_n", args.preload_n), ("temperature_c", args.temperature_c))
             if v is not None}
@@ -185,7 +185,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.electrical:
         return cmd_calibrate_electrical(args)
     from estimator.ident.calibration import CalibrationTrace, calibrate, report, to_toml
-    from estimator.trace_io import injection_from_trace
+    from estimator.io.traces import injection_from_trace
 
     traces = []
     for path in args.traces:
@@ -210,7 +210,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def cmd_plot(args: argparse.Namespace) -> int:
     """Figures 7/13 (voltage fit and error) and 14 (cost contour) for one trace."""
-    from estimator.plots import plot_identification
+    from estimator.plots.identification import plot_identification
 
     config = _config(args)
     if not 3 <= args.grid <= 201:
@@ -296,7 +296,7 @@ def cmd_check_dbc(args: argparse.Namespace) -> int:
 
 def cmd_plot_capture(args: argparse.Namespace) -> int:
     """N_u, L_h, opening time over time from a capture, one line per injector."""
-    from estimator.capture_plots import plot_capture
+    from estimator.plots.capture import plot_capture
 
     if not args.capture.exists():
         raise EstimatorError(f"capture {args.capture} does not exist")
@@ -358,7 +358,7 @@ def cmd_dbc_path(args: argparse.Namespace) -> int:
 
 def cmd_compile(args: argparse.Namespace) -> int:
     """Fill numba's cache for this version on two cores (``make`` runs it before demo and test)."""
-    from estimator.service.precompile import precompile
+    from estimator._compiled.precompile import precompile
 
     seconds = precompile(parallel=not args.serial, log=lambda m: print(m, file=sys.stderr))
     if seconds == 0.0 and not args.quiet:

@@ -2,6 +2,6 @@
 
 import sys
 
-from sim_bench.cli import main
+from sim_bench.entry import console_main
 
-sys.exit(main())
+sys.exit(console_main())

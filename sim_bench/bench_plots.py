@@ -10,8 +10,8 @@ from sim_bench.scenarios import Scenario
 
 def plot_bench(rows: list[dict], sc: Scenario, out_dir: Path, seed: int) -> list[Path]:
     """Write estimates.png (+ voltage_fit.png, cost_contour.png from one simulated injection)."""
-    from estimator.figures import pyplot, save
-    from estimator.plots import plot_identification
+    from estimator.plots.figures import pyplot, save
+    from estimator.plots.identification import plot_identification
     from estimator.ident.measurement import Injection
     from sim_bench.node import InjectionSource
 

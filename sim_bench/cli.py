@@ -13,7 +13,7 @@ import numpy as np
 from estimator.cli_support import base_parser, lean_service_imports, run_cli
 from estimator.errors import EstimatorError
 from estimator.model.drive import DRIVES, Drive, named_drive
-from estimator.trace_io import read_trace, write_trace
+from estimator.io.traces import read_trace, write_trace
 from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench import scenarios, tracking_bench
 

@@ -206,7 +206,7 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
 def latency_histogram(rep: dict, path: Path) -> str | None:
     """A PNG of the external latencies of each phase (log counts); the path, or None without matplotlib."""
     from estimator.errors import EstimatorError
-    from estimator.figures import pyplot, save
+    from estimator.plots.figures import pyplot, save
 
     try:
         plt = pyplot()

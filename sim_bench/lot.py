@@ -23,7 +23,7 @@ from estimator.codec.records import Codec
 from estimator.model.drive import Drive, StandardDrive
 from estimator.service.bus import to_message
 from estimator.service.config import DaemonConfig
-from estimator.trace_io import write_trace
+from estimator.io.traces import write_trace
 from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench.plant import Plant, PlantConfig
 

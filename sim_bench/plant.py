@@ -16,7 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
+from estimator._compiled import njit
 
 from estimator.model.chain import NO_CHAIN, MeasurementChain
 from estimator.model.drive import SAMPLE_PERIOD_S, ChopperRipple, Drive, StandardDrive, sample_count, sample_times

@@ -4,15 +4,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import estimator  # noqa: F401  (first: it limits BLAS to one thread before numpy loads)
+from estimator.runtime import prepare_process
 
-import pytest
+prepare_process()   # as the entry points do: one BLAS thread, before numpy loads
 
-from estimator.model.direct_call import verify_types
-from estimator.model.fast_sim import FastSimulator
-from estimator.model.parameters import InjectorParameters, load_nominal
-from sim_bench.hub import Hub
-from sim_bench.procs import BusMonitor
+import pytest  # noqa: E402
+
+from estimator._compiled.direct_call import verify_types  # noqa: E402
+from estimator.model.fast_sim import FastSimulator  # noqa: E402
+from estimator.model.parameters import InjectorParameters, load_nominal  # noqa: E402
+from sim_bench.hub import Hub  # noqa: E402
+from sim_bench.procs import BusMonitor  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -75,7 +75,7 @@ def test_csv_table_and_unknown_suffixes(tmp_path, messages):
 
 
 def test_plot_capture_draws_one_series_per_injector(tmp_path, messages):
-    from estimator.capture_plots import series
+    from estimator.plots.capture import series
     cap = tmp_path / "cap.log"
     write(cap, messages)
     out = tmp_path / "est.blf"

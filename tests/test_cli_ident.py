@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 
-from estimator.trace_io import write_trace
+from estimator.io.traces import write_trace
 
 from .helpers import measured
 from .test_cli_sim import run

@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 
-from estimator.trace_io import read_trace, write_trace
+from estimator.io.traces import read_trace, write_trace
 
 from .conftest import REPO
 

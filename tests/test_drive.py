@@ -15,7 +15,7 @@ from estimator.model import drive as drv
 from estimator.model.drive import (SAMPLE_PERIOD_S, Drive, StandardDrive, TableDrive, TimeFunction, sample_times,
                                    standard_drive)
 from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
-from estimator.trace_io import read_trace
+from estimator.io.traces import read_trace
 from sim_bench import scenarios
 from sim_bench import tracking_bench as tb
 from sim_bench.cli import build_parser

@@ -14,7 +14,7 @@ from estimator.ident.electrical import calibrate_electrical
 from estimator.ident.measurement import Injection
 from estimator.errors import ParameterError
 from estimator.model.parameters import InjectorParameters, load_nominal
-from estimator.trace_io import write_trace
+from estimator.io.traces import write_trace
 from sim_bench import series_part
 from sim_bench.plant import Plant, PlantConfig
 

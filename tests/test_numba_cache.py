@@ -7,7 +7,7 @@ import os
 import subprocess
 import sys
 
-from estimator import numba_cache
+from estimator._compiled import cache as numba_cache
 
 
 def _package(tmp_path):
@@ -46,10 +46,14 @@ def test_the_cache_directory_under_the_environment_beside_the_sources_or_the_use
         str(tmp_path / "xdg" / "injector-estimator" / tag)
 
 
-def test_importing_the_package_points_numba_at_its_tagged_directory(tmp_path):
-    code = ("import estimator, numba, os; from estimator import numba_cache as n; "
+def test_the_first_compiled_module_points_numba_at_its_tagged_directory(tmp_path):
+    """Importing the package sets nothing up (numba not even imported); the first compiled module
+    points numba at the directory keyed by the package's compiled sources."""
+    code = ("import estimator, os, sys; print('numba' in sys.modules); import estimator.model.kernel, numba; "
+            "from estimator._compiled import cache as n; "
             "print(numba.config.CACHE_DIR); print(n.source_tag(os.path.dirname(estimator.__file__)))")
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "nc"))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
-    where, tag = out.stdout.split()
+    loaded, where, tag = out.stdout.split()
+    assert loaded == "False"
     assert where == str(tmp_path / "nc" / tag)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
-from estimator.service import precompile as pc
+from estimator._compiled import precompile as pc
 
 
 class _Child:

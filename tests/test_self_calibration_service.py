@@ -230,7 +230,7 @@ def test_the_daemon_calibrates_a_mismatched_injector_in_the_background_and_keeps
 
 
 def _write_series_traces(tmp_path, serial: str, seed: int, n: int = 5):
-    from estimator.trace_io import write_trace
+    from estimator.io.traces import write_trace
 
     _, injections = _series_injections(seed, n)
     paths = []

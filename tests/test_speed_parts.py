@@ -266,7 +266,7 @@ def test_direct_call_runs_the_dispatchers_overload_and_refuses_other_types():
     same results); with type checks on (as in the whole suite), another dtype or layout is refused."""
     from numba import njit
 
-    from estimator.model import direct_call
+    from estimator._compiled import direct_call
 
     @njit
     def weighted_sum(x, w, scale):

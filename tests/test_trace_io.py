@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from estimator.errors import TraceError
-from estimator.trace_io import csv_head, read_trace, write_trace
+from estimator.io.traces import csv_head, read_trace, write_trace
 
 READABLE = {
     "plain": ("# a=1\n# b = 2\nt_s,current_A\n0,1\n1,2\n", {"a": "1", "b": "2"}),

@@ -53,7 +53,7 @@ def calibrate_group(key: str, paths: tuple[str, ...], params_path: str | None, t
     for k, v in WORKER_ENV.items():
         os.environ.setdefault(k, v)
     from estimator.ident.electrical import calibrate_electrical
-    from estimator.mdf_io import read_injections
+    from estimator.io.mdf import read_injections
     from estimator.model.parameters import load_parameters
 
     found = read_injections(list(paths), trace_options.get("current_channel"), trace_options.get("voltage_channel"),
@@ -208,7 +208,7 @@ def plot_spread(res: LotCalibration, path: Path) -> Path | None:
     if len(good) < 2:
         return None
     try:
-        from estimator.figures import pyplot, save
+        from estimator.plots.figures import pyplot, save
         plt = pyplot()
     except ImportError:
         return None

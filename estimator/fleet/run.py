@@ -226,7 +226,7 @@ def format_report(res: FleetResult) -> str:
 
 def plot_lot(res: FleetResult, path: Path) -> Path:
     """Histograms of the lot's L_h and N_u, outliers marked."""
-    from estimator.figures import pyplot, save
+    from estimator.plots.figures import pyplot, save
 
     plt = pyplot()
     est = [s for s in res.summary if s["lh_um"] is not None]

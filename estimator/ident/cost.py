@@ -25,10 +25,10 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+from estimator._compiled import njit
 
 from estimator.ident.measurement import Injection
-from estimator.model.direct_call import DirectCall, c_float
+from estimator._compiled.direct_call import DirectCall, c_float
 from estimator.model.drive import sample_count
 from estimator.model.fast_sim import BatchResult, FastSimulator
 from estimator.model.kernel import KernelModel

@@ -22,9 +22,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from estimator._compiled import njit
 
-from estimator.model.direct_call import DirectCall, c_float
+from estimator._compiled.direct_call import DirectCall, c_float
 
 N_STATE = 4
 NU, LH, RATE, SLOPE = range(N_STATE)

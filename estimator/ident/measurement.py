@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from numba import njit
+from estimator._compiled import njit
 
 from estimator.errors import TraceError
 from estimator.model.chain import MeasurementChain

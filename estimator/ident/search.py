@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from collections.abc import Callable
 
 import numpy as np
-from numba import njit
+from estimator._compiled import njit
 
 CostFn = Callable[[np.ndarray], np.ndarray]   # (B, 2) -> (B,)
 TRUST_STEPS = 2.5   # a conjugate vertex further than this many steps from the centre is not trusted

@@ -53,7 +53,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from estimator._compiled import njit
 
 from estimator.errors import InfeasibleError
 from estimator.model.parameters import InjectorParameters, contact_force

@@ -18,7 +18,7 @@ from estimator.errors import ParameterError
 from estimator.model import dynamics as dyn
 from estimator.model import kernel
 from estimator.model.automaton import build_automaton
-from estimator.model.direct_call import DirectCall
+from estimator._compiled.direct_call import DirectCall
 from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.model.dynamics import STATUS_TEXT
 from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters, check_nu_in, load_nominal

@@ -13,7 +13,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+from estimator._compiled import njit
 
 from estimator.model.automaton import apply_reset, dot, guard_value, in_contact, rearmed
 from estimator.model.dynamics import (MODE_OPEN, NX, NZ, S3, S4, STATUS_EVENT_CAP, STATUS_INFEASIBLE, STATUS_OK, V4,

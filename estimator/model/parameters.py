@@ -19,7 +19,7 @@ else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 import numpy as np
-from numba import njit
+from estimator._compiled import njit
 
 from estimator.errors import ParameterError
 from estimator.model.chain import NO_CHAIN, MeasurementChain

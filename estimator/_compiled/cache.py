@@ -10,8 +10,8 @@ The directory is ``$NUMBA_CACHE_DIR/numba-<hash>`` when the environment names a 
 (the systemd units do), else ``estimator/__pycache__/numba-<hash>`` beside the sources (shared by
 every process of one installation, the fleet's workers included), else, if that is not writable,
 ``${XDG_CACHE_HOME:-~/.cache}/injector-estimator/numba-<hash>``. Directories of older versions are
-left in place (a few MB each). This module must run before numba is imported: ``estimator/__init__``
-calls :func:`configure` first.
+left in place (a few MB each). This must run before numba is imported: :mod:`estimator._compiled`,
+through which every compiled module gets ``njit``, calls :func:`configure` first.
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ def cache_dir(root: str, environ: dict) -> str:
 def configure() -> str:
     """Point numba's cache at :func:`cache_dir` for this package (environment, and numba's config if
     numba is already imported); returns the directory."""
-    root = os.path.dirname(os.path.abspath(__file__))
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))   # the estimator package
     path = cache_dir(root, dict(os.environ))
     os.environ["NUMBA_CACHE_DIR"] = path
     numba = sys.modules.get("numba")

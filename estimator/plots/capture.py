@@ -53,7 +53,7 @@ def series(capture: Path) -> dict:
 def plot_capture(capture: Path, out: Path, band_lh_um: float = 0.2, band_nu_pct: float = 0.3,
                  band_open_us: float = 1.0) -> Path:
     """Write the figure (PNG) and return its path; bands: ± around the truth (the bench's targets)."""
-    from estimator.figures import pyplot, save
+    from estimator.plots.figures import pyplot, save
 
     data = series(capture)
     if not data:

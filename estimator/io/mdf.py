@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from estimator.errors import EstimatorError, TraceError
-from estimator.trace_io import Trace
+from estimator.io.traces import Trace
 
 MDF_SUFFIXES = (".mf4", ".mdf")
 
@@ -82,7 +82,7 @@ def read_any_trace(path: str | Path, current_channel: str | None = None, voltage
                    s3_channel: str | None = None, sample_period_s: float | None = None,
                    meta: dict[str, str] | None = None) -> Trace:
     """A trace file: MDF4 (by suffix) with the channel options, else a CSV trace (the options unused)."""
-    from estimator.trace_io import read_trace
+    from estimator.io.traces import read_trace
 
     if not is_mdf(path):
         return read_trace(path)
@@ -104,7 +104,7 @@ def read_injections(paths: list, current_channel: str | None = None, voltage_cha
                     serial: str | None = None) -> Injections:
     """Injections from trace files (CSV or MDF4, :func:`read_any_trace`), those of injector ``serial``
     only if given; a file that cannot be read or a trace that cannot be used is listed, not raised."""
-    from estimator.trace_io import injection_from_trace, injector_key
+    from estimator.io.traces import injection_from_trace, injector_key
 
     out = Injections()
     for path in paths:

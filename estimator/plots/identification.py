@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from estimator.errors import EstimatorError
-from estimator.figures import pyplot, save
+from estimator.plots.figures import pyplot, save
 from estimator.ident.cost import CostModel
 from estimator.ident.config import IdentConfig
 from estimator.ident.idle_stroke import effective_window_s, identify, search_box

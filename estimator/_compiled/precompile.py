@@ -1,7 +1,7 @@
 """Fill numba's cache for these sources on two cores: ``python -m estimator compile``.
 
 A fresh cache (a new checkout, a new version: the cache directory is keyed by the compiled sources,
-:mod:`estimator.numba_cache`) costs the first process that needs the kernels 52-57 s of compiling on
+:mod:`estimator._compiled.cache`) costs the first process that needs the kernels 52-57 s of compiling on
 this machine, one function after another. Most of that is LLVM optimising the simulation kernel once
 more inside each compiled entry point that calls it; those entry points do not depend on each other.
 So this command compiles two halves at once, in this process and in one child: the cold start's
@@ -74,7 +74,7 @@ def warm_the_rest() -> None:
 
 def cache_dir() -> Path:
     """This installation's numba cache directory (``estimator/__init__`` set it through
-    :func:`estimator.numba_cache.configure` before this module was imported)."""
+    :func:`estimator._compiled.cache.configure` before this module was imported)."""
     return Path(os.environ["NUMBA_CACHE_DIR"])
 
 
@@ -88,7 +88,7 @@ def precompile(parallel: bool = True, log=print) -> float:
     log(f"compiling the kernels into {marker.parent} (once per version; ~30-60 s)")
     child = None
     if parallel and (os.cpu_count() or 1) > 1:
-        child = subprocess.Popen([sys.executable, "-c", "from estimator.service.precompile import warm_the_rest; "
+        child = subprocess.Popen([sys.executable, "-c", "from estimator._compiled.precompile import warm_the_rest; "
                                   "warm_the_rest()"])
     tracker = _tracker()
     warm_cold_start(tracker)

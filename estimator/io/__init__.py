@@ -1,0 +1,1 @@
+"""Trace files: the CSV trace format and MDF4 (asammdf)."""
