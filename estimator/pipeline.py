@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from estimator.codec.bus_clock import BusClock
 from estimator.codec.ingest import Ingest
-from estimator.codec.records import Codec, load_database
+from estimator.codec.records import Codec, InjectionHeader, load_database
 from estimator.ident.selfcal import Calibrator
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.tracker import Tracker
@@ -25,12 +25,14 @@ def build_pool(cfg: DaemonConfig) -> SimulatorPool:
 
 
 def build_tracker(cfg: DaemonConfig, pool: SimulatorPool | None = None,
-                  calibrator: Calibrator | None = None) -> Tracker:
+                  calibrator: Calibrator | None = None, codec: Codec | None = None) -> Tracker:
     """The recursive estimator as configured (on ``pool`` if given: its simulators' tables are built
     once). With self-calibration on, calibrations run on ``calibrator`` (default: at once, in the
     caller's thread, as an offline replay wants; the daemon passes its background calibrator)."""
+    codec = codec or build_codec(cfg)
     return Tracker(cfg.tracker_config(), pool=pool if pool is not None else build_pool(cfg),
-                   self_calibration=cfg.self_calibration_config(), calibrator=calibrator)
+                   self_calibration=cfg.self_calibration_config(), calibrator=calibrator,
+                   temperature_range_c=codec.signal_range(InjectionHeader, "fuel_temperature_c"))
 
 
 def build_codec(cfg: DaemonConfig) -> Codec:
@@ -45,5 +47,5 @@ def build_pipeline(cfg: DaemonConfig, pool: SimulatorPool | None = None, codec: 
     between its inputs (the simulator tables and the DBC parse cost ≈ 35 ms each)."""
     codec = codec or build_codec(cfg)
     ingest = Ingest(codec, cfg.assembly_timeout_ms * 1e-3, cfg.max_injectors)
-    processor = Processor(codec, build_tracker(cfg, pool, calibrator), ingest.counters, cfg.commands)
+    processor = Processor(codec, build_tracker(cfg, pool, calibrator, codec), ingest.counters, cfg.commands)
     return codec, ingest, processor, BusClock(cfg.silent_bus_s)

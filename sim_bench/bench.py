@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator.ident.status import ESTIMATED_CODES
+from estimator.ident.status import ESTIMATED_WORDS
 from estimator.codec.records import (Codec, EstimateQuality, EstimateState, EstimatorStatus, InjectionTrailer,
                                      SimTruth, ValvePrediction)
 from estimator.service.bus import BusSetupError, check_socketcan
@@ -98,7 +98,8 @@ class Listener(BusMonitor):
             row = c.pending.setdefault(key, {"injector": rec.injector_id, "counter": rec.counter})
             if isinstance(rec, EstimateState):
                 t_tr = c.trailer_t.get(key)
-                row.update(nu=rec.nu_n_per_v, lh_um=rec.lh_um, status=rec.status, t=now,
+                word = self.codec.status_of(rec.status)
+                row.update(nu=rec.nu_n_per_v, lh_um=rec.lh_um, status=word.value if word else rec.status, t=now,
                            latency_ms=(now - t_tr) * 1e3 if t_tr is not None else float("nan"))
             elif isinstance(rec, EstimateQuality):
                 row.update(sigma_lh_um=rec.sigma_lh_um, evaluations=rec.evaluations, cost_uvs=rec.cost_uvs,
@@ -148,7 +149,7 @@ def _rms(x) -> float:
 
 def score(rows: list[dict], status: EstimatorStatus | None, scenario: str) -> dict:
     """Scores of a run: errors over time and after settling, prediction errors, latency, counters."""
-    ok = [r for r in rows if r.get("status") in ESTIMATED_CODES]   # every published estimate of its injection
+    ok = [r for r in rows if r.get("status") in ESTIMATED_WORDS]   # every published estimate of its injection
     settled = [r for r in ok if r["k"] > SETTLE]
     e_lh = [r["lh_um"] - r["lh_true_um"] for r in settled]
     e_nu = [100 * (r["nu"] / r["nu_true"] - 1) for r in settled]

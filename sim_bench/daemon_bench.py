@@ -20,7 +20,6 @@ from estimator.codec.frame import Frame
 from estimator.codec.ingest import Ingest
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateState, EstimatorStatus, ModelCalibration
-from estimator.ident.selfcal import STATES
 from estimator.service.bus import open_bus, to_frame, to_message
 from estimator.service.latency import STAGES
 from estimator.model.parameters import NOMINAL_PRELOAD_N
@@ -30,7 +29,7 @@ from sim_bench.procs import DaemonProcess, rss_mb
 from sim_bench.plant import Plant, PlantConfig
 
 
-SERIES_PRELOADS_N = (28.0, 60.0, 100.0, 150.0, 220.0, 300.0)   # the rail pressure cycling (series pool)
+SERIES_PRELOADS_N = (NOMINAL_PRELOAD_N, 60.0, 100.0, 150.0, 220.0, 300.0)   # the rail pressure cycling (series pool)
 
 
 def injection_pool(codec: Codec, injectors: int = 4, per_injector: int = 32, seed: int = 7,
@@ -189,8 +188,8 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
                                     + st0.rejected_invalid)) if st else 0,
                     "queue_depth_end": st.queue_depth if st else 0, "daemon_rss_peak_mb": peak,
                     "daemon_alive": d.alive(),
-                    "calibration_states": [STATES[c.state] for t, c in w.calibrations if t >= t_phase],
-                    "adopted_injectors": sorted({c.injector_id for _, c in w.calibrations if STATES[c.state] == "adopted"}),
+                    "calibration_states": [codec.calibration_state(c.state) for t, c in w.calibrations if t >= t_phase],
+                    "adopted_injectors": sorted({c.injector_id for _, c in w.calibrations if codec.calibration_state(c.state) == "adopted"}),
                 }
             w.stop.set()
             w.join(timeout=2)

@@ -37,14 +37,14 @@ from estimator.ident.measurement import Injection
 from estimator.ident.selfcal import CalibrationStatus, SelfCalConfig
 from estimator.ident.tracker import Tracker
 from estimator.model.fast_sim import FastSimulator
-from estimator.model.parameters import InjectorParameters, load_nominal
+from estimator.model.parameters import NOMINAL_PRELOAD_N, InjectorParameters, load_nominal
 from sim_bench import series_part
 from sim_bench.plant import Plant, PlantConfig
 from sim_bench.table import Column, keyed, render
 
 VARIANTS = ("plain", "chain", "mismatch")
 INJECTIONS, CALIBRATE_FIRST = 60, 30
-PRELOADS = (28.0, 45.0, 70.0, 100.0, 140.0, 190.0, 250.0, 300.0, 220.0, 120.0)   # N, one rail-pressure cycle
+PRELOADS = (NOMINAL_PRELOAD_N, 45.0, 70.0, 100.0, 140.0, 190.0, 250.0, 300.0, 220.0, 120.0)   # N, one rail-pressure cycle
 NU_START, NU_RISE, NU_OFFSET = 15.8, 3.8, 0.3      # N/V: warm-up from NU_START (± offset), rising linearly
 LH_UM = (1.5, 6.0)
 WINDOW_S = 200e-6

@@ -59,8 +59,7 @@ def test_exact_plant_is_ok_and_a_series_part_is_a_model_mismatch_with_a_sigma_th
 
 def test_model_mismatch_has_its_wire_code_and_counts_as_an_estimate():
     from estimator.codec.records import Codec
-
-    assert Status.MODEL_MISMATCH.code == 7 and Status.MODEL_MISMATCH in ESTIMATED
+    assert Codec().status_code(Status.MODEL_MISMATCH) == 7 and Status.MODEL_MISMATCH in ESTIMATED
     choices = {int(k): str(v) for k, v in Codec().db.get_message_by_name("EstimateState")
                .get_signal_by_name("Status").choices.items()}
     assert choices[7] == "model_mismatch"

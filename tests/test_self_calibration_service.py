@@ -53,7 +53,7 @@ def test_the_dbc_states_are_the_self_calibration_states_and_the_frame_round_trip
     codec = Codec()
     st = CalibrationStatus("adopted", 10, 0.612, 0.1034, 31.0, "", 257)
     rec = codec.decode(calibration_frame(codec, 5, st))
-    assert rec == ModelCalibration(5, STATES.index("adopted"), 10, pytest.approx(0.612), pytest.approx(0.103), 1)
+    assert rec == ModelCalibration(5, codec.calibration_code("adopted"), 10, pytest.approx(0.612), pytest.approx(0.103), 1)
 
 
 class HeldCalibrator:
@@ -196,7 +196,7 @@ def test_the_daemon_calibrates_a_mismatched_injector_in_the_background_and_keeps
             _send(bus, codec, injections[k], k)
             got = _collect(bus, codec, lambda g, c=k % 256: any(isinstance(r, EstimateState) and r.counter == c for r in g),
                            10.0)
-            states += [STATES[r.state] for r in got if isinstance(r, ModelCalibration)]
+            states += [codec.calibration_state(r.state) for r in got if isinstance(r, ModelCalibration)]
             est = [r for r in got if isinstance(r, EstimateState) and r.counter == k % 256]
             assert est, f"no estimate for injection {k}"
             estimates.append((states[-1] if states else "idle", est[0]))
@@ -221,7 +221,7 @@ def test_the_daemon_calibrates_a_mismatched_injector_in_the_background_and_keeps
     try:
         _send(bus, codec, injections[k], k)
         got = _collect(bus, codec, lambda g: any(isinstance(r, ModelCalibration) for r in g), 30.0)
-        assert any(isinstance(r, ModelCalibration) and STATES[r.state] == "adopted" for r in got)
+        assert any(isinstance(r, ModelCalibration) and codec.calibration_state(r.state) == "adopted" for r in got)
         assert 0 in d.tracker.own_pools
     finally:
         d.stop.set()

@@ -6,8 +6,6 @@ import json
 
 import pytest
 
-from estimator.codec.records import load_database
-from estimator.ident.status import Status
 from sim_bench import tracking_bench as tb
 from sim_bench.cli import main as sim_main
 
@@ -17,11 +15,6 @@ def test_a_scenario_without_targets_cannot_be_registered():
         tb.TrackingScenario("x", 10, lambda k, t: 17.0, lambda k, t: 3.0, tb.Targets(()))
     with pytest.raises(ValueError, match="twice"):
         tb.register(tb.TRACKING["steady"])
-
-
-def test_status_codes_are_the_dbc_value_table():
-    sig = load_database().get_message_by_name("EstimateState").get_signal_by_name("Status")
-    assert {int(k): str(v) for k, v in sig.choices.items()} == {s.code: s.value for s in Status}
 
 
 def test_scoring_fails_a_filter_worse_than_its_measurement():

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 
@@ -19,8 +18,8 @@ def injection_frames(codec: Codec, injector_id: int, counter: int, sample_period
     cur_raw, vol_raw = codec.layout.to_raw(current_a, voltage_v)
     n = cur_raw.size
     period_ns = int(round(sample_period_s * 1e9))
-    temp = fuel_temperature_c if math.isfinite(fuel_temperature_c) else -50.0
-    frames = [codec.encode(InjectionHeader(injector_id, counter, period_ns, n, preload_force_n, temp))]
+    # NaN: not measured (the codec sends the DBC's "not measured" value)
+    frames = [codec.encode(InjectionHeader(injector_id, counter, period_ns, n, preload_force_n, fuel_temperature_c))]
     per = codec.layout.per_block
     for b in range(-(-n // per)):
         sl = slice(b * per, min((b + 1) * per, n))

@@ -27,6 +27,7 @@ from estimator.codec.database import MessageSpec
 from estimator.codec.errors import ContractError, MalformedFrame
 from estimator.codec.frame import Frame
 from estimator.codec.samples import SampleLayout
+from estimator.ident.status import CALIBRATION_STATES, Status
 
 
 class Command(IntEnum):
@@ -44,11 +45,14 @@ class Record:
     ``MESSAGE`` names the DBC message, ``SIGNALS`` maps field -> signal; ``CODEC_SIGNALS`` are further
     signals the class fills and reads itself (:meth:`extra_signals`, :meth:`from_signals`);
     ``CLASSIC``: the message must fit a classic 8-byte frame; ``OUTPUT``: the estimator publishes it.
+    ``UNMEASURED_AT_MINIMUM``: float fields whose signal minimum on the wire means "not measured": NaN
+    in the record (the DBC's minimum, whatever it is, is the one source of that convention).
     """
 
     MESSAGE: ClassVar[str] = ""
     SIGNALS: ClassVar[dict[str, str]] = {}
     CODEC_SIGNALS: ClassVar[tuple[str, ...]] = ()
+    UNMEASURED_AT_MINIMUM: ClassVar[frozenset[str]] = frozenset()
     CLASSIC: ClassVar[bool] = False
     OUTPUT: ClassVar[bool] = False
 
@@ -78,6 +82,7 @@ class InjectionHeader(Record):
     SIGNALS: ClassVar[dict[str, str]] = {
         "injector_id": "InjectorId", "counter": "InjectionCounter", "sample_period_ns": "SamplePeriod",
         "sample_count": "SampleCount", "preload_force_n": "PreloadForce", "fuel_temperature_c": "FuelTemperature"}
+    UNMEASURED_AT_MINIMUM: ClassVar[frozenset[str]] = frozenset({"fuel_temperature_c"})   # NaN: not measured
 
 
 @dataclass(frozen=True)
@@ -294,6 +299,45 @@ class Codec:
                 raise ContractError(f"InjectionSamples.{sig.name}: must be a little-endian integer in the "
                                     f"first {self.layout.current_offset} bytes")
 
+        #: the words of the DBC's value tables and their codes on the bus (one source: the DBC)
+        self._status_codes = self._value_table(EstimateState, "status", [s.value for s in Status])
+        self._calibration_codes = self._value_table(ModelCalibration, "state", list(CALIBRATION_STATES))
+        self._status_words = {code: word for word, code in self._status_codes.items()}
+        self._calibration_words = {code: word for word, code in self._calibration_codes.items()}
+
+    def _value_table(self, record_type: type[Record], field: str, words: list[str]) -> dict[str, int]:
+        """The DBC's value table of a record's field as {word: code}; every one of ``words`` must be in it."""
+        name = record_type.SIGNALS[field]
+        sig = self.messages[record_type].get_signal_by_name(name)
+        table = {str(word): int(code) for code, word in (sig.choices or {}).items()}
+        missing = [w for w in words if w not in table]
+        if missing:
+            raise ContractError(f"{record_type.MESSAGE}.{name}: no code for {', '.join(missing)} in the DBC's value table")
+        return table
+
+    def signal_range(self, record_type: type[Record], field: str) -> tuple[float, float]:
+        """The physical range of a record's field on the wire (the DBC's minimum and maximum)."""
+        sig = self.messages[record_type].get_signal_by_name(record_type.SIGNALS[field])
+        return (float(sig.minimum) if sig.minimum is not None else -math.inf,
+                float(sig.maximum) if sig.maximum is not None else math.inf)
+
+    def status_code(self, status: Status | str) -> int:
+        """The bus code of an estimate's status (``EstimateState.Status``)."""
+        return self._status_codes[str(status)]
+
+    def status_of(self, code: int) -> Status | None:
+        """The status a decoded ``EstimateState.Status`` code stands for; None for a code the DBC does not name."""
+        word = self._status_words.get(int(code))
+        return Status(word) if word in Status._value2member_map_ else None
+
+    def calibration_code(self, state: str) -> int:
+        """The bus code of a self-calibration state (``ModelCalibration.State``)."""
+        return self._calibration_codes[state]
+
+    def calibration_state(self, code: int) -> str | None:
+        """The self-calibration state a decoded ``ModelCalibration.State`` code stands for."""
+        return self._calibration_words.get(int(code))
+
     def frame_id(self, record_type: type[Record]) -> int:
         """The arbitration id of a record class's message."""
         return self.messages[record_type].frame_id
@@ -308,7 +352,10 @@ class Codec:
         msg = self.messages[type(rec)]
         values: dict[str, float | int] = {}
         for fname, sname in rec.SIGNALS.items():
-            values[sname] = self._wire_value(msg, sname, getattr(rec, fname))
+            v = getattr(rec, fname)
+            if fname in rec.UNMEASURED_AT_MINIMUM and not (v is not None and math.isfinite(v)):
+                v = msg.get_signal_by_name(sname).minimum
+            values[sname] = self._wire_value(msg, sname, v)
         values.update(rec.extra_signals())
         for s in msg.signals:   # signals the record does not carry (none today) go out as their minimum
             values.setdefault(s.name, s.minimum if s.minimum is not None else 0)
@@ -371,6 +418,10 @@ class Codec:
             sname = rt.SIGNALS[f.name]
             v = values[sname]
             kw[f.name] = int(v) if f.type in ("int", int) else float(v)
+            if f.name in rt.UNMEASURED_AT_MINIMUM:
+                sig = msg.get_signal_by_name(sname)
+                if sig.minimum is not None and v <= sig.minimum + 0.5 * sig.scale:
+                    kw[f.name] = math.nan
         return rt(**kw).from_signals(values)
 
     def decode_samples(self, data: bytes) -> SampleBlock:

@@ -32,11 +32,12 @@ from estimator.ident.adequacy import noise_level_v
 from estimator.ident.config import IdentConfig
 from estimator.ident.electrical import WINDOW_S, calibrate_electrical, measured_voltage
 from estimator.ident.idle_stroke import identify
+from estimator.ident.status import CALIBRATION_STATES
 from estimator.ident.measurement import Injection
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import InjectorParameters
 
-STATES = ("idle", "collecting", "calibrating", "adopted", "rejected")
+STATES = CALIBRATION_STATES
 NU_SCALE_N_PER_V = 1.0       # operating-point distance: 1 N/V of N_u ...
 PRELOAD_SCALE_N = 50.0       # ... counts as much as 50 N of preload force
 
@@ -81,11 +82,6 @@ class CalibrationStatus:
         return {"state": self.state, "batch": self.batch, "rms_before_v": num(self.rms_before_v),
                 "rms_after_v": num(self.rms_after_v), "held_out_chi2": num(self.held_out_chi2),
                 "message": self.message, "calibrations": self.calibrations}
-
-    @property
-    def code(self) -> int:
-        """The wire code of ``state`` (ModelCalibration.State)."""
-        return STATES.index(self.state)
 
 
 @dataclass

@@ -1,7 +1,7 @@
-"""The status of an estimate, from the identification kernel to the wire (one enum, one code table).
+"""The status of an estimate, from the identification kernel to the outputs (one enum).
 
-The value is the word used in JSON, CLIs and logs; ``code`` is the DBC's ``EstimateState.Status``
-value (``VAL_ 512 Status`` in ``dbc/injector.dbc``, checked by a test).
+The value is the word used in JSON, CLIs and logs. Its code on the bus is the DBC's
+(``VAL_ 512 Status`` in ``dbc/injector.dbc``), which the codec maps (:meth:`Codec.status_code`).
 """
 
 from __future__ import annotations
@@ -25,20 +25,14 @@ class Status(str, Enum):
                                        # estimate is biased by an unknown amount; sigma is widened to cover it
                                        # (calibrate the injector's own model)
 
-    @property
-    def code(self) -> int:
-        """The wire code of ``EstimateState.Status``."""
-        return _CODES[self]
-
     def __str__(self) -> str:
         return self.value
 
 
-_CODES = {Status.OK: 0, Status.AT_BOUND: 1, Status.NOT_CONVERGED: 2, Status.REJECTED: 3, Status.NO_ESTIMATE: 4,
-          Status.UNCERTAIN: 5, Status.UNCONFIRMED: 6, Status.MODEL_MISMATCH: 7}
+#: where an injector's self-calibration stands (the words of ``ModelCalibration.State``)
+CALIBRATION_STATES = ("idle", "collecting", "calibrating", "adopted", "rejected")
 
 #: statuses whose published (N_u, L_h) is an estimate of this injection (not the previous one held)
 ESTIMATED = frozenset({Status.OK, Status.AT_BOUND, Status.NOT_CONVERGED, Status.UNCERTAIN, Status.UNCONFIRMED,
                        Status.MODEL_MISMATCH})
-ESTIMATED_CODES = frozenset(s.code for s in ESTIMATED)   # the same, as EstimateState.Status values
 ESTIMATED_WORDS = frozenset(s.value for s in ESTIMATED)   # the same, as the words of JSON and CSV rows

@@ -62,7 +62,6 @@ from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParamet
 STATE_VERSION = 2
 LOCAL_ACCEPT_MARGIN = 3.0      # a mismatched injector's re-acquisition keeps a local fit within 3x its usual residual excess
 ROBUST_CHECK_EVERY = 4         # in robust mode, every 4th injection also fits the plain model (model-error test)
-UNKNOWN_TEMPERATURE_C = -49.5   # FuelTemperature's wire minimum (-50 degC) means "not measured"
 
 
 def process_noise(config: TrackerConfig, box: Box) -> kalman.ProcessNoise:
@@ -212,7 +211,8 @@ def _check_array(d: dict, name: str, shape: tuple[int, ...], finite: bool) -> np
     return a
 
 
-def physical_problem(st: TrackerState, config: TrackerConfig, box: Box) -> str | None:
+def physical_problem(st: TrackerState, config: TrackerConfig, box: Box,
+                     temperature_range_c: tuple[float, float] | None = None) -> str | None:
     """Why a (restored) state is outside what this estimator can hold, or None.
 
     ``box`` is the search box in (N/V, µm): Table 1's N_u range (with the simulator's margin) and the
@@ -225,8 +225,9 @@ def physical_problem(st: TrackerState, config: TrackerConfig, box: Box) -> str |
     for name in ("model_error_run", "clean_run", "doubts", "accepted", "rejected", "updates"):
         if getattr(st, name) >= 2 ** 53:
             return f"{name} = {getattr(st, name)} is not a plausible count"
-    if st.temperature_c is not None and not -50.0 <= st.temperature_c <= 205.0:
-        return f"temperature_c = {st.temperature_c} degC is outside the contract's -50..205 degC"
+    t_lo, t_hi = temperature_range_c if temperature_range_c is not None else (-math.inf, math.inf)
+    if st.temperature_c is not None and not t_lo <= st.temperature_c <= t_hi:
+        return f"temperature_c = {st.temperature_c} degC is outside {t_lo:g}..{t_hi:g} degC"
     points = []
     if st.initialized:
         x, p = np.asarray(st.x, dtype=float), np.asarray(st.p, dtype=float)
@@ -369,7 +370,7 @@ def _known(v: float) -> float | None:
 
 def _temperature(inj: Injection) -> float | None:
     t = inj.temperature_c
-    return float(t) if math.isfinite(t) and t > UNKNOWN_TEMPERATURE_C else None
+    return float(t) if math.isfinite(t) else None   # NaN: not measured (the codec's reading of the wire)
 
 
 def _interval(config: TrackerConfig, t_from: float | None, t_to: float | None) -> float:
@@ -697,8 +698,11 @@ class Tracker:
 
     def __init__(self, config: TrackerConfig | None = None, sim: FastSimulator | None = None,
                  pool: SimulatorPool | None = None, self_calibration: SelfCalConfig | None = None,
-                 calibrator: Calibrator | None = None) -> None:
+                 calibrator: Calibrator | None = None, temperature_range_c: tuple[float, float] | None = None) -> None:
         self.config = config or TrackerConfig()
+        #: the fuel temperatures a restored state may hold (degC; the bus contract's range, given by the
+        #: pipeline; None: any finite one)
+        self.temperature_range_c = temperature_range_c
         self.pool = pool if pool is not None else SimulatorPool(sim.params if sim is not None else None)
         if sim is not None:
             self.pool.add(sim)
@@ -844,7 +848,7 @@ class Tracker:
         box = Box(np.array([nu_lo, lh[0]]), np.array([nu_hi, lh[1]]))
         problems = []
         for inj_id, st in states.items():
-            why = physical_problem(st, self.config, box)
+            why = physical_problem(st, self.config, box, self.temperature_range_c)
             if why is None:
                 self.states[inj_id] = st
             else:

@@ -13,7 +13,7 @@ from pathlib import Path
 from estimator.codec.errors import MalformedFrame
 from estimator.codec.records import Codec, EstimateState, SimTruth, ValvePrediction
 from estimator.errors import EstimatorError
-from estimator.ident.status import ESTIMATED_CODES
+from estimator.ident.status import ESTIMATED
 from estimator.service.bus import to_frame
 from estimator.service.replay import read_capture
 
@@ -31,7 +31,7 @@ def series(capture: Path) -> dict:
             rec = codec.decode(to_frame(msg))
         except MalformedFrame:
             continue
-        if isinstance(rec, EstimateState) and rec.status in ESTIMATED_CODES:
+        if isinstance(rec, EstimateState) and codec.status_of(rec.status) in ESTIMATED:
             s = out[rec.injector_id]
             s["t"].append(t)
             s["nu"].append(rec.nu_n_per_v)

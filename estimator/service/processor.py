@@ -46,7 +46,7 @@ def result_row(res: TrackResult, injector_id: int, counter: int, time_s: float) 
 def output_frames(codec: Codec, injector_id: int, counter: int, res: TrackResult) -> list:
     """EstimateState, EstimateQuality and ValvePrediction of one result (the frames the daemon sends)."""
     have = math.isfinite(res.nu_n_per_v) and math.isfinite(res.lh_m)
-    status = res.status.code if have else Status.NO_ESTIMATE.code
+    status = codec.status_code(res.status if have else Status.NO_ESTIMATE)
     enc = codec.encode
     return [
         enc(EstimateState(injector_id, counter, res.nu_n_per_v, res.lh_m * 1e6, status)),
@@ -58,7 +58,7 @@ def output_frames(codec: Codec, injector_id: int, counter: int, res: TrackResult
 
 def calibration_frame(codec: Codec, injector_id: int, status: CalibrationStatus):
     """The ModelCalibration frame of one injector's self-calibration status."""
-    return codec.encode(ModelCalibration(injector_id, status.code, status.batch, status.rms_before_v,
+    return codec.encode(ModelCalibration(injector_id, codec.calibration_code(status.state), status.batch, status.rms_before_v,
                                          status.rms_after_v, status.calibrations & 0xFF))
 
 
