@@ -1,0 +1,229 @@
+"""Electrical calibration: a series injector's own structural parameters from its current and voltage
+alone, and what they do for its idle-stroke estimate."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from estimator.ident.electrical import calibrate_electrical
+from estimator.ident.measurement import Injection
+from estimator.errors import ParameterError
+from estimator.model.parameters import InjectorParameters, load_nominal
+from estimator.io.traces import write_trace
+from sim_bench import series_part
+from sim_bench.plant import Plant, PlantConfig
+
+from ..conftest import REPO
+
+LH_UM = 3.0
+BATCH = ((28.0, 15.5), (60.0, 17.0), (100.0, 18.5), (150.0, 20.0), (220.0, 16.0), (300.0, 19.5))
+
+
+def _part_and_plant(seed: int) -> tuple[series_part.SeriesPart, Plant, np.random.Generator]:
+    rng = np.random.default_rng(seed)
+    part = series_part.draw(rng)
+    return part, Plant(PlantConfig(window_s=200e-6), part.params), rng
+
+
+def test_a_batch_at_several_preload_forces_recovers_the_part_and_its_idle_stroke():
+    """Seeded series part (every structural parameter within ±10 %): six injections at 28-300 N bring
+    the voltage residual to the noise level; with the calibrated parameters a new injection at the
+    nominal preload is ok and within 0.2 µm, where the nominal parameters are model_mismatch."""
+    from estimator.ident.idle_stroke import identify
+    from estimator.model.fast_sim import FastSimulator
+
+    part, plant, rng = _part_and_plant(5)
+    injections = []
+    for f, nu in BATCH:
+        m = plant.measure(nu, LH_UM * 1e-6, f, rng)
+        injections.append(Injection(m.current_a, m.voltage_v, m.dt_s, f))
+    res = calibrate_electrical(injections)
+    assert res.rms_after_v < 0.12 < 0.5 < res.rms_before_v          # 0.1 V noise
+    assert np.all(np.abs(res.lh_um - LH_UM) < 0.2)
+    for nu in (16.2, 19.8):
+        m = plant.measure(nu, LH_UM * 1e-6, 28.0, rng)
+        inj = Injection(m.current_a[:201], m.voltage_v[:201], m.dt_s, 28.0)
+        nominal = identify(inj, FastSimulator(dt_s=m.dt_s))
+        own = identify(inj, FastSimulator(res.params, m.dt_s))
+        assert nominal.status.value == "model_mismatch"
+        assert own.status.value == "ok" and abs(own.lh_m * 1e6 - LH_UM) < 0.2
+
+
+def test_a_batch_at_one_preload_force_is_reported_as_weak():
+    part, plant, rng = _part_and_plant(3)
+    injections = []
+    for nu in (15.5, 18.0, 20.5):
+        m = plant.measure(nu, LH_UM * 1e-6, 28.0, rng)
+        injections.append(Injection(m.current_a, m.voltage_v, m.dt_s, 28.0))
+    res = calibrate_electrical(injections, max_iterations=4)
+    assert any("preload forces span only" in w for w in res.warnings)
+
+
+@pytest.mark.parametrize("kwargs,match", [({"tolerance": 0.0}, "tolerance"), ({"window_s": 1e-6}, "window"),
+                                          ({"names": ("psa.nothing",)}, "unknown structural")])
+def test_absurd_arguments_are_refused(kwargs, match):
+    inj = Injection(np.zeros(401), np.zeros(401), 0.5e-6)
+    with pytest.raises(ValueError, match=match):
+        calibrate_electrical([inj, inj], **kwargs)
+
+
+def test_the_written_parameter_file_loads_and_keeps_the_chain(tmp_path):
+    p = series_part.scaled(load_nominal(), {"psa.kp_n_per_m": 1.05})
+    p = InjectorParameters(p.psa, p.valve, series_part.TYPICAL_CHAIN)
+    path = tmp_path / "inj.toml"
+    path.write_text(p.to_toml("a header\nof two lines"))
+    back = InjectorParameters.from_toml(path)
+    assert back == p
+
+
+@pytest.mark.slow
+def test_cli_calibrate_electrical_then_identify_with_the_result(tmp_path):
+    """As a calibration engineer runs it: traces in, a parameter file out, loaded by identify."""
+    part, plant, rng = _part_and_plant(5)
+    paths = []
+    for k, (f, nu) in enumerate(BATCH):
+        m = plant.measure(nu, LH_UM * 1e-6, f, rng)
+        t = np.arange(m.current_a.size) * m.dt_s
+        paths.append(tmp_path / f"cal{k}.csv")
+        write_trace(paths[-1], {"t_s": t, "current_A": m.current_a, "voltage_V": m.voltage_v}, {"preload_force_n": f})
+    m = plant.measure(17.5, LH_UM * 1e-6, 28.0, rng)
+    write_trace(tmp_path / "new.csv", {"t_s": np.arange(m.current_a.size) * m.dt_s, "current_A": m.current_a,
+                                       "voltage_V": m.voltage_v}, {"preload_force_n": 28.0})
+    run = [sys.executable, "-m", "estimator"]
+    r = subprocess.run([*run, "calibrate", "--electrical", *map(str, paths), "--out", str(tmp_path / "inj.toml")],
+                       capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    assert "mV after" in r.stdout
+    r = subprocess.run([*run, "identify", str(tmp_path / "new.csv"), "--params", str(tmp_path / "inj.toml"), "--json"],
+                       capture_output=True, text=True, timeout=300, cwd=REPO)
+    est = json.loads(r.stdout)
+    assert est["status"] == "ok" and abs(est["lh_um"] - LH_UM) < 0.2
+    r = subprocess.run([*run, "calibrate", "--electrical", str(paths[0]), "--tolerance", "-1"],
+                       capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "error" in r.stderr
+
+
+def test_a_batch_the_structure_cannot_explain_is_reported_unusable():
+    """Hysteresis and a series resistance are not structural parameters: no parameter set explains
+    such a batch, and the calibration says so instead of returning parameters as if they fitted."""
+    rng = np.random.default_rng(4)
+    plant = Plant(PlantConfig(window_s=200e-6, mismatch=True))
+    injections = []
+    for f, nu in BATCH[:4]:
+        m = plant.measure(nu, LH_UM * 1e-6, f, rng)
+        injections.append(Injection(m.current_a, m.voltage_v, m.dt_s, f))
+    res = calibrate_electrical(injections, max_iterations=8, max_restarts=0)
+    assert not res.adequate and res.misfit_z > 4
+    assert any("does not explain the batch" in w for w in res.warnings)
+
+
+def test_cli_serial_selects_one_injectors_traces(tmp_path):
+    """--serial keeps the traces whose metadata name that injector; one trace cannot be calibrated."""
+    _, plant, rng = _part_and_plant(3)
+    paths = []
+    for k, (serial, (f, nu)) in enumerate(zip("AAB", BATCH)):
+        m = plant.measure(nu, LH_UM * 1e-6, f, rng)
+        paths.append(tmp_path / f"t{k}.csv")
+        write_trace(paths[-1], {"t_s": np.arange(m.current_a.size) * m.dt_s, "current_A": m.current_a,
+                                "voltage_V": m.voltage_v}, {"preload_force_n": f, "serial": serial})
+    r = subprocess.run([sys.executable, "-m", "estimator", "calibrate", "--electrical", *map(str, paths), "--serial", "B"],
+                       capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert r.returncode == 2 and "at least two usable injections, got 1" in r.stderr
+
+
+def _warm_up_sequence(plant: Plant, rng: np.random.Generator, n: int):
+    """A series injector warming up (N_u 15.5 -> 20 N/V) while the rail pressure cycles (28-300 N)."""
+    for k in range(n):
+        f = BATCH[k % len(BATCH)][0]
+        m = plant.measure(15.5 + 4.5 * k / max(n - 1, 1), LH_UM * 1e-6, f, rng)
+        yield Injection(m.current_a, m.voltage_v, m.dt_s, f, 0, k, float("nan"), 2.0 * k)
+
+
+def test_self_calibration_adopts_the_injectors_own_model_and_then_it_is_ok():
+    """The tracker collects a mismatched injector's injections; once they span the preload forces it
+    calibrates, tests the result on held-out injections, adopts it and re-acquires: from then on the
+    injector is explained (no model_mismatch) and its L_h is within 0.1 µm."""
+    from estimator.ident.selfcal import SelfCalConfig
+    from estimator.ident.tracker import Tracker
+
+    _, plant, rng = _part_and_plant(5)
+    tracker = Tracker(self_calibration=SelfCalConfig(window=10))
+    results, states = [], []
+    for inj in _warm_up_sequence(plant, rng, 24):
+        results.append(tracker.update(inj))
+        states.append(tracker.calibration[0].state)
+    adopted = states.index("adopted")
+    assert 8 <= adopted <= 14 and states[adopted - 1] == "collecting"
+    assert tracker.calibration[0].held_out_chi2 > 25 and 0 in tracker.own_pools
+    assert all(r.status.value != "ok" for r in results[:adopted])
+    after = results[adopted + 2:]
+    assert all(r.status.value in ("ok", "unconfirmed") for r in after)
+    assert max(abs(r.lh_m * 1e6 - LH_UM) for r in after) < 0.1
+
+
+def test_self_calibration_stays_idle_on_an_injector_the_model_explains():
+    from estimator.ident.selfcal import SelfCalConfig
+    from estimator.ident.tracker import Tracker
+
+    rng = np.random.default_rng(8)
+    tracker = Tracker(self_calibration=SelfCalConfig(window=5))
+    for inj in _warm_up_sequence(Plant(PlantConfig(window_s=200e-6)), rng, 8):
+        assert tracker.update(inj).status.value in ("ok", "unconfirmed")
+    assert tracker.calibration[0].state == "idle" and not tracker.own_pools
+
+
+@pytest.mark.slow
+def test_cli_track_self_calibrate(tmp_path):
+    _, plant, rng = _part_and_plant(5)
+    paths = []
+    for inj in _warm_up_sequence(plant, rng, 14):
+        paths.append(tmp_path / f"inj{inj.counter:02d}.csv")
+        write_trace(paths[-1], {"t_s": np.arange(inj.current_a.size) * inj.dt_s, "current_A": inj.current_a,
+                                "voltage_V": inj.voltage_v}, {"preload_force_n": inj.f_open_n, "time_s": inj.time_s})
+    r = subprocess.run([sys.executable, "-m", "estimator", "track", "--self-calibrate", *map(str, paths)],
+                       capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    lines = [json.loads(line) for line in r.stdout.splitlines()]
+    states = [line["self_calibration"]["state"] for line in lines]
+    assert states[0] == "collecting" and states[-1] == "adopted", states
+    assert lines[-1]["status"] in ("ok", "unconfirmed") and abs(lines[-1]["filtered"]["lh_um"] - LH_UM) < 0.1
+
+
+def test_the_uncertainty_a_calibration_leaves_is_in_every_sigma_and_is_not_averaged_away(tmp_path):
+    """A calibrated parameter set carries how uncertain it leaves N_u and L_h ([calibration] in its
+    file). A single estimate's σ includes it, and so does the filtered σ after many injections: the
+    same for every injection of the injector, averaging must not shrink it below it."""
+    from dataclasses import replace
+
+    from estimator.ident.idle_stroke import identify
+    from estimator.ident.tracker import Tracker
+    from estimator.model.fast_sim import FastSimulator
+    from estimator.model.parameters import CalibrationUncertainty
+
+    exact = load_nominal()
+    calibrated = replace(exact, calibration=CalibrationUncertainty(nu_rel_sigma=0.002, lh_sigma_m=0.08e-6))
+    path = tmp_path / "cal.toml"
+    path.write_text(calibrated.to_toml("calibrated"))
+    assert "[calibration]" in path.read_text() and InjectorParameters.from_toml(path) == calibrated
+    plant = Plant(PlantConfig())
+    rng = np.random.default_rng(21)
+    injections = []
+    for k in range(40):
+        m = plant.measure(17.5, LH_UM * 1e-6, 28.0, rng)
+        injections.append(Injection(m.current_a, m.voltage_v, m.dt_s, 28.0, 0, k, float("nan"), 0.1 * k))
+    plain, cal = identify(injections[0], FastSimulator(exact)), identify(injections[0], FastSimulator(calibrated))
+    assert cal.lh_m == pytest.approx(plain.lh_m)
+    assert cal.sigma_lh_m ** 2 == pytest.approx(plain.sigma_lh_m ** 2 + 0.08e-6 ** 2, rel=1e-6)
+    assert cal.sigma_nu ** 2 == pytest.approx(plain.sigma_nu ** 2 + (cal.nu_n_per_v * 0.002) ** 2, rel=1e-6)
+    tracker = Tracker(sim=FastSimulator(calibrated))
+    results = [tracker.update(inj) for inj in injections]
+    assert all(r.status.value == "ok" for r in results[5:])
+    assert min(r.sigma_lh_m for r in results[5:]) >= 0.08e-6
+    assert min(r.sigma_nu for r in results[5:]) >= 17.5 * 0.002 * 0.99
+    with pytest.raises(ParameterError, match="calibration"):
+        InjectorParameters.from_mapping({**calibrated.to_mapping(), "calibration": {"nu_rel_sigma": -1.0}})

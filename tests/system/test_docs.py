@@ -1,0 +1,88 @@
+"""The documentation keeps up with the code: every command, option, configuration key and status is
+documented, the README stays short, and neither speaks of how the software was developed."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import re
+from pathlib import Path
+
+import pytest
+
+from estimator.cli import build_parser as estimator_parser
+from estimator.ident.status import Status
+from estimator.model.chain import MeasurementChain
+from estimator.service.config import DaemonConfig
+from sim_bench.cli import build_parser as sim_bench_parser
+
+ROOT = Path(__file__).resolve().parents[2]
+DOCS = ROOT / "docs"
+README = ROOT / "README.md"
+
+
+def _user_docs() -> str:
+    return "\n".join(p.read_text(encoding="utf-8") for p in [README, *sorted(DOCS.rglob("*.md"))]
+                     if "_build" not in p.parts)
+
+
+def _walk(parser: argparse.ArgumentParser, path: str):
+    """(command path, subcommand help or None, option actions) of every (sub)command."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            helps = {c.dest: c.help for c in action._choices_actions}
+            for name, sub in action.choices.items():
+                yield f"{path} {name}", name, helps.get(name), sub
+                yield from _walk(sub, f"{path} {name}")
+
+
+COMMANDS = [*_walk(estimator_parser(), "estimator"), *_walk(sim_bench_parser(), "sim_bench")]
+
+
+@pytest.mark.parametrize("path,name,help_text,sub", COMMANDS, ids=[c[0] for c in COMMANDS])
+def test_every_subcommand_and_option_has_help_and_a_place_in_the_guide(path, name, help_text, sub):
+    """The CLI reference is generated from the parsers: what it shows is their help texts."""
+    assert help_text, f"{path}: subcommand without help"
+    missing = [a.option_strings or a.dest for a in sub._actions
+               if not a.help and not isinstance(a, argparse._HelpAction)]
+    assert not missing, f"{path}: options without help: {missing}"
+    assert re.search(rf"-m (estimator|sim_bench) {re.escape(name)}\b|injector-(estimator|sim) {re.escape(name)}\b",
+                     _user_docs()), f"{path} appears nowhere in the README or the user guide"
+
+
+def test_every_config_key_is_documented():
+    """Every daemon key is in the shipped, included estimator.toml and in the allowed-values table;
+    every measurement-chain key in the configuration page."""
+    toml = (ROOT / "systemd" / "estimator.toml").read_text(encoding="utf-8")
+    page = (DOCS / "guide" / "configuration.md").read_text(encoding="utf-8")
+    assert "literalinclude:: ../../systemd/estimator.toml" in page or "{literalinclude} ../../systemd/estimator.toml" in page
+    for f in dataclasses.fields(DaemonConfig):
+        assert re.search(rf"^#?\s*(\[estimator\.)?{f.name}\b", toml, re.M), f"{f.name} not in systemd/estimator.toml"
+        assert f"`{f.name}`" in page, f"{f.name} not in docs/guide/configuration.md"
+    for f in dataclasses.fields(MeasurementChain):
+        assert f.name in page, f"[chain] {f.name} not in docs/guide/configuration.md"
+
+
+def test_every_status_is_explained():
+    page = (DOCS / "how" / "status.md").read_text(encoding="utf-8")
+    readme = README.read_text(encoding="utf-8")
+    from estimator.codec.records import Codec
+    codec = Codec()
+    for s in Status:
+        assert f"`{s.value}` ({codec.status_code(s)})" in page, f"{s.value} not explained in docs/how/status.md"
+        assert f"| {codec.status_code(s)} | `{s.value}` |" in readme, f"{s.value} not in the README's status table"
+
+
+def test_readme_is_short_and_the_docs_speak_of_the_software():
+    assert len(README.read_text(encoding="utf-8").splitlines()) <= 250
+    text = _user_docs() + (ROOT / "CHANGELOG.md").read_text(encoding="utf-8")
+    for pattern in (r"\bsessions?\b", r"(?<![\w&])#\d+\b", r"\bissue\s+\d+", r"\bblocked\b"):
+        hits = re.findall(rf".{{0,40}}{pattern}.{{0,40}}", text, re.I)
+        assert not hits, f"development process in the user documentation: {hits[:3]}"
+
+
+def test_version_follows_the_changelog():
+    import estimator
+
+    first = re.search(r"^## \[(\d+\.\d+\.\d+)\]", (ROOT / "CHANGELOG.md").read_text(encoding="utf-8"), re.M)
+    assert first and first.group(1) == estimator.__version__
