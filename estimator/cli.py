@@ -8,6 +8,7 @@ import logging
 import sys
 from pathlib import Path
 
+from estimator.choices import Norm, Robust
 from estimator.cli_support import base_parser, lean_service_imports, run_cli
 from estimator.errors import EstimatorError
 
@@ -388,9 +389,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     def ident_opts(s: argparse.ArgumentParser) -> None:
         s.add_argument("--window-us", type=float, default=None, help="cost window 0..t1 in µs (default 100)")
-        s.add_argument("--robust", choices=("auto", "on", "off"), default=None,
+        s.add_argument("--robust", choices=Robust.words(), default=None,
                        help="model-error handling (default auto: likelihood-ratio test)")
-        s.add_argument("--norm", choices=("l2", "l1"), default=None, help="search criterion (default l2)")
+        s.add_argument("--norm", choices=Norm.words(), default=None, help="search criterion (default l2)")
         params_opt(s)
         mdf_opts(s)
 

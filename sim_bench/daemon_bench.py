@@ -144,7 +144,7 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
     config = None
     if self_calibration:
         config = out_dir / "daemon-bench-selfcal.toml"
-        config.write_text('[estimator]\nself_calibration = "on"\n')
+        config.write_text('[estimator.self_calibration]\nmode = "on"\n')
     d = DaemonProcess(bus, out_dir / "daemon-bench.log", config=config).start()
     try:
         with open_bus(bus) as b:

@@ -9,11 +9,21 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from estimator.choices import Choice, ColdStart, Norm, Robust
 from estimator.model.parameters import InjectorParameters
 
 # the search's margin beyond the parameters' N_u range: an injector at 20.99 N/V whose noise puts its
 # estimate at 21.01 is not "at a bound" (the laws of eqs. 21-22 are smooth there)
 NU_SEARCH_MARGIN_N_PER_V = 0.1
+
+
+def coerce_choice(obj: object, name: str, kind: type[Choice]) -> None:
+    """Set ``obj.name`` (a frozen dataclass's field) to its :class:`Choice`; ValueError naming the words."""
+    v = getattr(obj, name)
+    try:
+        object.__setattr__(obj, name, kind(v))
+    except ValueError:
+        raise ValueError(f"{name} must be one of {', '.join(kind.words())}, not {v!r}") from None
 
 
 def _positive(obj: object, *names: str, allow_zero: bool = False) -> None:
@@ -31,8 +41,8 @@ class IdentConfig:
 
     window_s: float = 100e-6
     robust_window_s: float = 150e-6        # window in robust mode, if the trace is that long
-    norm: str = "l2"
-    robust: str = "auto"                   # "auto", "on" or "off"
+    norm: Norm = Norm.L2
+    robust: Robust = Robust.AUTO
     model_error_threshold: float = 40.0    # chi-square(6) statistic; P(>40 | correct model) < 1e-6
     nu_bounds_n_per_v: tuple[float, float] | None = None   # N/V; None: the parameters' N_u range and NU_SEARCH_MARGIN
     lh_bounds_um: tuple[float, float] | None = None        # µm; None: the parameters' L_h range
@@ -42,7 +52,7 @@ class IdentConfig:
     tol: tuple[float, float] = (2e-4, 2e-3)  # convergence: N/V, µm
     max_cycles: int = 10
     sigma_limit_lh_um: float = 0.25        # above this sigma(L_h) the status is "uncertain", not "ok"
-    cold_start: str = "local-first"        # "local-first": a checked local fit, the global search if it fails; "global"
+    cold_start: ColdStart = ColdStart.LOCAL_FIRST
     start_point: tuple[float, float] = (18.0, 4.0)   # N/V, µm: where a local-first cold start begins (a lot's nominal)
     local_accept_z: float = 6.0            # a local fit is kept if its residual exceeds white noise by <= z standard deviations
     adequacy_structure: float = 60.0       # chi-square(24) of the residual's smooth part above which the model is inadequate
@@ -53,16 +63,15 @@ class IdentConfig:
     preload_rel_sigma: float = 0.0         # relative uncertainty (1 sigma) of the header's PreloadForce; enters sigma
 
     def __post_init__(self) -> None:
-        if self.robust not in ("auto", "on", "off"):
-            raise ValueError(f"robust must be auto, on or off, not {self.robust!r}")
-        if self.cold_start not in ("local-first", "global"):
-            raise ValueError(f"cold_start must be local-first or global, not {self.cold_start!r}")
+        coerce_choice(self, "robust", Robust)
+        coerce_choice(self, "cold_start", ColdStart)
+        coerce_choice(self, "norm", Norm)
+        if isinstance(self.start_point, list):
+            object.__setattr__(self, "start_point", tuple(self.start_point))
         if not (isinstance(self.start_point, tuple) and len(self.start_point) == 2
                 and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
                         for v in self.start_point)):
             raise ValueError(f"start_point {self.start_point!r} must be two numbers (N/V, µm)")
-        if self.norm not in ("l1", "l2"):
-            raise ValueError(f"norm must be l1 or l2, not {self.norm!r}")
         _positive(self, "window_s", "robust_window_s", "model_error_threshold", "sigma_limit_lh_um", "local_accept_z",
                   "adequacy_structure", "adequacy_excess_z")
         _positive(self, "preload_rel_sigma", allow_zero=True)
@@ -74,7 +83,7 @@ class IdentConfig:
                     isinstance(e, (int, float)) and not isinstance(e, bool) and math.isfinite(e) and e >= 0 for e in v)):
                 raise ValueError(f"{name} {v!r} must be two numbers >= 0 (relative N_u, µm)")
         if not (20e-6 <= self.window_s <= 2e-3):
-            raise ValueError(f"window {self.window_s * 1e6:.1f} µs must be within 20..2000 µs")
+            raise ValueError(f"window_s = {self.window_s!r} must be within 2e-05..0.002 s (20..2000 µs)")
         if self.nu_bounds_n_per_v is not None:
             lo, hi = self.nu_bounds_n_per_v
             if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):

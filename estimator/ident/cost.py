@@ -27,6 +27,7 @@ from typing import NamedTuple
 import numpy as np
 from estimator._compiled import njit
 
+from estimator.choices import Norm
 from estimator.ident.measurement import Injection
 from estimator._compiled.direct_call import DirectCall, c_float
 from estimator.model.drive import sample_count
@@ -305,12 +306,14 @@ class CostModel:
     sim: FastSimulator
     injection: Injection
     window_s: float = 100e-6
-    norm: str = "l2"
+    norm: Norm | str = Norm.L2
     robust: bool = False
 
     def __post_init__(self) -> None:
-        if self.norm not in ("l1", "l2"):
-            raise ValueError(f"norm must be 'l1' or 'l2', not {self.norm!r}")
+        try:
+            self.norm = Norm(self.norm)
+        except ValueError:
+            raise ValueError(f"norm must be one of {', '.join(Norm.words())}, not {self.norm!r}") from None
         inj = self.injection
         self.n = min(inj.n, sample_count(self.window_s, inj.dt_s))
         self.current = np.ascontiguousarray(inj.current_a[: self.n], dtype=float)

@@ -1,11 +1,14 @@
-"""Daemon configuration: the one config tree (daemon <- tracker <- identification), validated here.
+"""Daemon configuration: one tree of frozen dataclasses, each validating its own keys.
 
-Sources, later ones winning: the defaults below, the TOML file's ``[estimator]`` table, CLI flags,
-``$STATE_DIRECTORY`` (for ``state_dir`` only, as systemd's ``StateDirectory=`` sets it). Every key is
-type- and range-checked in :meth:`DaemonConfig.__post_init__`; a bad value raises :class:`ConfigError`
-with one line that names the key. The tracker and identification settings are built from the same
-values at load time (:meth:`DaemonConfig.tracker_config`), so a value they refuse is also reported
-here, naming the key, before the daemon touches the bus.
+The TOML file's tables are the tree: ``[estimator]`` holds the daemon's keys (checked in
+:meth:`DaemonConfig.__post_init__`), ``[estimator.ident]`` builds :class:`IdentConfig`,
+``[estimator.tracker]`` :class:`TrackerConfig` (around that IdentConfig) and
+``[estimator.self_calibration]`` :class:`SelfCalConfig` (with ``mode = "off" | "on"``). Sources, later
+ones winning: the defaults, the file, CLI flags, ``$STATE_DIRECTORY`` (for ``state_dir`` only, as
+systemd's ``StateDirectory=`` sets it). A bad value raises :class:`ConfigError` with one line that
+names the table and the key, before the daemon touches the bus. The flat keys of earlier versions
+(``window_us``, ``robust``, ``self_calibration = "on"``, ... in ``[estimator]``) are still read, with a
+deprecation warning naming their new place; they go in the next version.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ import logging
 import math
 import os
 import sys
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import MISSING, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 from collections.abc import Callable
@@ -26,6 +29,7 @@ else:  # pragma: no cover
 
 from estimator.codec.assembler import MAX_SAMPLE_PERIOD_NS
 from estimator.errors import EstimatorError
+from estimator.choices import Switch
 from estimator.ident.config import IdentConfig, TrackerConfig
 from estimator.ident.selfcal import SelfCalConfig
 from estimator.service.bus import BusSetupError, BusSpec
@@ -109,18 +113,9 @@ class DaemonConfig:
     sample_periods_ns: tuple[int, ...] = ()   # accepted sample periods; empty: any the contract allows
     max_sample_periods: int = 4         # simulators kept (LRU, ~3 MB and ~30 ms to build each)
     commands: str = "reset-only"        # EstimatorCommand policy: off | reset-only | all
-    window_us: float = 100.0            # identification window
-    robust: str = "auto"
-    q_nu_n_per_v: float = 0.003         # N_u random walk per injection (floor; per-second terms on top)
-    q_lh_um: float = 0.003              # L_h random walk per injection (floor)
-    sigma_limit_lh_um: float = 0.25     # sigma(L_h) above this: status "uncertain", not "ok"
-    cold_start: str = IdentConfig.cold_start   # local-first (a checked local fit, the global search where it fails) | global
-    start_nu_n_per_v: float = IdentConfig.start_point[0]   # where a local-first cold start begins: the type's nominal N_u
-    start_lh_um: float = IdentConfig.start_point[1]        # ... and L_h
-    self_calibration: str = "off"       # off | on: a mismatched injector learns its own model in the background
-    self_calibration_window: int = SelfCalConfig.window     # injections per calibration (two held out to test it)
-    self_calibration_min_preload_spread: float = SelfCalConfig.min_preload_spread   # (max - min) / mean preload force
     log_level: str = "INFO"
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)   # [estimator.tracker], its ident [estimator.ident]
+    self_calibration: SelfCalConfig | None = None   # [estimator.self_calibration] with mode = "on"; None: off
 
     def __post_init__(self) -> None:
         for name, check in _RULES.items():
@@ -128,11 +123,10 @@ class DaemonConfig:
             problem = check(value)
             if problem:
                 raise ConfigError(f"{name} = {_show(value)}: {problem}")
-        try:
-            self.tracker_config()
-            self.self_calibration_config()
-        except ValueError as exc:   # a combination the identification refuses
-            raise ConfigError(f"tracker/identification settings: {exc}") from None
+        if not isinstance(self.tracker, TrackerConfig):
+            raise ConfigError(f"tracker = {_show(self.tracker)}: must be a TrackerConfig")
+        if self.self_calibration is not None and not isinstance(self.self_calibration, SelfCalConfig):
+            raise ConfigError(f"self_calibration = {_show(self.self_calibration)}: must be a SelfCalConfig or None")
         try:
             self.bus_spec()
         except BusSetupError as exc:
@@ -146,17 +140,17 @@ class DaemonConfig:
         return BusSpec.parse(self.bus, **base)
 
     def self_calibration_config(self) -> SelfCalConfig | None:
-        """The self-calibration settings (None when ``self_calibration = "off"``)."""
-        if self.self_calibration == "off":
-            return None
-        return SelfCalConfig(window=self.self_calibration_window,
-                             min_preload_spread=self.self_calibration_min_preload_spread)
+        """The self-calibration settings (None: off)."""
+        return self.self_calibration
 
     def tracker_config(self) -> TrackerConfig:
         """The tracker <- identification part of the tree."""
-        ident = IdentConfig(window_s=self.window_us * 1e-6, robust=self.robust, sigma_limit_lh_um=self.sigma_limit_lh_um,
-                            cold_start=self.cold_start, start_point=(self.start_nu_n_per_v, self.start_lh_um))
-        return TrackerConfig(ident=ident, q_nu_n_per_v=self.q_nu_n_per_v, q_lh_um=self.q_lh_um)
+        return self.tracker
+
+    @property
+    def ident(self) -> IdentConfig:
+        """The identification settings (``[estimator.ident]``)."""
+        return self.tracker.ident
 
     @property
     def log_level_number(self) -> int:
@@ -165,11 +159,49 @@ class DaemonConfig:
 
     @classmethod
     def load(cls, path: Path | None, **overrides: Any) -> DaemonConfig:
-        """Defaults <- TOML file ``[estimator]`` <- non-None overrides (CLI) <- $STATE_DIRECTORY for state_dir."""
+        """Defaults <- TOML file ``[estimator]`` and its sub-tables <- non-None overrides (CLI) <-
+        $STATE_DIRECTORY for state_dir."""
         values: dict[str, Any] = {}
         if path is not None:
             values.update(read_table(Path(path)))
         values.update({k: v for k, v in overrides.items() if v is not None})
+        return cls.from_mapping(values, str(path) if path is not None else "config")
+
+    @classmethod
+    def from_mapping(cls, table: dict[str, Any], where: str = "config") -> DaemonConfig:
+        """The configuration of an ``[estimator]`` table as TOML reads it (sub-tables ``ident``,
+        ``tracker``, ``self_calibration``; the deprecated flat keys mapped to them); ConfigError naming
+        the key otherwise."""
+        values = dict(table)
+        # a sub-table by its name; a word there is a deprecated flat key (self_calibration = "on")
+        sections = {name: values.pop(name, {}) for name in SECTIONS
+                    if not (name in DEPRECATED and isinstance(values.get(name), str))}
+        for name in SECTIONS:
+            sections.setdefault(name, {})
+        for name, sub in sections.items():
+            if not isinstance(sub, dict):
+                raise ConfigError(f"[estimator.{name}]: must be a table, not {_show(sub)}")
+            sections[name] = dict(sub)
+        for key in [k for k in values if k in DEPRECATED]:
+            section, new_key, convert = DEPRECATED[key]
+            value = values.pop(key)
+            logging.getLogger("estimator.config").warning(
+                "%s: %s in [estimator] is deprecated: use %s in [estimator.%s]", where, key, new_key, section)
+            sections[section].setdefault(new_key, convert(value, sections[section]))
+        unknown = set(values) - {f.name for f in fields(cls)} - set(SECTIONS)
+        if unknown:
+            raise ConfigError(f"{where}: unknown key(s) {', '.join(sorted(unknown))} in [estimator]")
+        if "ident" in sections["tracker"]:
+            raise ConfigError("[estimator.tracker]: the identification settings go in [estimator.ident]")
+        ident = build_section(IdentConfig, "ident", sections["ident"])
+        values["tracker"] = build_section(TrackerConfig, "tracker", {**sections["tracker"], "ident": ident})
+        calibration = dict(sections["self_calibration"])
+        mode = calibration.pop("mode", Switch.OFF.value)
+        if mode not in Switch.words():
+            raise ConfigError(f"[estimator.self_calibration] mode = {_show(mode)}: must be one of "
+                              f"{', '.join(repr(w) for w in Switch.words())}")
+        settings = build_section(SelfCalConfig, "self_calibration", calibration)   # checked even when off
+        values["self_calibration"] = settings if mode == Switch.ON else None
         if "state_dir" not in values and os.environ.get("STATE_DIRECTORY"):
             values["state_dir"] = os.environ["STATE_DIRECTORY"].split(":")[0]
         for key in ("state_dir", "dbc", "params"):
@@ -211,10 +243,50 @@ def read_table(path: Path) -> dict[str, Any]:
     table = data.get("estimator", {})
     if not isinstance(table, dict):
         raise ConfigError(f"config {path}: 'estimator' must be a table ([estimator])")
-    unknown = set(table) - {f.name for f in fields(DaemonConfig)}
-    if unknown:
-        raise ConfigError(f"config {path}: unknown key(s) {', '.join(sorted(unknown))} in [estimator]")
     return dict(table)
+
+
+def build_section(cls: Any, section: str, table: dict[str, Any]) -> Any:
+    """The frozen dataclass of a sub-table: unknown keys and values of the wrong kind refused naming
+    them, TOML lists where the field holds a tuple made tuples, then the class's own checks."""
+    known = {f.name: f for f in fields(cls)}
+    unknown = sorted(set(table) - set(known))
+    if unknown:
+        raise ConfigError(f"[estimator.{section}]: unknown key(s) {', '.join(unknown)}")
+    values = {}
+    for key, value in table.items():
+        f = known[key]
+        default = f.default if f.default is not MISSING else (
+            f.default_factory() if f.default_factory is not MISSING else None)
+        problem = _kind_problem(value, default)
+        if problem:
+            raise ConfigError(f"[estimator.{section}] {key} = {_show(value)}: {problem}")
+        values[key] = tuple(value) if isinstance(value, list) else value
+    try:
+        return cls(**values)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"[estimator.{section}]: {exc}") from None
+
+
+def _kind_problem(value: Any, default: Any) -> str | None:
+    """What ``value`` must be to stand where ``default`` stands (None: it may)."""
+    if isinstance(default, str):   # the Choice enums too; their words are checked by the class
+        return None if isinstance(value, str) else "must be a string"
+    if isinstance(default, bool):
+        return None if isinstance(value, bool) else "must be true or false"
+    if isinstance(default, int):
+        return None if isinstance(value, int) and not isinstance(value, bool) else "must be a whole number"
+    if isinstance(default, float):
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        return None if ok else "must be a number"
+    if isinstance(default, tuple) or default is None:
+        if default is None and value is None:
+            return None
+        ok = isinstance(value, (list, tuple)) and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+        size = len(default) if isinstance(default, tuple) else 2
+        return None if ok and len(value) == size else f"must be a list of {size} numbers"
+    return None   # a nested dataclass: built by the caller
 
 
 def _show(v: Any) -> str:
@@ -240,17 +312,43 @@ _RULES: dict[str, Callable[[Any], str | None]] = {
     "sample_periods_ns": _periods,
     "max_sample_periods": _whole(1, 64),
     "commands": _choice(*COMMAND_POLICIES),
-    "window_us": _number(20.0, 2000.0),
-    "robust": _choice("auto", "on", "off"),
-    "q_nu_n_per_v": _number(0.0, 1.0, lo_open=True),
-    "q_lh_um": _number(0.0, 10.0, lo_open=True),
-    "sigma_limit_lh_um": _number(0.0, 100.0, lo_open=True),
-    "cold_start": _choice("local-first", "global"),
-    "start_nu_n_per_v": _number(1.0, 100.0),
-    "start_lh_um": _number(-100.0, 100.0),
-    "self_calibration": _choice("off", "on"),
-    "self_calibration_window": _whole(5, 64),
-    "self_calibration_min_preload_spread": _number(0.0, 10.0),
     "log_level": _choice(*LOG_LEVELS),
 }
-assert set(_RULES) == {f.name for f in fields(DaemonConfig)}, "every config key needs a rule"
+SECTIONS = ("ident", "tracker", "self_calibration")   # the sub-tables, each a dataclass validating its keys
+assert set(_RULES) | {"tracker", "self_calibration"} == {f.name for f in fields(DaemonConfig)}, \
+    "every daemon key needs a rule"
+
+
+def _start_point(index: int) -> Callable[[Any, dict[str, Any]], Any]:
+    """A deprecated start_nu_n_per_v / start_lh_um as its element of [estimator.ident] start_point."""
+    def convert(value: Any, section: dict[str, Any]) -> Any:
+        point = list(section.get("start_point", IdentConfig.start_point))
+        point[index] = value
+        section.pop("start_point", None)
+        return point
+    return convert
+
+
+def _same(value: Any, section: dict[str, Any]) -> Any:
+    return value
+
+
+def _us_to_s(value: Any, section: dict[str, Any]) -> Any:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    return value / 1e6 if ok else value
+
+
+#: flat [estimator] keys of earlier versions -> (table, key there, conversion)
+DEPRECATED: dict[str, tuple[str, str, Callable[[Any, dict[str, Any]], Any]]] = {
+    "window_us": ("ident", "window_s", _us_to_s),
+    "robust": ("ident", "robust", _same),
+    "sigma_limit_lh_um": ("ident", "sigma_limit_lh_um", _same),
+    "cold_start": ("ident", "cold_start", _same),
+    "start_nu_n_per_v": ("ident", "start_point", _start_point(0)),
+    "start_lh_um": ("ident", "start_point", _start_point(1)),
+    "q_nu_n_per_v": ("tracker", "q_nu_n_per_v", _same),
+    "q_lh_um": ("tracker", "q_lh_um", _same),
+    "self_calibration": ("self_calibration", "mode", _same),
+    "self_calibration_window": ("self_calibration", "window", _same),
+    "self_calibration_min_preload_spread": ("self_calibration", "min_preload_spread", _same),
+}

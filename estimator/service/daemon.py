@@ -97,7 +97,7 @@ class Daemon:
         self.cfg = cfg
         self.loader = loader
         # self-calibrations run in a low-priority process of their own, never on the injection worker
-        self.calibrator = BackgroundCalibrator() if cfg.self_calibration == "on" else None
+        self.calibrator = BackgroundCalibrator() if cfg.self_calibration is not None else None
         self.codec, self.ingest, self.processor, self.clock = build_pipeline(cfg, calibrator=self.calibrator)
         self.stop = threading.Event()
         self.reload_requested = threading.Event()
@@ -259,14 +259,14 @@ class Daemon:
         same_pool = all(getattr(new, k) == getattr(self.cfg, k) for k in ("params", "max_sample_periods",
                                                                           "sample_periods_ns"))
         # the simulators' tables stay when nothing they depend on changed
-        if new.self_calibration == "on" and self.calibrator is None:
+        if new.self_calibration is not None and self.calibrator is None:
             self.calibrator = BackgroundCalibrator()
-        elif new.self_calibration == "off" and self.calibrator is not None:
+        elif new.self_calibration is None and self.calibrator is not None:
             self.calibrator.close()
             self.calibrator = None
         old = self.tracker
         tracker = build_tracker(new, old.pool if same_pool else build_pool(new),
-                                self.calibrator if new.self_calibration == "on" else None)
+                                self.calibrator if new.self_calibration is not None else None)
         tracker.states = old.states
         if same_pool:   # the injectors' own models are calibrations of these parameters
             tracker.own_pools, tracker.calibration = old.own_pools, old.calibration
@@ -277,7 +277,7 @@ class Daemon:
         logging.getLogger().setLevel(new.log_level_number)
         self.cfg = new
         log.info("configuration reloaded (commands %s, window %.0f µs, log level %s)", new.commands,
-                 new.window_us, new.log_level)
+                 new.ident.window_s * 1e6, new.log_level)
         self.notify.notify(f"READY=1\nSTATUS=running on {self.bus_name} (configuration reloaded)")
 
     # ---- lifecycle --------------------------------------------------------------------------

@@ -141,11 +141,10 @@ def test_the_state_file_keeps_an_adopted_parameter_set_and_refuses_a_foreign_one
     assert 1 not in loaded and 3 in loaded and "calibration of injector 1" in problem
 
 
-@pytest.mark.parametrize("key,value", [("self_calibration", "yes"), ("self_calibration_window", 3),
-                                       ("self_calibration_min_preload_spread", -1.0)])
+@pytest.mark.parametrize("key,value", [("mode", "yes"), ("window", 3), ("min_preload_spread", -1.0)])
 def test_self_calibration_settings_are_checked(key, value):
-    with pytest.raises(ConfigError, match=key):
-        DaemonConfig(**{key: value})
+    with pytest.raises(ConfigError, match=rf"\[estimator.self_calibration\].*{key}"):
+        DaemonConfig.from_mapping({"self_calibration": {key: value}})
 
 
 def _collect(bus, codec, until, timeout):
@@ -178,8 +177,9 @@ def test_the_daemon_calibrates_a_mismatched_injector_in_the_background_and_keeps
         # the sender is a thread of this process, which the daemon's worker can keep from the
         # interpreter lock for tens of ms (a cold start): its frames' timestamps, by which the daemon
         # judges the assembly timeout, would then spread out as no amplifier's do
-        cfg = DaemonConfig(bus=f"virtual:{channel}", state_dir=tmp_path, persist_period_s=0.2,
-                           self_calibration="on", self_calibration_window=8, assembly_timeout_ms=2000.0)
+        cfg = DaemonConfig.from_mapping(dict(bus=f"virtual:{channel}", state_dir=tmp_path, persist_period_s=0.2,
+                                             assembly_timeout_ms=2000.0,
+                                             self_calibration={"mode": "on", "window": 8}))
         d = Daemon(cfg)
         t = threading.Thread(target=d.run, daemon=True)
         t.start()

@@ -23,16 +23,16 @@ from ..conftest import REPO
 
 def test_config_file_and_overrides(tmp_path):
     p = tmp_path / "e.toml"
-    p.write_text('[estimator]\nqueue_frames = 100\nwindow_us = 120.0\n')
+    p.write_text('[estimator]\nqueue_frames = 100\n[estimator.ident]\nwindow_s = 1.2e-4\n')
     cfg = DaemonConfig.load(p, bus="virtual:x")
-    assert cfg.queue_frames == 100 and cfg.window_us == 120.0 and cfg.bus == "virtual:x"
+    assert cfg.queue_frames == 100 and cfg.ident.window_s == 1.2e-4 and cfg.bus == "virtual:x"
     p.write_text('[estimator]\nqueue = 100\n')
     with pytest.raises(ConfigError, match="unknown key"):
         DaemonConfig.load(p)
     with pytest.raises(ConfigError, match="max_injectors"):
         DaemonConfig(max_injectors=9)
-    with pytest.raises(ConfigError, match="window_us"):
-        DaemonConfig(window_us=float("nan"))
+    with pytest.raises(ConfigError, match="window_s"):
+        DaemonConfig.from_mapping({"ident": {"window_s": float("nan")}})
 
 
 def test_bus_spec_and_fd_mtu_check(tmp_path):

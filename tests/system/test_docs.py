@@ -13,7 +13,7 @@ import pytest
 from estimator.cli import build_parser as estimator_parser
 from estimator.ident.status import Status
 from estimator.model.chain import MeasurementChain
-from estimator.service.config import DaemonConfig
+from estimator.service.config import DEPRECATED, SECTIONS, DaemonConfig
 from sim_bench.cli import build_parser as sim_bench_parser
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -56,9 +56,21 @@ def test_every_config_key_is_documented():
     toml = (ROOT / "systemd" / "estimator.toml").read_text(encoding="utf-8")
     page = (DOCS / "guide" / "configuration.md").read_text(encoding="utf-8")
     assert "literalinclude:: ../../systemd/estimator.toml" in page or "{literalinclude} ../../systemd/estimator.toml" in page
+    from estimator.ident.config import IdentConfig, TrackerConfig
+    from estimator.ident.selfcal import SelfCalConfig
     for f in dataclasses.fields(DaemonConfig):
+        if f.name in SECTIONS:
+            continue
         assert re.search(rf"^#?\s*(\[estimator\.)?{f.name}\b", toml, re.M), f"{f.name} not in systemd/estimator.toml"
         assert f"`{f.name}`" in page, f"{f.name} not in docs/guide/configuration.md"
+    for section, cls in (("ident", IdentConfig), ("tracker", TrackerConfig), ("self_calibration", SelfCalConfig)):
+        assert f"[estimator.{section}]" in toml and f"`[estimator.{section}]`" in page, section
+        for f in dataclasses.fields(cls):
+            if f.name != "ident":
+                assert f"| `{f.name}` |" in page, f"[estimator.{section}] {f.name} not in docs/guide/configuration.md"
+    assert "| `mode` |" in page
+    for key in DEPRECATED:
+        assert f"`{key}`" in page, f"the deprecated key {key} is not named in docs/guide/configuration.md"
     for f in dataclasses.fields(MeasurementChain):
         assert f.name in page, f"[chain] {f.name} not in docs/guide/configuration.md"
 

@@ -24,7 +24,7 @@ FORBIDDEN = {
                             "socket", "threading"} | FLEET,
 }
 ROOT_MODULES = {"__init__.py", "__main__.py", "cli.py", "cli_support.py", "errors.py", "logfmt.py", "pipeline.py",
-                "runtime.py"}   # the entry points, the composition root and what every layer shares
+                "runtime.py", "choices.py"}   # the entry points, the composition root and what every layer shares
 
 
 def imported_modules(path):
