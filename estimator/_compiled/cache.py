@@ -17,6 +17,7 @@ through which every compiled module gets ``njit``, calls :func:`configure` first
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Mapping
 import os
 import sys
 
@@ -50,7 +51,7 @@ def _writable(path: str) -> bool:
     return os.access(path, os.W_OK)
 
 
-def cache_dir(root: str, environ: dict) -> str:
+def cache_dir(root: str, environ: Mapping[str, str]) -> str:
     """The cache directory for the sources under ``root`` given the environment ``environ``."""
     tag = source_tag(root)
     base = environ.get("NUMBA_CACHE_DIR")

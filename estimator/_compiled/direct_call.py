@@ -42,9 +42,9 @@ class DirectCall:
     def __init__(self, dispatcher: Any) -> None:
         self._dispatcher = dispatcher
         self._entry: Any = None
-        self._types: tuple = ()
+        self._types: tuple[Any, ...] = ()
 
-    def _types_of(self, args: tuple) -> tuple:
+    def _types_of(self, args: tuple[Any, ...]) -> tuple[Any, ...]:
         return tuple(self._dispatcher.typeof_pyval(a) for a in args)
 
     def __call__(self, *args: Any) -> Any:

@@ -18,6 +18,12 @@ what it needs itself, as before.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from estimator.ident.tracker import Tracker
+
 import os
 import subprocess
 import sys
@@ -27,7 +33,7 @@ from pathlib import Path
 MARKER = ".complete"   # in the numba cache directory: every entry point of Tracker.warm_up is in it
 
 
-def _tracker():
+def _tracker() -> Tracker:
     """A tracker with the default configuration and its own simulator pool."""
     from estimator.ident.tracker import Tracker
     from estimator.service.config import DaemonConfig
@@ -37,7 +43,7 @@ def _tracker():
     return Tracker(cfg.tracker_config(), pool=build_pool(cfg))
 
 
-def warm_cold_start(tracker) -> None:
+def warm_cold_start(tracker: Tracker) -> None:
     """Compile the automatic cold start's local fits (plain and robust cost) on ``tracker``'s
     simulator: the Gauss–Newton loop, the forward-difference fit, the probe ring and the valve
     prediction. The trace is a charging voltage's shape (no simulation needed): enough to compile
@@ -78,7 +84,7 @@ def cache_dir() -> Path:
     return Path(os.environ["NUMBA_CACHE_DIR"])
 
 
-def precompile(parallel: bool = True, log=print) -> float:
+def precompile(parallel: bool = True, log: Callable[..., Any] = print) -> float:
     """Fill the cache (two halves at once if ``parallel``), check it with :meth:`Tracker.warm_up`,
     mark it complete; returns the seconds taken (0 if it was complete already)."""
     marker = cache_dir() / MARKER

@@ -7,16 +7,17 @@ why the two produce identical output on identical frames.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 from dataclasses import dataclass, field, make_dataclass
 
 from estimator.codec.assembler import Assembler, Completed, RejectReason, Rejected
 from estimator.codec.errors import MalformedFrame
 from estimator.codec.frame import Frame
 from estimator.codec.records import (HEARTBEAT_COUNTERS, Codec, EstimatorCommand, InjectionHeader, InjectionTrailer,
-                                     Record, SampleBlock)
+                                     SampleBlock)
 
 
-def _reject(self, reason: RejectReason | str) -> None:
+def _reject(self: Any, reason: RejectReason | str) -> None:   # self: a Counters (made below)
     """Count one rejected injection under its reason (and the heartbeat counter it maps to)."""
     reason = RejectReason(reason)
     self.reasons[reason.value] = self.reasons.get(reason.value, 0) + 1
@@ -56,7 +57,7 @@ class Ingest:
         self.counters = Counters()
         self.max_injectors = max_injectors
         # the records the estimator consumes and what each does; every other identifier is foreign
-        self._handlers: dict[type[Record], Callable[[Record, float], list]] = {
+        self._handlers: dict[type, Callable[[Any, float], list[Any]]] = {
             InjectionHeader: self.assembler.on_header, SampleBlock: self.assembler.on_samples,
             InjectionTrailer: self.assembler.on_trailer, EstimatorCommand: lambda rec, now: [rec]}
         self._inputs = {codec.frame_id(rt) for rt in self._handlers}
@@ -70,7 +71,7 @@ class Ingest:
             c.frames_unknown += 1        # other traffic on the bus (our own outputs, other ECUs)
             return out
         try:
-            rec = self.codec.decode(frame)
+            rec: Any = self.codec.decode(frame)   # one of the handlers' records: its identifier is an input
         except MalformedFrame as exc:
             c.frames_malformed += 1
             out.append(Malformed(frame.arbitration_id, str(exc)))

@@ -8,6 +8,8 @@ and cantools agree on every field.
 
 from __future__ import annotations
 
+from typing import Any
+
 import zlib
 from dataclasses import dataclass
 
@@ -19,7 +21,7 @@ from estimator.codec.errors import ContractError
 INVALID_RAW = -32768   # raw int16 reserved for "no valid sample" (ADC overflow, NaN at the source)
 
 
-def sample_pairs(msg: Message) -> list:
+def sample_pairs(msg: Message) -> list[Any]:
     """The (Current_k, Voltage_k) signal pairs of the samples message, k = 0, 1, ... in order."""
     by_name = {s.name: s for s in msg.signals}
     pairs = []
@@ -48,7 +50,7 @@ class SampleLayout:
         if not pairs:
             raise ContractError("InjectionSamples has no Current_k/Voltage_k pairs")
 
-        def off(sig) -> int:
+        def off(sig: Any) -> int:
             if sig.byte_order != "little_endian" or sig.length != 16 or not sig.is_signed or sig.start % 8:
                 raise ContractError(f"{sig.name}: numpy decoding needs byte-aligned signed 16-bit little-endian")
             if sig.offset != 0:

@@ -76,7 +76,7 @@ def noise_level_v(residual_v: np.ndarray) -> float:
 
 
 @njit(cache=True, nogil=True)
-def _noise_level(r, trim, floor):
+def _noise_level(r: np.ndarray, trim: float, floor: float) -> float:
     n = r.shape[0] - 1
     d = np.empty(n)
     for k in range(n):
@@ -129,7 +129,7 @@ def _rows(n: int) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def _statistics(r, rows, trim, floor, low_columns):
+def _statistics(r: np.ndarray, rows: np.ndarray, trim: float, floor: float, low_columns: int) -> tuple[float, float, float, float]:
     """(noise level V, structure, low, residual energy V^2) of one residual in one compiled call;
     ``rows`` the smooth basis's columns as rows."""
     sigma = _noise_level(r, trim, floor)

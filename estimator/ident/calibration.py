@@ -60,7 +60,8 @@ class CalibrationResult:
         return InjectorParameters(psa, base.valve)
 
 
-def _unpack(theta: np.ndarray, base: InjectorParameters, m: int):
+def _unpack(theta: np.ndarray, base: InjectorParameters,
+            m: int) -> tuple[float, float, float, np.ndarray, np.ndarray]:
     kp = base.psa.kp_n_per_m * theta[0]
     ks = base.psa.ks_n_per_m * theta[1]
     rb = base.psa.rb_v2s_per_mn * theta[2]

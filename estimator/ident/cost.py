@@ -32,6 +32,7 @@ from estimator.ident.measurement import Injection
 from estimator._compiled.direct_call import DirectCall, c_float
 from estimator.model.drive import sample_count
 from estimator.model.fast_sim import BatchResult, FastSimulator
+from estimator.model.automaton import Automaton
 from estimator.model.kernel import KernelModel
 
 NUISANCE_THRESHOLDS = (0.04, 0.10, 0.25, 0.50)   # fractions of the window's final charge
@@ -46,7 +47,7 @@ def charge_c(current_a: np.ndarray, dt_s: float) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def _charge(current_a, dt_s):
+def _charge(current_a: np.ndarray, dt_s: float) -> np.ndarray:
     q = np.empty(current_a.size)
     q[0] = 0.0
     acc = 0.0
@@ -65,7 +66,7 @@ _THRESHOLDS = np.array(NUISANCE_THRESHOLDS, dtype=float)
 
 
 @njit(cache=True, nogil=True)
-def _nuisance_columns(current_a, dt_s, thresholds):
+def _nuisance_columns(current_a: np.ndarray, dt_s: float, thresholds: np.ndarray) -> np.ndarray:
     q = _charge(current_a, dt_s)
     n = q.size
     q_end = max(q[-1], 1e-12)
@@ -96,7 +97,7 @@ def noise_sigma_v(residual_v: np.ndarray) -> float:
 
 
 @njit(cache=True, nogil=True)
-def noise_sigma(r):
+def noise_sigma(r: np.ndarray) -> float:
     """:func:`noise_sigma_v` of a contiguous float array, callable from compiled code."""
     n = r.shape[0]
     d = np.empty(n - 1)
@@ -127,7 +128,7 @@ def plain_model_error(residual_v: np.ndarray, current_a: np.ndarray, dt_s: float
 
 
 @njit(cache=True, nogil=True)
-def _plain_model_error(r, current_a, dt_s, thresholds, sigma_v):
+def _plain_model_error(r: np.ndarray, current_a: np.ndarray, dt_s: float, thresholds: np.ndarray, sigma_v: float) -> float:
     """``_span_energy(r, _nuisance_columns(...)) / sigma_v**2``; for the four thresholds of
     :data:`NUISANCE_THRESHOLDS` (six columns) with each column formed per sample and the 6 + 21 sums
     of ``b'r`` and ``b'b`` kept in registers, in the same order (the same to the bit, 6.1 -> 3.1 µs)."""
@@ -177,14 +178,14 @@ def _plain_model_error(r, current_a, dt_s, thresholds, sigma_v):
         g55 += c5 * c5
     br = np.array([b0, b1, b2, b3, b4, b5])
     if abs(g00 - 1.0) <= 1e-9:     # _span_energy's orthonormal test (column 0 of unit norm)
-        return (br @ br) / sigma_v ** 2
+        return float(br @ br) / sigma_v ** 2
     g = np.array([[g00, g01, g02, g03, g04, g05], [g01, g11, g12, g13, g14, g15], [g02, g12, g22, g23, g24, g25],
                   [g03, g13, g23, g33, g34, g35], [g04, g14, g24, g34, g44, g45], [g05, g15, g25, g35, g45, g55]])
-    return (br @ np.linalg.solve(g, br)) / sigma_v ** 2
+    return float(br @ np.linalg.solve(g, br)) / sigma_v ** 2
 
 
 @njit(cache=True, nogil=True)
-def _span_energy(r, b):
+def _span_energy(r: np.ndarray, b: np.ndarray) -> float:
     """``|P r|^2`` for the projection P onto the span of the columns of ``b`` (N, K): ``|b' r|^2`` if they
     are orthonormal, else through the normal equations ``(b'r)' (b'b)^-1 (b'r)``."""
     n, m = b.shape
@@ -198,7 +199,7 @@ def _span_energy(r, b):
     for k in range(n):
         norm0 += b[k, 0] * b[k, 0]
     if abs(norm0 - 1.0) <= 1e-9:
-        return br @ br
+        return float(br @ br)
     g = np.zeros((m, m))
     for k in range(n):
         for p in range(m):
@@ -207,11 +208,11 @@ def _span_energy(r, b):
     for p in range(m):          # symmetric: the lower triangle is the upper one (a * b == b * a exactly)
         for q in range(p):
             g[p, q] = g[q, p]
-    return br @ np.linalg.solve(g, br)
+    return float(br @ np.linalg.solve(g, br))
 
 
 @njit(cache=True, nogil=True)
-def residuals_into(measured, u, basis, project, out):
+def residuals_into(measured: np.ndarray, u: np.ndarray, basis: np.ndarray, project: bool, out: np.ndarray) -> None:
     """``out`` (B, N) = ``measured`` (N,) - ``u`` (B, >= N) in V, each row projected off ``basis``
     (N, K, orthonormal) if ``project``."""
     nb, n = out.shape
@@ -235,7 +236,7 @@ def residuals_into(measured, u, basis, project, out):
 
 
 @njit(cache=True, nogil=True)
-def costs_of(r, weights, l1, success):
+def costs_of(r: np.ndarray, weights: np.ndarray, l1: bool, success: np.ndarray) -> np.ndarray:
     """The cost of each row of residuals ``r`` (B, N) in V with quadrature ``weights`` (s): V^2 s, or
     V s if ``l1``; +inf where not ``success`` or not finite."""
     nb, n = r.shape
@@ -250,7 +251,8 @@ def costs_of(r, weights, l1, success):
 
 
 @njit(cache=True, nogil=True)
-def residual_costs(measured, u, basis, project, weights, l1, success):
+def residual_costs(measured: np.ndarray, u: np.ndarray, basis: np.ndarray, project: bool, weights: np.ndarray, l1: bool,
+                   success: np.ndarray) -> np.ndarray:
     """:func:`costs_of` the residuals :func:`residuals_into` gives."""
     r = np.empty((u.shape[0], measured.shape[0]))
     residuals_into(measured, u, basis, project, r)
@@ -273,7 +275,7 @@ class Problem(NamedTuple):
     floats, bools), so compiled calls on it can skip numba's dispatch (:class:`DirectCall`)."""
 
     model: KernelModel
-    automaton: tuple
+    automaton: Automaton
     table: np.ndarray       # the simulator's transition-matrix table (scaled units)
     h_us: float             # sample period in the kernel's time unit (µs)
     nu_lo: float            # the simulator's N_u range (N/V)
@@ -351,7 +353,7 @@ class CostModel:
         if other is not self and other.injection is self.injection and other.n == self.n and self._basis is None:
             self._basis_of = other
 
-    def simulate(self, nu: np.ndarray, lh: np.ndarray) -> BatchResult:
+    def simulate(self, nu: np.ndarray | float, lh: np.ndarray | float) -> BatchResult:
         """Simulate candidates over the window (counts evaluations)."""
         nu = np.atleast_1d(nu)
         self.evaluations += int(np.broadcast(nu, np.atleast_1d(lh)).size)
@@ -373,7 +375,8 @@ class CostModel:
         ok = np.ones(u.shape[0], dtype=bool) if success is None else np.ascontiguousarray(success, dtype=bool)
         return residual_costs(p.measured, u, p.basis, p.robust, p.weights, p.l1, ok)
 
-    def __call__(self, nu: np.ndarray, lh: np.ndarray) -> np.ndarray:
+    def __call__(self, nu: np.ndarray | float, lh: np.ndarray | float) -> np.ndarray:
+        """The cost of candidates (N_u in N/V, L_h in m; arrays broadcast)."""
         return self.from_result(self.simulate(nu, lh))
 
     def paper_cost_vs(self, res: BatchResult) -> np.ndarray:

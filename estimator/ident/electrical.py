@@ -25,6 +25,8 @@ parameters, each injection fitted alone) and after.
 
 from __future__ import annotations
 
+from typing import Any
+
 import math
 from collections import OrderedDict
 from dataclasses import dataclass, field, fields, replace
@@ -271,16 +273,16 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
             row += n_win[j]
         return jac
 
-    def solve(start: np.ndarray):
+    def solve(start: np.ndarray) -> Any:   # scipy's OptimizeResult
         return least_squares(residual, np.clip(start, lo + 1e-9, hi - 1e-9), jac=jacobian, bounds=(lo, hi),
                              method="trf", x_scale="jac", max_nfev=max_iterations, xtol=1e-8, ftol=1e-10)
 
-    def voltage_residuals(f) -> list[np.ndarray]:
+    def voltage_residuals(f: Any) -> list[np.ndarray]:
         """Each injection's voltage residual (V) at the solution ``f``."""
         edges = np.cumsum([0] + n_win)
         return [f.fun[edges[j]:edges[j + 1]] * sigma[j] for j in range(b)]
 
-    def misfit_z(f) -> float:
+    def misfit_z(f: Any) -> float:
         """The worst injection's smooth residual structure (chi-square of its lowest cosine components,
         :func:`~estimator.ident.adequacy.assess`) in standard deviations above its expectation."""
         return max((assess(r, 2 + p // b).structure - SMOOTH_COLUMNS) / math.sqrt(2.0 * SMOOTH_COLUMNS)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import math
 from dataclasses import dataclass, field
 
@@ -65,7 +67,7 @@ class Estimate:
         """1-sigma uncertainty of L_h in m."""
         return float(math.sqrt(max(self.cov[1, 1], 0.0)))
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary with units in the keys (µm, µs, µV·s)."""
         def num(v: float, scale: float = 1.0, nd: int = 6) -> float | None:
             return None if not math.isfinite(v) else round(v * scale, nd)

@@ -28,7 +28,7 @@ from estimator._compiled import njit
 
 from estimator.errors import ParameterError
 from estimator.ident.coords import UM_PER_M
-from estimator.ident.cost import CostModel, costs_of, noise_sigma, residuals_into
+from estimator.ident.cost import CostModel, Problem, costs_of, noise_sigma, residuals_into
 from estimator.ident.search import TRUST_STEPS, Box, parabola_vertex
 from estimator.model import kernel
 from estimator._compiled.direct_call import DirectCall, c_float
@@ -85,7 +85,7 @@ class GaussNewtonRun(NamedTuple):
 
 
 @njit(cache=True, nogil=True)
-def _simulable(p, pts):
+def _simulable(p: Problem, pts: np.ndarray) -> bool:
     """Whether the simulator takes the points (B, 2) in (N/V, µm) (:func:`kernel.check_inputs`)."""
     code, _ = kernel.check_inputs(p.current, pts[:, 0].copy(), pts[:, 1].copy(), np.full(pts.shape[0], p.f_open_n),
                                   p.nu_lo, p.nu_hi)
@@ -93,7 +93,7 @@ def _simulable(p, pts):
 
 
 @njit(cache=True, nogil=True)
-def _simulate(p, pts):
+def _simulate(p: Problem, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Voltages (B, N) in V, success, contact and opening times (s) of candidates at ``pts`` (B, 2)."""
     nb = pts.shape[0]
     nu = np.empty(nb)
@@ -107,7 +107,7 @@ def _simulate(p, pts):
 
 
 @njit(cache=True, nogil=True)
-def _residuals(p, u):
+def _residuals(p: Problem, u: np.ndarray) -> np.ndarray:
     """The (projected) residuals (B, N) of simulated voltages ``u`` (B, N)."""
     r = np.empty(u.shape)
     residuals_into(p.measured, u, p.basis, p.robust, r)
@@ -115,7 +115,7 @@ def _residuals(p, u):
 
 
 @njit(cache=True, nogil=True)
-def _no_fit(code, evaluations, x, ok, jac):
+def _no_fit(code: int, evaluations: int, x: np.ndarray, ok: np.ndarray, jac: np.ndarray) -> KernelFit:
     """The :class:`KernelFit` of a call that stopped before the fit (NaN fields)."""
     n = jac.shape[1]
     nan22 = np.full((2, 2), np.nan)
@@ -124,7 +124,8 @@ def _no_fit(code, evaluations, x, ok, jac):
 
 
 @njit(cache=True, nogil=True)
-def _fit_at(p, evaluations, x, ok, jac, u, r0, tc, to, u_ok, success):
+def _fit_at(p: Problem, evaluations: int, x: np.ndarray, ok: np.ndarray, jac: np.ndarray, u: np.ndarray, r0: np.ndarray, tc: float, to: float,
+            u_ok: bool, success: bool) -> KernelFit:
     """The Gauss–Newton model at ``x`` from its simulated voltage ``u`` (V), its (projected) residual
     ``r0`` and ``jac`` = dU/dx (2, N); ``u_ok``: the point's own simulation succeeded, ``success``:
     every simulation behind the fit did."""
@@ -166,11 +167,11 @@ def _fit_at(p, evaluations, x, ok, jac, u, r0, tc, to, u_ok, success):
         w, v = np.linalg.eigh(0.5 * (jtj + jtj.T))
         dirs = np.ascontiguousarray(v)
         eig = np.maximum(w, 0.0)
-    return KernelFit(FIT, evaluations, x, ok, jac, crit, paper, jtj, step, sigma, cov, raw, tc, to, fine, dirs, eig)
+    return KernelFit(FIT, evaluations, x, ok, jac, crit, paper, jtj, step, sigma, cov, raw, tc, to, bool(fine), dirs, eig)
 
 
 @njit(cache=True, nogil=True)
-def forward_fit(p, x, fd, hi):
+def forward_fit(p: Problem, x: np.ndarray, fd: np.ndarray, hi: np.ndarray) -> KernelFit:
     """The Gauss–Newton model at ``x`` (N/V, µm) from x and its two forward-difference neighbours
     (steps ``fd``, turned back where they would pass ``hi``), simulated in one batch."""
     n = p.current.shape[0]
@@ -197,7 +198,7 @@ def forward_fit(p, x, fd, hi):
 
 
 @njit(cache=True, nogil=True)
-def warm_cycle(p, x0, d, st, lo, hi):
+def warm_cycle(p: Problem, x0: np.ndarray, d: np.ndarray, st: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> KernelFit:
     """One warm refinement cycle from ``x0`` along the (conjugate) columns of ``d`` with steps ``st``
     (N/V, µm) in the box ``lo``, ``hi``: the stencil {x0, x0 -/+ st_i d_i} in one batch, the parabola's
     vertex along each direction (within :data:`TRUST_STEPS` steps), and where both were found inside
@@ -255,13 +256,13 @@ def warm_cycle(p, x0, d, st, lo, hi):
 
 
 @njit(cache=True, nogil=True)
-def _max_nan(a, b):
+def _max_nan(a: float, b: float) -> float:
     """np.maximum of two floats (NaN wins)."""
     return a if (a >= b or a != a) else b
 
 
 @njit(cache=True, nogil=True)
-def widened_radius(rad, cov, k, min_sd):
+def widened_radius(rad: np.ndarray, cov: np.ndarray, k: float, min_sd: np.ndarray) -> np.ndarray:
     """A copy of the trust region ``rad`` (N/V, µm), each radius raised to ``k`` standard deviations of
     ``cov`` (each at least ``min_sd``) where that is larger and finite (``k <= 0``: unchanged)."""
     out = rad.copy()
@@ -274,7 +275,7 @@ def widened_radius(rad, cov, k, min_sd):
 
 
 @njit(cache=True, nogil=True)
-def gauss_newton(p, x, fd, lo, hi, rad, rules):
+def gauss_newton(p: Problem, x: np.ndarray, fd: np.ndarray, lo: np.ndarray, hi: np.ndarray, rad: np.ndarray, rules: GaussNewtonRules) -> GaussNewtonRun:
     """Trust-region Gauss–Newton steps from ``x`` (inside the box ``lo``, ``hi``; N/V, µm), each step a
     :func:`forward_fit` (steps ``fd``); first radius ``rad``, widened to ``rules.radius_sd`` of the first
     fit's standard deviations (:func:`widened_radius`). A step that lowers the cost is taken and the
@@ -324,7 +325,7 @@ def gauss_newton(p, x, fd, lo, hi, rad, rules):
 
 
 @njit(cache=True, nogil=True)
-def point_costs(p, pts):
+def point_costs(p: Problem, pts: np.ndarray) -> tuple[bool, np.ndarray]:
     """The costs of the points (B, 2) in (N/V, µm), +inf where a simulation failed; and whether they
     could be simulated (False: nothing was)."""
     nb = pts.shape[0]

@@ -17,6 +17,8 @@ the components that jumped.
 
 from __future__ import annotations
 
+from typing import Any
+
 import functools
 import math
 from dataclasses import dataclass
@@ -47,12 +49,12 @@ class ProcessNoise:
     max_var: tuple[float, float, float, float]   # caps of the diagonal: (N/V)^2, µm^2, (N/V/s)^2, (N/V/degC)^2
 
     @functools.cached_property
-    def _predict_args(self) -> tuple[tuple, tuple]:
+    def _predict_args(self) -> tuple[tuple[Any, ...], tuple[Any, ...]]:
         """:func:`_predict`'s noise arguments with the temperature change unknown and known: floats, and
         the caps as a float64 array (built once per noise, not per injection)."""
         caps = c_float(self.max_var)
 
-        def args(q_nu: float, q_rate: float) -> tuple:
+        def args(q_nu: float, q_rate: float) -> tuple[Any, ...]:
             return (float(self.rate_tau_s), float(self.nu_per_injection), float(q_nu), float(q_rate),
                     float(self.lh_per_injection_um), float(self.lh_per_sqrt_s_um), float(self.slope_per_sqrt_s), caps)
         return (args(self.nu_per_sqrt_s, self.rate_per_sqrt_s),
@@ -67,7 +69,8 @@ def predict(x: np.ndarray, p: np.ndarray, dt_s: float, d_temp_c: float | None,
 
 
 @njit(cache=True, nogil=True)
-def _predict(x, p, dt, dtemp, tau, nu_inj, q_nu, q_rate, lh_inj, q_lh, q_slope, max_var):
+def _predict(x: np.ndarray, p: np.ndarray, dt: float, dtemp: float, tau: float, nu_inj: float, q_nu: float, q_rate: float,
+             lh_inj: float, q_lh: float, q_slope: float, max_var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``x' = F x``, ``p' = cap(F p F' + Q)``: the drift rate decays with ``tau`` (s) into N_u, the
     temperature slope acts over ``dtemp``; Q per injection and per second (random walks of N_u, L_h,
     the rate (integrated into N_u) and the slope)."""
@@ -100,7 +103,7 @@ def _predict(x, p, dt, dtemp, tau, nu_inj, q_nu, q_rate, lh_inj, q_lh, q_slope, 
 
 
 @njit(cache=True, nogil=True)
-def cap(p, max_var):
+def cap(p: np.ndarray, max_var: np.ndarray) -> np.ndarray:
     """``p`` with each variance at most its cap ``max_var`` (rows and columns scaled, so it stays
     positive definite)."""
     n = p.shape[0]
@@ -130,7 +133,7 @@ def innovation(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> In
 
 
 @njit(cache=True, nogil=True)
-def _innovation(x, p, z, r):
+def _innovation(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """``e = z - H x``, ``s = H p H' + r`` and ``e' s^-1 e`` (H picks N_u and L_h)."""
     e = np.empty(2)
     s = np.empty((2, 2))
@@ -149,7 +152,7 @@ def update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> tuple[
 
 
 @njit(cache=True, nogil=True)
-def _update(x, p, z, r):
+def _update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Gain ``K = p H' s^-1``, ``x + K (z - H x)``, ``(I - K H) p (I - K H)' + K r K'`` symmetrised."""
     n = N_STATE
     s00, s01, s10, s11 = p[0, 0] + r[0, 0], p[0, 1] + r[0, 1], p[1, 0] + r[1, 0], p[1, 1] + r[1, 1]
@@ -212,7 +215,7 @@ def jump_components(inn: Innovation, gate_1dof: float = CHI2_1DOF_1E4) -> tuple[
     return (i,) if left[i] <= gate_1dof else (NU, LH)
 
 
-def release(p: np.ndarray, components: tuple[int, ...], max_var) -> np.ndarray:
+def release(p: np.ndarray, components: tuple[int, ...], max_var: np.ndarray | tuple[float, ...]) -> np.ndarray:
     """Forget the state's knowledge of ``components`` (a jump of N_u also forgets its drift rate)."""
     p = p.copy()
     comps = set(components) | ({RATE} if NU in components else set())

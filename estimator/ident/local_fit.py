@@ -17,12 +17,12 @@ from estimator.ident.fit_kernel import FIT, KernelFit, run_cycle, run_forward_fi
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M
 from estimator.ident.cost import CostModel
-from estimator.ident.search import Box, line_search
+from estimator.ident.search import Box, CostFn, line_search
 
 FD_STEP = np.array([2e-3, 2e-3])   # finite-difference steps: N/V, µm
 
 
-def cost_fn(model: CostModel):
+def cost_fn(model: CostModel) -> CostFn:
     """The cost model as a function of (B, 2) points in (N/V, µm)."""
     def f(x: np.ndarray) -> np.ndarray:
         return model(x[:, 0], x[:, 1] / UM_PER_M)
@@ -106,7 +106,7 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
     """
     x, j = box.clip(x0.astype(float)), j0
     d, st = directions, steps
-    tol = tuple(config.tol)
+    tol = (float(config.tol[0]), float(config.tol[1]))
     converged = False
     cycles = 0
     f = cost_fn(model)
@@ -159,6 +159,7 @@ def refine(model: CostModel, x0: np.ndarray, directions: np.ndarray, steps: np.n
                 converged = True
                 break
             j = fit.criterion
+    assert fit is not None   # every cycle ends with a fit
     return fit, converged, cycles
 
 

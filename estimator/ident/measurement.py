@@ -24,7 +24,7 @@ MIN_PEAK_CURRENT_A = 0.2      # a "flat" current does not excite the actuator
 
 
 @njit(cache=True, nogil=True)
-def _extremes(i, u):
+def _extremes(i: np.ndarray, u: np.ndarray) -> tuple[float, float, float, float]:
     """(max, min) of ``i`` and of ``u`` in one pass each; NaN if either holds a NaN (as numpy's max)."""
     i_max, i_min, u_max, u_min = -np.inf, np.inf, -np.inf, np.inf
     for k in range(i.shape[0]):

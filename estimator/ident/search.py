@@ -37,7 +37,7 @@ class Box:
             lo, hi = max(lo, min(a, b)), min(hi, max(a, b))
         return lo, hi
 
-    def at_bound(self, x: np.ndarray, tol) -> bool:
+    def at_bound(self, x: np.ndarray, tol: np.ndarray | tuple[float, float]) -> bool:
         """True if x lies within tol (two numbers: N/V, µm) of a bound."""
         return any(x[i] <= self.lo[i] + tol[i] or x[i] >= self.hi[i] - tol[i] for i in range(2))
 

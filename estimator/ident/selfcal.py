@@ -75,7 +75,7 @@ class CalibrationStatus:
     message: str = ""
     calibrations: int = 0          # calibrations run for this injector so far
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """JSON-ready (NaN as None)."""
         def num(v: float) -> float | None:
             return round(v, 4) if math.isfinite(v) else None

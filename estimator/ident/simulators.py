@@ -8,6 +8,8 @@ and where ``periods_ns`` is given every other period is refused with a reason.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import math
 from collections import OrderedDict
 
@@ -26,7 +28,7 @@ class SimulatorPool:
     """
 
     def __init__(self, params: InjectorParameters | None = None, max_size: int = 4,
-                 periods_ns: tuple[int, ...] = ()) -> None:
+                 periods_ns: Iterable[int] = ()) -> None:
         if max_size < 1:
             raise ValueError(f"max_size = {max_size} must be >= 1")
         self.params = params or load_nominal()

@@ -39,6 +39,7 @@ import numpy as np
 
 from estimator.errors import EstimatorError
 from estimator.ident import kalman
+from estimator.choices import ColdStart, Robust
 from estimator.ident.config import TrackerConfig
 from estimator.ident.coords import NuLh
 from estimator.ident.cost import CostModel, plain_model_error
@@ -123,7 +124,7 @@ class TrackerState:
     excess_z: float | None = None
     version: int = STATE_VERSION
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """Plain dict for JSON (no NaN: unknown values are None)."""
         return asdict(self)
 
@@ -175,21 +176,21 @@ class TrackerState:
         return replace(TrackerState(), initialized=True, x=x.tolist(), p=p.tolist())
 
 
-def _check_bool(d: dict, name: str, default: bool) -> bool:
+def _check_bool(d: dict[str, Any], name: str, default: bool) -> bool:
     v = d.get(name, default)
     if not isinstance(v, bool):
         raise ValueError(f"{name} = {v!r} must be true or false")
     return v
 
 
-def _check_count(d: dict, name: str) -> int:
+def _check_count(d: dict[str, Any], name: str) -> int:
     v = d.get(name, 0)
     if isinstance(v, bool) or not isinstance(v, int) or v < 0:
         raise ValueError(f"{name} = {v!r} must be a non-negative whole number")
     return v
 
 
-def _check_optional_float(d: dict, name: str) -> float | None:
+def _check_optional_float(d: dict[str, Any], name: str) -> float | None:
     v = d.get(name)
     if v is None:
         return None
@@ -198,7 +199,7 @@ def _check_optional_float(d: dict, name: str) -> float | None:
     return float(v)
 
 
-def _check_array(d: dict, name: str, shape: tuple[int, ...], finite: bool) -> np.ndarray:
+def _check_array(d: dict[str, Any], name: str, shape: tuple[int, ...], finite: bool) -> np.ndarray:
     v = d.get(name)
     try:
         a = np.array(v, dtype=float)
@@ -277,7 +278,7 @@ class TrackResult:
     slope_n_per_v_degc: float = float("nan")
     accepted: int = 0
 
-    def filtered_dict(self) -> dict:
+    def filtered_dict(self) -> dict[str, Any]:
         """The published estimate with units in the keys."""
         f = lambda v, s=1.0: None if not math.isfinite(v) else round(v * s, 6)  # noqa: E731
         return {"nu_n_per_v": f(self.nu_n_per_v), "lh_um": f(self.lh_m, 1e6),
@@ -335,7 +336,7 @@ def _cold_estimate(state: TrackerState, inj: Injection, sim: FastSimulator, conf
     no more than :data:`LOCAL_ACCEPT_MARGIN` times the injector's usual excess (it never passes the
     white-noise check, so each re-acquisition would otherwise run the global search, ≈ 17 ms); the ring
     around it still guards against another valley."""
-    mode = "on" if state.robust else config.ident.robust
+    mode = Robust.ON if state.robust else Robust(config.ident.robust)
     ident = config.ident if mode == config.ident.robust else replace(config.ident, robust=mode)
     start = None
     if state.mismatch and state.initialized and state.excess_z is not None and math.isfinite(state.x[0]) \
@@ -345,7 +346,7 @@ def _cold_estimate(state: TrackerState, inj: Injection, sim: FastSimulator, conf
     return identify(inj, sim, ident, start)
 
 
-_BOXES: weakref.WeakKeyDictionary[FastSimulator, dict] = weakref.WeakKeyDictionary()
+_BOXES: weakref.WeakKeyDictionary[FastSimulator, dict[Any, Any]] = weakref.WeakKeyDictionary()
 _BOXES_PER_SIMULATOR = 16
 
 
@@ -403,7 +404,11 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
 
     cold = not (st.initialized and math.isfinite(st.x[0]) and math.isfinite(st.x[1]))   # a prior counts
     x0 = held[0][:2] if held is not None else None
-    raw = _cold_estimate(st, inj, sim, config) if cold else _warm_estimate(st, x0, inj, sim, config, box)
+    if cold:
+        raw = _cold_estimate(st, inj, sim, config)
+    else:
+        assert x0 is not None   # initialized: the filter holds a state
+        raw = _warm_estimate(st, x0, inj, sim, config, box)
     if raw.status == Status.REJECTED:
         st.rejected += 1
         return st, _publish(_widen(held, st, config, sim), raw, Status.REJECTED, raw.message, sim, inj, predict=False)
@@ -427,6 +432,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
         reason = "" if cold else "restarted (model-error mode changed)"
         return _accepted(st, raw, r, sim, inj, config, reason)
 
+    assert held is not None   # not cold: the filter holds a state
     x_pred, p_pred = held
     inn = kalman.innovation(x_pred, p_pred, z, r)
     if not (st.mismatch or st.robust) and raw.mismatch and inn.d2 > config.gate_chi2:
@@ -630,6 +636,7 @@ def _accepted(st: TrackerState, raw: Estimate, r: np.ndarray, sim: FastSimulator
     _note_mismatch(st, raw, config)
     _carry_search(st, raw, r, config)
     x, p = _widen((np.array(st.x), np.array(st.p)), st, config, sim)   # type: ignore[misc]
+    status: Status
     if raw.status in (Status.AT_BOUND, Status.NOT_CONVERGED):
         status, reason = raw.status, reason or raw.message
     elif st.mismatch:
@@ -684,7 +691,7 @@ def _publish(filt: tuple[np.ndarray, np.ndarray] | None, raw: Estimate, status: 
     if (predict and pt.nu_n_per_v == raw.nu_n_per_v and pt.lh_m == raw.lh_m and math.isfinite(raw.stroke_m)):
         # a cold start's own prediction (only a predicted Estimate has a finite stroke), at this very point
         tc, to, stroke = raw.t_contact_s, raw.t_open_s, raw.stroke_m
-    elif predict and math.isfinite(pt.nu_n_per_v) and math.isfinite(pt.lh_um):
+    elif predict and sim is not None and math.isfinite(pt.nu_n_per_v) and math.isfinite(pt.lh_um):
         try:
             tc, to, stroke = predict_valve(sim, inj, pt.nu_n_per_v, pt.lh_m)
         except EstimatorError:   # e.g. a prior outside the simulator's N_u range: no prediction
@@ -866,14 +873,14 @@ class Tracker:
 
         sim = self.simulator(SAMPLE_PERIOD_S)
         cur = StandardDrive().samples(100e-6, SAMPLE_PERIOD_S)
-        res = sim.simulate(cur, [16.0, 17.0, 18.0], [-0.5e-6, 2e-6, 6e-6])
+        res = sim.simulate(cur, np.array([16.0, 17.0, 18.0]), np.array([-0.5e-6, 2e-6, 6e-6]))
         scratch = Tracker(self.config, pool=self.pool)
         if not cold_start:
             scratch.set_prior(0, 17.0, 2.0)   # N/V, µm: the injection's own values
         for k in range(3):
             scratch.update(Injection(cur, res.voltage_v[1], SAMPLE_PERIOD_S, counter=k, time_s=0.04 * k))
         # a local-first cold start passes its check on this clean trace: load the global search's too
-        identify(Injection(cur, res.voltage_v[2], SAMPLE_PERIOD_S), sim, replace(self.config.ident, cold_start="global"))
+        identify(Injection(cur, res.voltage_v[2], SAMPLE_PERIOD_S), sim, replace(self.config.ident, cold_start=ColdStart.GLOBAL))
         # and the test of the plain model a warm update of a mismatched injector runs
         plain_model_error(res.voltage_v[0] - res.voltage_v[1], cur, SAMPLE_PERIOD_S, 0.1)
 

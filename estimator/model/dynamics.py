@@ -146,10 +146,11 @@ def build_structure(p: InjectorParameters) -> HybridStructure:
     a_const = np.repeat(base[None], N_REGIONS, axis=0)
     for r, f in ((1, f_soft), (2, f_stiff), (3, f_soft), (4, f_stiff)):
         a_const[r, V3] -= f / m3            # F_ext = F_c on the PSA bottom plate
-    for r, f in ((3, f_soft), (4, f_stiff), (5, None)):
+    plunger_rows: tuple[tuple[int, np.ndarray | None], ...] = ((3, f_soft), (4, f_stiff), (5, None))
+    for r, f_row in plunger_rows:
         row = np.zeros(NZ)
-        if f is not None:
-            row += f
+        if f_row is not None:
+            row += f_row
         row[ZF] -= 1.0                      # preload F_open
         row[S4] -= m.kf_n_per_m             # valve spring k_f s4
         row[V4] -= m.bf_ns_per_m            # valve damper b_f v4
@@ -190,8 +191,8 @@ def build_structure(p: InjectorParameters) -> HybridStructure:
 def region_matrices(structure: HybridStructure, p: InjectorParameters, nu: np.ndarray) -> np.ndarray:
     """Region matrices A_r(N_u) in SI, shape (len(nu), 6, 14, 14)."""
     nu = np.atleast_1d(np.asarray(nu, dtype=float))
-    c = coupling(p.psa.ks_n_per_m, nu)[:, None, None, None]
-    d = damping(p.psa.rb_v2s_per_mn, nu)[:, None, None, None]
+    c = np.asarray(coupling(p.psa.ks_n_per_m, nu))[:, None, None, None]
+    d = np.asarray(damping(p.psa.rb_v2s_per_mn, nu))[:, None, None, None]
     return structure.a_const[None] + c * structure.a_coupling[None] + d * structure.a_damping[None]
 
 
@@ -256,7 +257,7 @@ def spring_constants(p: InjectorParameters) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def _precompressed_into(k, nu, lh_m, x):
+def _precompressed_into(k: np.ndarray, nu: float, lh_m: float, x: np.ndarray) -> float:
     """The static Σ2 equilibrium of :func:`precompressed_state` written into ``x`` (NX,); returns the
     contact force in N. ``k`` is :func:`spring_constants`."""
     kg1, kg2, kp, kv1, kv2, sp = k[0], k[1], k[2], k[3], k[4], k[5]
@@ -277,7 +278,7 @@ def _precompressed_into(k, nu, lh_m, x):
 
 
 @njit(cache=True, nogil=True)
-def precompressed_starts(k, nu, lh_m, f_open_n, z_scale, z0, region0):
+def precompressed_starts(k: np.ndarray, nu: np.ndarray, lh_m: np.ndarray, f_open_n: np.ndarray, z_scale: np.ndarray, z0: np.ndarray, region0: np.ndarray) -> np.ndarray:
     """Initial states of the candidates with L_h <= 0 (all arrays (B,), SI units): rows of ``z0``
     (B, NZ) get the scaled augmented state (times ``z_scale``) and ``region0`` the region of
     :func:`initial_state`; returns a (B,) mask, False where the start is infeasible (the valve

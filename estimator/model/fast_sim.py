@@ -9,7 +9,7 @@ error is below 1e-13 relative (``tests/test_fast_sim.py`` checks it against dire
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 from scipy.linalg import expm
@@ -17,7 +17,7 @@ from scipy.linalg import expm
 from estimator.errors import ParameterError
 from estimator.model import dynamics as dyn
 from estimator.model import kernel
-from estimator.model.automaton import build_automaton
+from estimator.model.automaton import Automaton, build_automaton
 from estimator._compiled.direct_call import DirectCall
 from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.model.dynamics import STATUS_TEXT
@@ -46,7 +46,7 @@ class KernelHandle(NamedTuple):
     """What a compiled caller needs to run :func:`kernel.run_batch` for this simulator."""
 
     model: kernel.KernelModel
-    automaton: tuple
+    automaton: Automaton
     table: np.ndarray      # interpolation table of the transition matrices (scaled units)
     h_us: float            # sample period in the kernel's time unit (µs)
     nu_lo: float           # the simulator's N_u range (N/V), :attr:`FastSimulator.nu_range`
@@ -110,7 +110,10 @@ def plateau_mean(t_s: np.ndarray, values: np.ndarray, window_s: tuple[float, flo
     return np.mean(values[..., ks[0]:ks[1]], axis=-1)
 
 
-def remember(cache: dict, key, value, limit: int):
+_V = TypeVar("_V")
+
+
+def remember(cache: dict[Any, Any], key: Any, value: _V, limit: int) -> _V:
     """``cache[key] = value`` in a dict of at most ``limit`` entries (the oldest goes); returns ``value``."""
     if len(cache) >= limit:
         cache.pop(next(iter(cache)))

@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numpy as np
 from estimator._compiled import njit
 
-from estimator.model.automaton import apply_reset, dot, guard_value, in_contact, rearmed
+from estimator.model.automaton import Automaton, apply_reset, dot, guard_value, in_contact, rearmed
 from estimator.model.dynamics import (MODE_OPEN, NX, NZ, S3, S4, STATUS_EVENT_CAP, STATUS_INFEASIBLE, STATUS_OK, V4,
                                       Z1, ZF, ZI, ZID, ZL, coupling_jit, damping_jit, output_row_into,
                                       precompressed_starts)
@@ -49,7 +49,7 @@ class KernelModel(NamedTuple):
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _taylor(a, pat, z, sigma, c):
+def _taylor(a: np.ndarray, pat: np.ndarray, z: np.ndarray, sigma: float, c: np.ndarray) -> int:
     """The Taylor series of exp(a sigma) z (a: (NZ, NZ) per time unit, |a| sigma < 1): row k of ``c``
     holds (a sigma)^k z / k!, k = 0 .. K - 1, until a term is below 1e-17 of the state; returns K.
 
@@ -89,7 +89,7 @@ def _taylor(a, pat, z, sigma, c):
 
 
 @njit(cache=True, nogil=True)
-def sparsity(a_const, a_coup, a_damp):
+def sparsity(a_const: np.ndarray, a_coup: np.ndarray, a_damp: np.ndarray) -> np.ndarray:
     """Per region, per row i < ZI + 1 of the continuous matrix: ``[n, n_m, j_1 .. j_n]``, the columns
     that can be non-zero (in a_const, a_coup or a_damp) in order, n_m of them below ZI + 1
     (:attr:`KernelModel.a_pattern`)."""
@@ -108,7 +108,7 @@ def sparsity(a_const, a_coup, a_damp):
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _flow(amat, pattern, r, z, sigma, out, terms):
+def _flow(amat: np.ndarray, pattern: np.ndarray, r: int, z: np.ndarray, sigma: float, out: np.ndarray, terms: np.ndarray) -> None:
     """out = exp(a * sigma) @ z for region r's continuous matrix a = ``amat[r]`` (per time unit,
     |a| sigma < 1) and its pattern ``pattern[r]``: the Taylor series of :func:`_taylor`, its terms
     kept in ``terms``, summed by :func:`_state_at`. Takes the whole arrays and r, not the region's
@@ -117,7 +117,7 @@ def _flow(amat, pattern, r, z, sigma, out, terms):
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _state_at(c, nterms, z, u, out):
+def _state_at(c: np.ndarray, nterms: int, z: np.ndarray, u: float, out: np.ndarray) -> None:
     """out = the state at the fraction u of the interval of :func:`_taylor`'s terms ``c`` (Horner)."""
     m = ZI + 1
     # Horner per entry, the entries advanced together (term by term): each entry's operations and
@@ -132,7 +132,7 @@ def _state_at(c, nterms, z, u, out):
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _locate(c, nterms, g, z, rem, out, poly):
+def _locate(c: np.ndarray, nterms: int, g: np.ndarray, z: np.ndarray, rem: float, out: np.ndarray, poly: np.ndarray) -> float:
     """Crossing time of the guard g in (0, rem] along the flow whose Taylor terms over rem are ``c``
     (:func:`_taylor`), the guard being <= 0 at the start and > 0 at the end of the interval.
 
@@ -192,7 +192,7 @@ def _locate(c, nterms, g, z, rem, out, poly):
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _region_phi(src, idx, w, b, r, out):
+def _region_phi(src: np.ndarray, idx: np.ndarray, w: np.ndarray, b: int, r: int, out: np.ndarray) -> None:
     """Rows 0..NX-1 of the transition matrix of region r for candidate b: the table rows ``idx[b]``
     weighted by ``w[b]``. Depends on N_u only: candidates with the same rows and weights share it."""
     i0, i1, i2, i3 = idx[b, 0], idx[b, 1], idx[b, 2], idx[b, 3]
@@ -204,7 +204,7 @@ def _region_phi(src, idx, w, b, r, out):
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _region_const(phi, r, z, const):
+def _region_const(phi: np.ndarray, r: int, z: np.ndarray, const: np.ndarray) -> None:
     """``const[r]``: the contribution of the constant inputs L_h, F_open, 1 (columns ZID + 1 ..) of
     the state ``z`` through region r's transition rows (per candidate: L_h is its own)."""
     for i in range(NX):
@@ -215,7 +215,7 @@ def _region_const(phi, r, z, const):
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _region_a(model, cpl, dmp, r, out):
+def _region_a(model: KernelModel, cpl: float, dmp: float, r: int, out: np.ndarray) -> None:
     """``out[r]`` = the continuous matrix of region r: a_const + cpl a_coup + dmp a_damp (scaled, per µs)."""
     for i in range(NZ):
         for j in range(NZ):
@@ -255,7 +255,8 @@ class Trajectories(NamedTuple):
 # 8 per partial sample, 4,300 calls in one valve prediction (37 events); without, 81 -> 75 µs.
 
 @njit(cache=True, nogil=True, inline="always")
-def _guard_ends(guards, open_seated, open_index, r, j, z, zn, seated):
+def _guard_ends(guards: np.ndarray, open_seated: np.ndarray, open_index: np.ndarray, r: int, j: int, z: np.ndarray, zn: np.ndarray,
+                seated: bool) -> tuple[float, float, bool]:
     """Guard j of region r at z and at zn: (g0, g1, spring_only). After a re-seat the opening
     guard is min(ordinary, spring-only); ``spring_only`` says that the spring-only row is the lower
     one at zn, the row to locate the crossing with."""
@@ -274,7 +275,8 @@ def _guard_ends(guards, open_seated, open_index, r, j, z, zn, seated):
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _locate_first(guards, open_seated, open_index, target, amat, pat, r, z, zn, rem, seated, zt, zb, terms, poly):
+def _locate_first(guards: np.ndarray, open_seated: np.ndarray, open_index: np.ndarray, target: np.ndarray, amat: np.ndarray, pat: np.ndarray, r: int, z: np.ndarray,
+                  zn: np.ndarray, rem: float, seated: bool, zt: np.ndarray, zb: np.ndarray, terms: np.ndarray, poly: np.ndarray) -> tuple[int, float]:
     """The guard of region r that fires first between z and zn (``rem`` µs later; ``amat[r]`` the
     region's continuous matrix, ``pat[r]`` its pattern). Returns (j, s): the guard (-1: none) and the time after z at which
     it is positive; the state there is left in zb. Called only when some guard crosses.
@@ -300,8 +302,9 @@ def _locate_first(guards, open_seated, open_index, target, amat, pat, r, z, zn, 
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _transition(guards, target, reset, open_index, open_seated, region_mode, r, j, z, seated, nev, t_ev, b,
-                t_contact, t_open):
+def _transition(guards: np.ndarray, target: np.ndarray, reset: np.ndarray, open_index: np.ndarray, open_seated: np.ndarray, region_mode: np.ndarray, r: int,
+                j: int, z: np.ndarray, seated: bool, nev: int, t_ev: float, b: int, t_contact: np.ndarray,
+                t_open: np.ndarray) -> tuple[int, bool, int]:
     """Take transition j of region r at z (time t_ev µs), then any already enabled at the new state.
 
     Records the first contact and opening times of candidate b in ``t_contact``, ``t_open``; returns
@@ -327,7 +330,7 @@ def _transition(guards, target, reset, open_index, open_seated, region_mode, r, 
 
 
 @njit(cache=True, nogil=True)
-def _nonzeros(rows):
+def _nonzeros(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per row of ``rows`` (R, NZ): the indices of its non-zero entries in order (R, NZ) and their count."""
     nr = rows.shape[0]
     idx = np.zeros((nr, NZ), dtype=np.uint64)     # unsigned: indexing with them needs no wraparound test
@@ -341,7 +344,8 @@ def _nonzeros(rows):
 
 
 @njit(cache=True, nogil=True, fastmath={"contract"})
-def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
+def simulate_kernel(src: np.ndarray, model: KernelModel, aut: Automaton, cand: Candidates, cur: np.ndarray, h: float,
+                    out: Trajectories, k0: np.ndarray, zrec: np.ndarray) -> None:
     """Advance B candidates over the samples of ``cur`` (all arrays in scaled units, time in µs).
 
     Candidate b starts at sample ``k0[b]`` in the state ``cand.z0[b]`` (its outputs before that
@@ -533,7 +537,7 @@ def simulate_kernel(src, model, aut, cand, cur, h, out, k0, zrec):
 
 
 @njit(cache=True, nogil=True)
-def lagrange_stencil(nu, nu0, dnu):
+def lagrange_stencil(nu: np.ndarray, nu0: float, dnu: float) -> tuple[np.ndarray, np.ndarray]:
     """Indices (B, 4) and weights (B, 4) of 4-point Lagrange interpolation on the grid nu0 + i*dnu."""
     nb = nu.shape[0]
     idx = np.empty((nb, 4), dtype=np.int64)
@@ -552,7 +556,8 @@ def lagrange_stencil(nu, nu0, dnu):
 
 
 @njit(cache=True, nogil=True)
-def lti_foh_kernel(phi, g0, g1, c, d, cur, h, out_y, out_x):
+def lti_foh_kernel(phi: np.ndarray, g0: np.ndarray, g1: np.ndarray, c: np.ndarray, d: float, cur: np.ndarray, h: float, out_y: np.ndarray,
+                   out_x: np.ndarray) -> None:
     """x_{k+1} = phi x_k + g0 I_k + g1 (I_{k+1} - I_k)/h from x_0 = 0; y_k = c x_k + d I_k; out_x = x."""
     n = cur.shape[0]
     m = phi.shape[0]
@@ -577,7 +582,8 @@ def lti_foh_kernel(phi, g0, g1, c, d, cur, h, out_y, out_x):
 
 
 @njit(cache=True, nogil=True)
-def _candidates(model, idx, w, nu, lh, fo, z0_given, region0):
+def _candidates(model: KernelModel, idx: np.ndarray, w: np.ndarray, nu: np.ndarray, lh: np.ndarray, fo: np.ndarray, z0_given: np.ndarray,
+                region0: np.ndarray) -> Candidates:
     """The :class:`Candidates` of a batch: initial states, output rows and the N_u factors."""
     nb = nu.shape[0]
     d = model.z_scale
@@ -602,7 +608,8 @@ def _candidates(model, idx, w, nu, lh, fo, z0_given, region0):
 
 
 @njit(cache=True, nogil=True)
-def run_batch(model, aut, src, stencil, idx_in, w_in, nu, lh, fo, cur, h):
+def run_batch(model: KernelModel, aut: Automaton, src: np.ndarray, stencil: bool, idx_in: np.ndarray, w_in: np.ndarray, nu: np.ndarray,
+              lh: np.ndarray, fo: np.ndarray, cur: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One call for a whole batch: set up each candidate, interpolate its matrices, simulate.
 
     ``stencil``: interpolate the table ``src`` at ``nu`` (else ``idx_in``/``w_in`` select exact
@@ -645,13 +652,17 @@ def run_batch(model, aut, src, stencil, idx_in, w_in, nu, lh, fo, cur, h):
 
 
 @njit(cache=True, nogil=True)
-def run_table(model, aut, src, nu, lh, fo, cur, h):
+def run_table(model: KernelModel, aut: Automaton, src: np.ndarray, nu: np.ndarray, lh: np.ndarray, fo: np.ndarray, cur: np.ndarray,
+              h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`run_batch` with every candidate's N_u interpolated in the table ``src``."""
-    return run_batch(model, aut, src, True, np.zeros((1, 4), dtype=np.int64), np.zeros((1, 4)), nu, lh, fo, cur, h)
+    out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] = run_batch(
+        model, aut, src, True, np.zeros((1, 4), dtype=np.int64), np.zeros((1, 4)), nu, lh, fo, cur, h)
+    return out
 
 
 @njit(cache=True, nogil=True)
-def valve_prediction(model, aut, src, nu, lh, fo, cur, h, k0, k1, nu_min, nu_max):
+def valve_prediction(model: KernelModel, aut: Automaton, src: np.ndarray, nu: np.ndarray, lh: np.ndarray, fo: np.ndarray, cur: np.ndarray, h: float,
+                     k0: int, k1: int, nu_min: float, nu_max: float) -> tuple[int, float, float, float]:
     """(code, contact time, opening time (s), mean plunger stroke (m) over samples k0 <= k < k1 (NaN if
     k0 >= k1)) of one candidate (``nu``, ``lh``, ``fo`` of size 1); ``code`` is
     :func:`check_inputs`' (nothing is simulated unless ``INPUTS_OK``)."""
@@ -666,7 +677,7 @@ def valve_prediction(model, aut, src, nu, lh, fo, cur, h, k0, k1, nu_min, nu_max
 
 
 @njit(cache=True, nogil=True)
-def check_inputs(cur, nu, lh, fo, nu_min, nu_max):
+def check_inputs(cur: np.ndarray, nu: np.ndarray, lh: np.ndarray, fo: np.ndarray, nu_min: float, nu_max: float) -> tuple[int, int]:
     """``INPUTS_OK`` if all inputs are usable, else ``BAD_CURRENT``, ``BAD_NU`` or ``BAD_LH_FOPEN``;
     and the number of candidates with L_h <= 0 (which need their pre-compressed initial state)."""
     for k in range(cur.shape[0]):
@@ -685,7 +696,8 @@ def check_inputs(cur, nu, lh, fo, nu_min, nu_max):
 
 
 @njit(cache=True, nogil=True)
-def grid_voltages(model, aut, src, col_nu, col, lh, fo, cur, h, lh_free):
+def grid_voltages(model: KernelModel, aut: Automaton, src: np.ndarray, col_nu: np.ndarray, col: np.ndarray, lh: np.ndarray, fo: float, cur: np.ndarray,
+                  h: float, lh_free: float) -> tuple[np.ndarray, np.ndarray]:
     """Voltages (B, N) in V and success (B,) of grid points (N_u = ``col_nu[col[b]]``, L_h = ``lh[b]`` > 0 m).
 
     The points of one N_u column run the same free trajectory until contact: L_h only enters the

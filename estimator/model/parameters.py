@@ -10,7 +10,7 @@ import math
 import sys
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 from collections.abc import Mapping
 
 if sys.version_info >= (3, 11):
@@ -70,7 +70,13 @@ def _check_fields(obj: Any) -> None:
             raise ParameterError(f"{f.name} = {value!r} {unit}: must be > 0")
 
 
-def _from_mapping(cls, values: Mapping[str, Any], label: str):
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+_T = TypeVar("_T", bound="DataclassInstance")
+
+
+def _from_mapping(cls: type[_T], values: Mapping[str, Any], label: str) -> _T:
     """A parameter dataclass from {field: SI value}; unknown or missing fields raise ParameterError."""
     unknown = set(values) - {f.name for f in fields(cls)}
     if unknown:

@@ -101,16 +101,16 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
             ax, au = a[: dyn.NX, : dyn.NX], a[: dyn.NX, dyn.NX:]
             active = [j for j in range(dyn.MAX_GUARDS) if aut.target[region, j] >= 0]
 
-            def rhs(tt: float, xv: np.ndarray, ax=ax, au=au) -> np.ndarray:
+            def rhs(tt: float, xv: np.ndarray, ax: np.ndarray = ax, au: np.ndarray = au) -> np.ndarray:
                 u = consts.copy()
                 u[0] = np.interp(tt, t_us, cur)
                 return ax @ xv + au @ u
 
             events = []
             for j in active:
-                def ev(tt: float, xv: np.ndarray, r=region, j=j, sn=seated) -> float:
+                def ev(tt: float, xv: np.ndarray, r: int = region, j: int = j, sn: bool = seated) -> float:
                     return guard_value(aut.guards, aut.open_seated, aut.open_index, r, j, augmented(tt, xv), sn)
-                ev.terminal, ev.direction = True, 1.0
+                ev.terminal, ev.direction = True, 1.0   # type: ignore[attr-defined]  # solve_ivp reads them
                 events.append(ev)
             t_eval = t_us[(t_us > t + 1e-12) & (t_us <= t_us[k1] + 1e-12)]
             if t_eval.size == 0:  # an event landed on the knot itself
@@ -129,20 +129,20 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
             te = [(ts[0], i) for i, ts in enumerate(sol.t_events) if ts.size]
             t_ev, i_ev = min(te)
             x = sol.y_events[i_ev][0].copy()
-            j = active[i_ev]
+            jn: int | None = active[i_ev]
             t = t_ev
-            while j is not None:
+            while jn is not None:
                 z = augmented(t, x)
-                seated = apply_reset(z, aut.reset[region, j], seated)
+                seated = apply_reset(z, aut.reset[region, jn], seated)
                 x = z[: dyn.NX]
-                region = int(aut.target[region, j])
+                region = int(aut.target[region, jn])
                 n_events += 1
                 if in_contact(aut.region_mode[region]) and np.isnan(t_contact):
                     t_contact = t
                 if aut.region_mode[region] == MODE_OPEN and np.isnan(t_open):
                     t_open = t
                 z = augmented(t, x)
-                j = next((jj for jj in range(dyn.MAX_GUARDS) if aut.target[region, jj] >= 0
+                jn = next((jj for jj in range(dyn.MAX_GUARDS) if aut.target[region, jj] >= 0
                           and guard_value(aut.guards, aut.open_seated, aut.open_index, region, jj, z, seated) > _INSTANT_TOL), None)
             if n_events > _MAX_EVENTS:
                 return result(STATUS_EVENT_CAP)
