@@ -38,7 +38,7 @@ test-install: $(STAMP)
 
 # The documentation site (docs/_build/html); warnings are errors.
 docs: $(STAMP)
-	$(PY) -m sphinx -b html -W --keep-going -q docs docs/_build/html
+	$(PY) -m sphinx -E -b html -W --keep-going -q docs docs/_build/html
 	@echo "docs in docs/_build/html/index.html"
 
 # ruff and mypy.

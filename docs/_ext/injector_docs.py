@@ -75,12 +75,13 @@ class StatusTable(SphinxDirective):
     """Status words and wire codes, with the DBC's description."""
 
     def run(self) -> list[nodes.Node]:
+        from estimator.codec.records import Codec   # noqa: PLC0415
         from estimator.ident.status import Status   # noqa: PLC0415
 
-        sig = _database().get_message_by_name("EstimateState").get_signal_by_name("Status")
-        rows = [[f"``{s.value}``", str(s.code), str(sig.choices.get(s.code, ""))] for s in Status]
-        return _parse(self, _list_table("Estimate statuses", ["word (JSON, CSV)", "code on the bus", "DBC name"],
-                                        rows, "30 20 50"))
+        codec = Codec(_database())   # the codes are the DBC's value table's, read by the codec
+        rows = [[f"``{s.value}``", str(codec.status_code(s))] for s in Status]
+        return _parse(self, _list_table("Estimate statuses", ["word (JSON, CSV, the DBC's value table)",
+                                                              "code on the bus"], rows, "60 40"))
 
 
 def _literal_backticks(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
