@@ -10,6 +10,7 @@ import math
 from dataclasses import dataclass, field
 
 from estimator.choices import Choice, ColdStart, Norm, Robust
+from estimator.ident.adequacy import EXCESS_Z_THRESHOLD, STRUCTURE_THRESHOLD
 from estimator.model.parameters import InjectorParameters
 
 # the search's margin beyond the parameters' N_u range: an injector at 20.99 N/V whose noise puts its
@@ -55,9 +56,9 @@ class IdentConfig:
     cold_start: ColdStart = ColdStart.LOCAL_FIRST
     start_point: tuple[float, float] = (18.0, 4.0)   # N/V, µm: where a local-first cold start begins (a lot's nominal)
     local_accept_z: float = 6.0            # a local fit is kept if its residual exceeds white noise by <= z standard deviations
-    adequacy_structure: float = 60.0       # chi-square(24) of the residual's smooth part above which the model is inadequate
+    adequacy_structure: float = STRUCTURE_THRESHOLD  # chi-square(24) of the residual's smooth part above which the model is inadequate
                                            # (its lowest 8 columns: 0.6 of it)
-    adequacy_excess_z: float = 6.0         # the whole residual's energy above noise (sd) above which it is inadequate
+    adequacy_excess_z: float = EXCESS_Z_THRESHOLD    # the whole residual's energy above noise (sd) above which it is inadequate
     mismatch_floor: tuple[float, float] = (0.01, 0.6)   # model-error sigma of an inadequate fit: N_u relative, L_h µm
     mismatch_scale: tuple[float, float] = (0.002, 0.18)  # ... plus this per sqrt(structure chi2 / 24): N_u relative, L_h µm
     preload_rel_sigma: float = 0.0         # relative uncertainty (1 sigma) of the header's PreloadForce; enters sigma
