@@ -119,7 +119,7 @@ def cmd_accuracy(args: argparse.Namespace) -> int:
     from sim_bench import ident_bench
 
     scen = {"matched": [False], "mismatch": [True], "both": [False, True]}[args.scenario]
-    sweeps = ["random", "near-edge", "high-noise", "spread", "chain"] if args.sweep == "all" else [args.sweep]
+    sweeps = ["random", "near-edge", "high-noise", "spread", "chain", "preload-off"] if args.sweep == "all" else [args.sweep]
     reports = []
     for sweep in sweeps:
         plants = scen if sweep == "random" else [False]   # the other sweeps have targets of their own
@@ -430,10 +430,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("accuracy", help="single-injection accuracy vs the Cramér–Rao bound")
     s.add_argument("--scenario", choices=("matched", "mismatch", "both"), default="both", help="exact plant, the hysteresis plant, or both (default both)")
-    s.add_argument("--sweep", choices=("all", "random", "near-edge", "high-noise", "spread", "spread-chain", "chain"),
+    s.add_argument("--sweep", choices=("all", "random", "near-edge", "high-noise", "spread", "spread-chain", "chain",
+                                       "preload-off"),
                    default="all",
                    help="random truths over the ranges; N_u near the range edges; 0.3 V voltage noise; series "
-                        "parts within ±10 %% (spread; spread-chain behind an unmodelled chain); a modelled chain")
+                        "parts within ±10 %% (spread; spread-chain behind an unmodelled chain); a modelled chain; "
+                        "a header preload force 10-15 %% off the true one (preload-off)")
     s.add_argument("--n", type=int, default=100, help="number of random injectors per sweep (default 100)")
     s.add_argument("--seed", type=int, default=1, help="seed of the random draws (default 1)")
     s.add_argument("--window-us", type=float, default=100.0, help="identification window in µs (default 100)")

@@ -29,8 +29,10 @@ LH_RANGE_UM = (-1.0, 10.0)
 F_OPEN_N = NOMINAL_PRELOAD_N
 
 
-def _injection(m: Measurement, **kw) -> Injection:
-    return Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n, **kw)
+def _injection(m: Measurement, f_open_n: float | None = None) -> Injection:
+    """The measurement as the estimator receives it; ``f_open_n`` the header's preload force (N),
+    default the true one."""
+    return Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n if f_open_n is None else f_open_n)
 
 
 def _rms(x) -> float:
@@ -57,7 +59,8 @@ def accuracy(n: int = 60, seed: int = 1, mismatch: bool = False, window_s: float
     0.3 V; ``spread`` a new series part per injection (every structural parameter within ±10 %,
     :mod:`sim_bench.series_part`), ``spread-chain`` the same behind a typical measurement chain (300 kHz
     on U, I one sample late) the estimator does not know; ``chain`` the nominal injector behind that
-    chain, which the estimator's parameters do model.
+    chain, which the estimator's parameters do model; ``preload-off`` the exact injector at a preload
+    force drawn over 28-300 N whose header (the ECU's value) is 10-15 % off, up or down.
     """
     adc = AdcConfig() if noise_v is None else AdcConfig(voltage_noise_v=noise_v)
     chain = series_part.TYPICAL_CHAIN if sweep in ("chain", "spread-chain") else PlantConfig().chain
@@ -75,12 +78,16 @@ def accuracy(n: int = 60, seed: int = 1, mismatch: bool = False, window_s: float
         lh = float(rng.uniform(*LH_RANGE_UM)) * 1e-6
         if sweep in SPREAD_SWEEPS:
             plant = Plant(cfg, series_part.draw(rng, SERIES_SPREAD).params)
-        m = plant.measure(nu, lh, F_OPEN_N, rng)
+        f_true = header = F_OPEN_N
+        if sweep == "preload-off":
+            f_true = float(rng.uniform(F_OPEN_N, PRELOAD_MAX_N))
+            header = f_true * (1.0 + float(rng.choice((-1.0, 1.0))) * float(rng.uniform(*PRELOAD_HEADER_ERROR)))
+        m = plant.measure(nu, lh, f_true, rng)
         t0 = time.perf_counter()
-        est = identify(_injection(m), sim, icfg)
+        est = identify(_injection(m, header), sim, icfg)
         dt = time.perf_counter() - t0
-        bound = crb(sim, sim.params.chain.correct(m.current_a, m.voltage_v, m.dt_s)[0], nu, lh, F_OPEN_N, sigma, window_s)
-        crb_to = crb_opening_time(sim, m.current_a, nu, lh, F_OPEN_N, bound)
+        bound = crb(sim, sim.params.chain.correct(m.current_a, m.voltage_v, m.dt_s)[0], nu, lh, f_true, sigma, window_s)
+        crb_to = crb_opening_time(sim, m.current_a, nu, lh, f_true, bound)
         rows.append({"nu_true": nu, "lh_true_um": lh * 1e6, "nu": est.nu_n_per_v, "lh_um": est.lh_m * 1e6,
                      "t_open_true_us": m.t_open_s * 1e6, "t_open_us": est.t_open_s * 1e6,
                      "stroke_true_um": m.stroke_m * 1e6, "stroke_um": est.stroke_m * 1e6,
@@ -97,7 +104,7 @@ def accuracy(n: int = 60, seed: int = 1, mismatch: bool = False, window_s: float
     e_to = [r["t_open_us"] - r["t_open_true_us"] for r in rows]
     e_st = [r["stroke_um"] - r["stroke_true_um"] for r in rows]
     summary = {
-        "n": n, "mismatch": mismatch, "plant": sweep if sweep in SPREAD_SWEEPS + ("chain",) else None, "window_us": window_s * 1e6, "noise_v": sigma, "sweep": sweep,
+        "n": n, "mismatch": mismatch, "plant": PLANT_LABELS.get(sweep), "window_us": window_s * 1e6, "noise_v": sigma, "sweep": sweep,
         "max_abs_nu_pct": float(np.nanmax(np.abs(e_nu))), "beyond_3_sigma": int(np.sum(np.abs(z) > 3)),
         "beyond_0p3_where_sigma_le_0p1": int(np.sum((sig <= 0.1) & (abs_lh > 0.3))),
         "ok_off_by_more_than_0p5": int(np.sum(ok & (abs_lh > 0.5))), "rms_error_over_sigma": _rms(z),
@@ -121,6 +128,10 @@ def accuracy(n: int = 60, seed: int = 1, mismatch: bool = False, window_s: float
 
 NEAR_EDGE_NU = ((15.02, 15.3), (20.7, 20.95))
 SPREAD_SWEEPS = ("spread", "spread-chain")
+HONESTY_SWEEPS = SPREAD_SWEEPS + ("preload-off",)   # plants the model does not describe: judged on honesty
+PLANT_LABELS = {"spread": "spread", "spread-chain": "spread-chain", "chain": "chain", "preload-off": "header"}
+PRELOAD_MAX_N = 300.0                 # preload forces of the preload-off sweep: 28..300 N
+PRELOAD_HEADER_ERROR = (0.10, 0.15)   # the header's preload force off by 10-15 %
 SERIES_SPREAD = 0.10          # ±10 % on every structural parameter of a series part
 MISMATCH_FALSE_ALARMS = 0.01  # at most this fraction of model_mismatch on the exact plant
 HIGH_NOISE_V = 0.3
@@ -131,13 +142,16 @@ def accuracy_failures(s: dict) -> list[str]:
     if s["mismatch"]:
         return []
     fails = []
-    if s["sweep"] in SPREAD_SWEEPS:
+    if s["sweep"] in HONESTY_SWEEPS:
         if s["ok_off_by_more_than_0p3"]:
             fails.append(f"{s['ok_off_by_more_than_0p3']} estimates off by > 0.3 µm with status ok")
         if s["ok_within_3_sigma"] < 0.95:
             fails.append(f"only {100 * s['ok_within_3_sigma']:.0f} % of ok estimates within 3 sigma")
-        if not 0.7 <= s["rms_error_over_sigma"] <= 1.5:
-            fails.append(f"RMS(error/sigma) {s['rms_error_over_sigma']:.2f} outside 0.7..1.5")
+        # a wrong header's estimates are mostly model_mismatch with the model-error floor: wide, not
+        # wrong, so only an understating sigma fails there
+        low = 0.7 if s["sweep"] in SPREAD_SWEEPS else 0.0
+        if not low <= s["rms_error_over_sigma"] <= 1.5:
+            fails.append(f"RMS(error/sigma) {s['rms_error_over_sigma']:.2f} outside {low:g}..1.5")
         return fails
     if s["sweep"] == "chain":
         if s["max_abs_nu_pct"] > 0.1 or s["max_abs_z_lh"] > 2.5:

@@ -22,7 +22,9 @@ class Estimate:
     explain the samples (status ``model_mismatch``: the bias that implies, see
     :mod:`estimator.ident.mismatch`; ``model_error_d`` the difference to the other cost's estimate in
     (N/V, µm), zero if it was not made); ``structure_chi2`` is the adequacy test's statistic of the plain
-    model; ``jtj`` and ``directions`` are in (N/V, µm) coordinates.
+    model; ``preload_chi2`` and ``preload_delta_n`` the test of the header's preload force where it was
+    made (:func:`estimator.ident.mismatch.preload_check`), ``preload_shift`` the move the samples' own force implies
+    where it is suspect (in ``model_error_cov``), ``preload_wrong`` whether the header is wrong; ``jtj`` and ``directions`` are in (N/V, µm) coordinates.
     """
 
     nu_n_per_v: float
@@ -46,6 +48,10 @@ class Estimate:
     model_error_d: np.ndarray = field(default_factory=lambda: np.zeros(2))
     mismatch: bool = False    # the model cannot explain the samples (``model_error_cov`` is then added)
     excess_z: float = float("nan")   # a mismatched fit's residual excess over white noise (sd, see cold_start)
+    preload_chi2: float = float("nan")      # the header's preload force against the samples (chi-square(1); NaN: not tested)
+    preload_delta_n: float = float("nan")   # the change of preload force the samples point to (N)
+    preload_shift: np.ndarray | None = None  # (N/V, µm) the move the samples' own preload force implies (if suspect)
+    preload_wrong: bool = False              # the header's preload force cannot explain the samples
 
     @property
     def point(self) -> NuLh:
@@ -79,6 +85,7 @@ class Estimate:
             "status": self.status.value, "message": self.message, "evaluations": self.evaluations,
             "robust": self.robust, "model_error_stat": num(self.model_error_stat, 1.0, 2),
             "noise_sigma_v": num(self.noise_sigma_v, 1.0, 4), "structure_chi2": num(self.structure_chi2, 1.0, 1),
+            "preload_chi2": num(self.preload_chi2, 1.0, 1), "preload_delta_n": num(self.preload_delta_n, 1.0, 2),
         }
 
 

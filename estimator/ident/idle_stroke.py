@@ -26,7 +26,7 @@ from estimator.ident.cost import CostModel
 from estimator.ident.estimate import Estimate, rejected
 from estimator.ident.local_fit import LocalFit
 from estimator.ident.measurement import Injection
-from estimator.ident.mismatch import model_error_cov, plain_adequacy, preload_cov
+from estimator.ident.mismatch import model_error_cov, plain_adequacy, preload_check, preload_cov
 from estimator.ident.model_selection import likelihood_ratio, prefers_robust
 from estimator.ident.search import Box
 from estimator.ident.status import Status
@@ -120,7 +120,7 @@ def identify(injection: Injection, sim: FastSimulator | None = None, config: Ide
         if fit.success and (robust or not adequacy.adequate):   # type: ignore[union-attr]
             other, extra = complement_fit(sim, injection, config, box, model, fit)
         return finish(sim, injection, fit, converged, model.evaluations + extra, box, robust, float("nan"), config,
-                      adequacy=adequacy, other=other, model=model)
+                      adequacy=adequacy, other=other, model=model, check_preload=True)
     m_plain, m_rob = _cost_model(sim, injection, config, False), _cost_model(sim, injection, config, True)
     m_plain.share_basis(m_rob)
     if local:
@@ -138,7 +138,7 @@ def identify(injection: Injection, sim: FastSimulator | None = None, config: Ide
         return finish(sim, injection, f_rob, c_rob, evaluations, box, True, stat, config, adequacy=adequacy,
                       other=f_plain.x if f_plain.success else None, model=m_rob)
     return finish(sim, injection, f_plain, c_plain, evaluations, box, False, stat, config, adequacy=adequacy,
-                  other=f_rob.x if f_rob.success else None, model=m_plain)
+                  other=f_rob.x if f_rob.success else None, model=m_plain, check_preload=True)
 
 
 def _local_first_auto(sim: FastSimulator, injection: Injection, m_plain: CostModel, m_rob: CostModel,
@@ -179,7 +179,8 @@ def _local_first_auto(sim: FastSimulator, injection: Injection, m_plain: CostMod
     if not excess_residual_z(model, fit) <= config.local_accept_z:
         return None
     return finish(sim, injection, fit, True, m_plain.evaluations + m_rob.evaluations, box, robust, stat, config,
-                  adequacy=plain_adequacy(m_plain, fits[0], config), other=fits[1 - int(robust)].x, model=model)
+                  adequacy=plain_adequacy(m_plain, fits[0], config), other=fits[1 - int(robust)].x, model=model,
+                  check_preload=True)
 
 
 def complement_fit(sim: FastSimulator, injection: Injection, config: IdentConfig, box: Box, model: CostModel,
@@ -198,23 +199,42 @@ def complement_fit(sim: FastSimulator, injection: Injection, config: IdentConfig
 
 def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: bool, evaluations: int, box: Box,
            robust: bool, stat: float, config: IdentConfig, predict: bool = True, adequacy: Adequacy | None = None,
-           other: np.ndarray | None = None, model: CostModel | None = None, structure: float | None = None) -> Estimate:
+           other: np.ndarray | None = None, model: CostModel | None = None, structure: float | None = None,
+           check_preload: bool = False, preload_shift: np.ndarray | None = None,
+           preload_wrong: bool = False) -> Estimate:
     """Turn a local fit into an Estimate with status and (``predict``) the plateau stroke.
 
     ``adequacy`` is the plain model's test on these samples; a robust fit, or a plain one that fails
     it, is a ``model_mismatch`` whose covariance includes the model error (``other``: the other
     cost's estimate, see :mod:`estimator.ident.mismatch`; ``structure`` the plain residual's statistic
     where ``adequacy`` was not tested now). ``model``: the fit's cost model, for the
-    preload force's uncertainty. Contact and opening times are those of the fitted window; the stroke
-    needs one more, longer simulation (see :func:`predict_valve`)."""
+    preload force's uncertainty and (``check_preload``) the test of the header's preload force
+    (:func:`~estimator.ident.mismatch.preload_check`): a plain fit whose samples point to another
+    force is a ``model_mismatch`` too, its covariance widened by the move that force implies (also
+    where the force is only suspect, without the status); ``preload_shift`` (N/V, µm) and
+    ``preload_wrong`` are that move and verdict as a recent test of this injector found them, where it
+    was not tested now. Contact and opening times are those of the fitted window; the stroke needs one
+    more, longer simulation (see :func:`predict_valve`)."""
     if not fit.success:
         return rejected("simulation failed at the optimum", evaluations)
     x = fit.x
     mismatch = robust or (adequacy is not None and not adequacy.adequate)
+    check = None
+    if check_preload and not mismatch and model is not None and config.preload_check_chi2 > 0:
+        check = preload_check(model, fit, config.preload_check_chi2)
+        evaluations += 4
+        preload_shift = check.shift if check is not None and check.suspect else None
+        preload_wrong = check is not None and check.inconsistent
+    if robust:        # the robust cost's own model error covers it
+        preload_shift, preload_wrong = None, False
+    wrong_preload = preload_wrong and preload_shift is not None
+    mismatch = mismatch or wrong_preload
     if adequacy is not None:
         structure = adequacy.structure
     structure = float("nan") if structure is None else structure
     bias = model_error_cov(x, other, config, structure) if mismatch else np.zeros((2, 2))
+    if preload_shift is not None:    # the move the samples' own preload force implies: a bias
+        bias = bias + np.outer(preload_shift, preload_shift)
     if not sim.params.calibration.zero:   # what a calibrated parameter set leaves uncertain: a bias too
         bias = bias + sim.params.calibration.cov(float(x[0]))
     cov_x = fit.cov_x + bias
@@ -229,8 +249,13 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
         status, msg = Status.NOT_CONVERGED, "line searches did not converge"
     elif mismatch:
         status = Status.MODEL_MISMATCH
-        msg = adequacy.reason if adequacy is not None and not adequacy.adequate else (
-            "model cannot explain the samples (robust cost: model error in the nuisance span)")
+        if adequacy is not None and not adequacy.adequate:
+            msg = adequacy.reason
+        elif wrong_preload:
+            msg = check.reason(injection.f_open_n) if check is not None else (
+                "the header's preload force disagrees with this injector's samples (as last tested)")
+        else:
+            msg = "model cannot explain the samples (robust cost: model error in the nuisance span)"
     elif cov_x[1, 1] > config.sigma_limit_lh_um ** 2:
         status, msg = Status.UNCERTAIN, (f"sigma(L_h) {np.sqrt(cov_x[1, 1]):.2f} µm above the limit "
                                          f"{config.sigma_limit_lh_um:.2f} µm")
@@ -244,4 +269,6 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
     excess = excess_residual_z(model, fit) if mismatch and model is not None else float("nan")
     return Estimate(float(x[0]), float(x[1] / UM_PER_M), cov_to_si(cov_x), fit.paper_cost_vs, fit.criterion,
                     evaluations + 1, status, msg, robust, stat, fit.sigma_v, tc, to, stroke, fit.jtj, d, structure, bias,
-                    diff, mismatch, excess)
+                    diff, mismatch, excess, check.chi2 if check is not None else float("nan"),
+                    check.delta_f_n if check is not None else float("nan"),
+                    None if preload_shift is None else np.array(preload_shift, dtype=float), wrong_preload)

@@ -63,6 +63,7 @@ from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParamet
 STATE_VERSION = 2
 LOCAL_ACCEPT_MARGIN = 3.0      # a mismatched injector's re-acquisition keeps a local fit within 3x its usual residual excess
 ROBUST_CHECK_EVERY = 4         # in robust mode, every 4th injection also fits the plain model (model-error test)
+PRELOAD_CHECK_EVERY = 8        # every 8th warm update tests the header's preload force (four simulations)
 
 
 def process_noise(config: TrackerConfig, box: Box) -> kalman.ProcessNoise:
@@ -98,7 +99,10 @@ class TrackerState:
     ``model_error_d`` and ``model_error_structure`` running mean squares of the plain - robust
     differences (N/V, µm) and of the plain residual's structure (chi-square) that size its model error;
     ``excess_z`` a running mean of a mismatched injector's residual excess over white noise (standard
-    deviations), which lets a re-acquisition keep a local fit that leaves as much (see :func:`_cold_estimate`).
+    deviations), which lets a re-acquisition keep a local fit that leaves as much (see :func:`_cold_estimate`);
+    ``preload_shift`` the move (N/V, µm) the samples' own preload force implied at the last test of the
+    header's (None: the header's agreed, or no test yet) and ``preload_wrong`` that test's verdict, both
+    held until the next test.
     """
 
     initialized: bool = False
@@ -122,6 +126,8 @@ class TrackerState:
     model_error_d: list[float] = field(default_factory=lambda: [0.0, 0.0])
     model_error_structure: float | None = None
     excess_z: float | None = None
+    preload_shift: list[float] | None = None
+    preload_wrong: bool = False
     version: int = STATE_VERSION
 
     def to_dict(self) -> dict[str, Any]:
@@ -134,7 +140,7 @@ class TrackerState:
         if not isinstance(d, dict) or d.get("version") != STATE_VERSION:
             raise ValueError(f"not a tracker state of version {STATE_VERSION}")
         st = cls()
-        for name in ("initialized", "robust", "mismatch"):
+        for name in ("initialized", "robust", "mismatch", "preload_wrong"):
             setattr(st, name, _check_bool(d, name, getattr(st, name)))
         for name in ("model_error_run", "clean_run", "doubts", "accepted", "rejected", "updates", "mismatch_clean",
                      "mismatch_run"):
@@ -142,6 +148,8 @@ class TrackerState:
         st.model_error_d = _check_array(d, "model_error_d", (2,), True).tolist() if "model_error_d" in d else [0.0, 0.0]
         st.model_error_structure = _check_optional_float(d, "model_error_structure")
         st.excess_z = _check_optional_float(d, "excess_z") if "excess_z" in d else None
+        if d.get("preload_shift") is not None:
+            st.preload_shift = _check_array(d, "preload_shift", (2,), True).tolist()
         st.x = _check_array(d, "x", (kalman.N_STATE,), st.initialized).tolist()
         p = _check_array(d, "p", (kalman.N_STATE, kalman.N_STATE), True)
         if st.initialized and (not np.allclose(p, p.T, rtol=1e-9, atol=1e-15) or np.any(np.linalg.eigvalsh(p) < 0)):
@@ -325,9 +333,13 @@ def _warm_estimate(state: TrackerState, x0: np.ndarray, inj: Injection, sim: Fas
             adequacy, other = plain_adequacy(plain, fit_p, ic), fit_p.x
     elif fit.success:    # robust, untested this time: the model error as last sized
         other = fit.x - np.asarray(state.model_error_d)
-    # the published prediction is made once, for the published estimate (``_publish``)
+    # the published prediction is made once, for the published estimate (``_publish``); the header's
+    # preload force is tested every PRELOAD_CHECK_EVERY-th update, its verdict held in between
+    check = not state.robust and state.updates % PRELOAD_CHECK_EVERY == 0
+    held = None if check or state.preload_shift is None else np.array(state.preload_shift)
     return finish(sim, inj, fit, converged, model.evaluations + extra, box, state.robust, stat, ic, predict=False,
-                  adequacy=adequacy, other=other, model=model, structure=state.model_error_structure)
+                  adequacy=adequacy, other=other, model=model, structure=state.model_error_structure,
+                  check_preload=check, preload_shift=held, preload_wrong=state.preload_wrong and not check)
 
 
 def _cold_estimate(state: TrackerState, inj: Injection, sim: FastSimulator, config: TrackerConfig) -> Estimate:
@@ -576,7 +588,11 @@ MODEL_ERROR_WEIGHT = 0.2   # weight of the newest injection in an injector's mod
 def _note_mismatch(st: TrackerState, raw: Estimate, config: TrackerConfig) -> None:
     """Keep the injector's model-mismatch flag: set by its first estimate if that is mismatched, else by
     ``mismatch_on_after`` mismatched accepted injections in a row; cleared after ``mismatch_clear_after``
-    adequate ones in a row."""
+    adequate ones in a row. A test of the header's preload force, where one was made, replaces the
+    last one's verdict."""
+    if math.isfinite(raw.preload_chi2):
+        st.preload_shift = None if raw.preload_shift is None else [float(v) for v in raw.preload_shift]
+        st.preload_wrong = raw.preload_wrong
     if raw.mismatch:
         # the injector's model error is the same from one injection to the next, but each injection
         # sizes it with its own noise: a running mean square of the sizings (the first one alone at first)
@@ -612,11 +628,12 @@ def _note_mismatch(st: TrackerState, raw: Estimate, config: TrackerConfig) -> No
 def _widen(filt: tuple[np.ndarray, np.ndarray] | None, st: TrackerState,
            config: TrackerConfig, sim: FastSimulator) -> tuple[np.ndarray, np.ndarray] | None:
     """The filtered (state, covariance) to publish: while the injector's model is mismatched, its
-    model-error covariance is added, and for a calibrated parameter set the uncertainty the
-    calibration leaves. Both are the same for every injection of the injector, so averaging
-    injections does not shrink them: the filter's own covariance would claim it did."""
+    model-error covariance is added, for a calibrated parameter set the uncertainty the calibration
+    leaves, and where the header's preload force is suspect the move the samples' own force implies.
+    Each is the same for every injection of the injector, so averaging injections does not shrink
+    them: the filter's own covariance would claim it did."""
     calibration = sim.params.calibration
-    if filt is None or (not st.mismatch and calibration.zero):
+    if filt is None or (not st.mismatch and calibration.zero and st.preload_shift is None):
         return filt
     x, p = filt
     q = np.array(p, copy=True)
@@ -626,6 +643,8 @@ def _widen(filt: tuple[np.ndarray, np.ndarray] | None, st: TrackerState,
         q[:2, :2] += model_error_cov(xi, xi - np.asarray(st.model_error_d), config.ident, structure)
     if not calibration.zero:
         q[:2, :2] += calibration.cov(float(xi[0]))
+    if st.preload_shift is not None:   # the move the samples' own preload force implies
+        q[:2, :2] += np.outer(st.preload_shift, st.preload_shift)
     return x, q
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -98,7 +100,7 @@ def test_an_old_state_without_the_mismatch_fields_still_loads():
 
 def test_mismatch_settings_are_checked():
     for kw in ({"mismatch_floor": (0.01,)}, {"mismatch_scale": (-1.0, 0.1)}, {"preload_rel_sigma": 0.9},
-               {"adequacy_structure": 0.0}):
+               {"adequacy_structure": 0.0}, {"preload_check_chi2": -1.0}):
         with pytest.raises(ValueError):
             IdentConfig(**kw)
 
@@ -231,3 +233,56 @@ def test_a_mismatched_injector_is_reacquired_by_a_local_fit_not_the_global_searc
     assert max(r.raw.evaluations for k, r in glob if k >= 60) >= 450         # which the white-noise check forced
     worst = max(abs(a.lh_m - b.lh_m) / b.sigma_lh_m for (k, a), (_, b) in zip(local, glob) if k >= 60)
     assert worst < 0.5, worst
+
+
+def test_a_header_preload_force_off_by_10_percent_is_found_in_the_samples():
+    """An ECU's preload force 10 % off the true 28 N moves L_h by about 0.3 µm and leaves a white
+    residual; one injection carries F_open to about ±0.6 N, and the test of the header's value makes
+    such an estimate a model_mismatch whose sigma covers the move (never ok and off by more than 3 sigma)."""
+    rng = np.random.default_rng(40)
+    plant = Plant(PlantConfig(window_s=150e-6))
+    sim = FastSimulator()
+    named, z = 0, []
+    for _ in range(12):
+        nu, lh = float(rng.uniform(15.5, 20.5)), float(rng.uniform(0.5, 8.0))
+        m = plant.measure(nu, lh * 1e-6, 28.0, rng)
+        est = identify(Injection(m.current_a, m.voltage_v, m.dt_s, 28.0 * 0.9), sim)
+        err = est.lh_m * 1e6 - lh
+        assert not (est.status == Status.OK and abs(err) > 3 * est.sigma_lh_m * 1e6), (err, est.sigma_lh_m)
+        named += "preload force" in est.message
+        z.append(err / (est.sigma_lh_m * 1e6))
+        if "preload force" in est.message:
+            assert est.status == Status.MODEL_MISMATCH and est.preload_delta_n > 0   # the samples point upwards
+            assert est.to_dict()["preload_chi2"] > IdentConfig().preload_check_chi2 and est.preload_wrong
+    assert named >= 3
+    assert float(np.sqrt(np.mean(np.square(z)))) < 1.5
+    # the header right: tested, consistent, ok
+    m = plant.measure(17.0, 3e-6, 28.0, rng)
+    est = identify(Injection(m.current_a, m.voltage_v, m.dt_s, 28.0), sim)
+    assert est.status == Status.OK and est.preload_chi2 < 15 and est.preload_shift is None
+    # the test switched off: not made
+    off = identify(Injection(m.current_a, m.voltage_v, m.dt_s, 28.0), sim, IdentConfig(preload_check_chi2=0.0))
+    assert np.isnan(off.preload_chi2) and off.to_dict()["preload_chi2"] is None
+
+
+def test_the_tracker_holds_a_wrong_header_preload_between_its_tests_and_keeps_it_in_its_state():
+    rng = np.random.default_rng(41)
+    plant = Plant(PlantConfig(window_s=100e-6))
+    tr = Tracker(TrackerConfig())
+    results = []
+    for k in range(12):
+        m = plant.measure(17.0, 4e-6, 28.0, rng)
+        results.append(tr.update(Injection(m.current_a, m.voltage_v, m.dt_s, 28.0 * 0.9, counter=k, time_s=0.1 * k)))
+        assert not (results[-1].status == Status.OK and abs(results[-1].lh_m * 1e6 - 4.0) > 0.3)
+    first, second = results[0].raw, results[1].raw
+    assert first.preload_wrong and np.isfinite(first.preload_chi2) and "25.2 N disagrees" in first.message
+    # the next update is not tested: the verdict is held, and so is the move in sigma
+    assert np.isnan(second.preload_chi2) and second.preload_wrong and "as last tested" in second.message
+    assert results[1].status == Status.MODEL_MISMATCH
+    assert results[1].sigma_lh_m * 1e6 >= abs(first.preload_shift[1])
+    assert Status.OK not in [r.status for r in results]
+    st = tr.states[0]
+    back = TrackerState.from_dict(json.loads(json.dumps(st.to_dict())))
+    assert back.preload_shift == st.preload_shift and back.preload_wrong == st.preload_wrong
+    with pytest.raises(ValueError):
+        TrackerState.from_dict({**st.to_dict(), "preload_shift": [1.0, float("nan")]})
