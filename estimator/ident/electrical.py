@@ -4,7 +4,7 @@ Tables 1-2 describe one laboratory's injector; a series part's masses and stiffn
 5-15 %, which moves the idle-stroke estimate by micrometres. No displacement sensor is needed to learn
 them: a batch of injections at different preload forces and coupling factors carries the
 information in the voltage alone. This module fits, by bounded least squares
-(:func:`scipy.optimize.least_squares`),
+(:func:`~estimator.ident.levenberg_marquardt.least_squares_lm`),
 
 - the shared structural parameters ``theta`` as relative factors on the base parameter set (default
   the thirteen of :data:`~estimator.model.parameters.STRUCTURAL`), each with a Gaussian prior of
@@ -25,18 +25,16 @@ parameters, each injection fitted alone) and after.
 
 from __future__ import annotations
 
-from typing import Any
-
 import math
 from collections import OrderedDict
 from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from estimator.ident.adequacy import SMOOTH_COLUMNS, assess, noise_level_v
 from estimator.ident.config import IdentConfig
 from estimator.ident.idle_stroke import identify
+from estimator.ident.levenberg_marquardt import LeastSquaresResult, least_squares_lm
 from estimator.ident.measurement import Injection
 from estimator.model.chain import MeasurementChain, lowpass
 from estimator.model.fast_sim import FastSimulator
@@ -273,16 +271,16 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
             row += n_win[j]
         return jac
 
-    def solve(start: np.ndarray) -> Any:   # scipy's OptimizeResult
-        return least_squares(residual, np.clip(start, lo + 1e-9, hi - 1e-9), jac=jacobian, bounds=(lo, hi),
-                             method="trf", x_scale="jac", max_nfev=max_iterations, xtol=1e-8, ftol=1e-10)
+    def solve(start: np.ndarray) -> LeastSquaresResult:
+        return least_squares_lm(residual, jacobian, np.clip(start, lo + 1e-9, hi - 1e-9), lo, hi,
+                                max_nfev=max_iterations, xtol=1e-8, ftol=1e-10)
 
-    def voltage_residuals(f: Any) -> list[np.ndarray]:
+    def voltage_residuals(f: LeastSquaresResult) -> list[np.ndarray]:
         """Each injection's voltage residual (V) at the solution ``f``."""
         edges = np.cumsum([0] + n_win)
         return [f.fun[edges[j]:edges[j + 1]] * sigma[j] for j in range(b)]
 
-    def misfit_z(f: Any) -> float:
+    def misfit_z(f: LeastSquaresResult) -> float:
         """The worst injection's smooth residual structure (chi-square of its lowest cosine components,
         :func:`~estimator.ident.adequacy.assess`) in standard deviations above its expectation."""
         return max((assess(r, 2 + p // b).structure - SMOOTH_COLUMNS) / math.sqrt(2.0 * SMOOTH_COLUMNS)
