@@ -26,7 +26,7 @@ from estimator.ident.cost import CostModel
 from estimator.ident.estimate import Estimate, rejected
 from estimator.ident.local_fit import LocalFit
 from estimator.ident.measurement import Injection
-from estimator.ident.mismatch import model_error_cov, plain_adequacy, preload_check, preload_cov
+from estimator.ident.mismatch import model_error_cov, plain_adequacy, preload_check, preload_cov, preload_sensitivity
 from estimator.ident.model_selection import likelihood_ratio, prefers_robust
 from estimator.ident.search import Box
 from estimator.ident.status import Status
@@ -220,9 +220,14 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
     x = fit.x
     mismatch = robust or (adequacy is not None and not adequacy.adequate)
     check = None
-    if check_preload and not mismatch and model is not None and config.preload_check_chi2 > 0:
-        check = preload_check(model, fit, config.preload_check_chi2)
+    # the preload force's sensitivity (four simulations) serves its uncertainty and its test alike
+    checking = check_preload and not mismatch and model is not None and config.preload_check_chi2 > 0
+    sens = None
+    if model is not None and (checking or config.preload_rel_sigma > 0):
+        sens = preload_sensitivity(model, fit)
         evaluations += 4
+    if checking and model is not None:
+        check = preload_check(sens, fit, model.n, config.preload_check_chi2)
         preload_shift = check.shift if check is not None and check.suspect else None
         preload_wrong = check is not None and check.inconsistent
     if robust:        # the robust cost's own model error covers it
@@ -238,9 +243,8 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
     if not sim.params.calibration.zero:   # what a calibrated parameter set leaves uncertain: a bias too
         bias = bias + sim.params.calibration.cov(float(x[0]))
     cov_x = fit.cov_x + bias
-    if config.preload_rel_sigma > 0 and model is not None:
-        cov_x = cov_x + preload_cov(model, fit, config.preload_rel_sigma)
-        evaluations += 4
+    if config.preload_rel_sigma > 0:
+        cov_x = cov_x + preload_cov(sens, injection.f_open_n, config.preload_rel_sigma)
     if box.at_bound(x, bound_tolerance(config)):
         status, msg = Status.AT_BOUND, "estimate at a search bound"
         if mismatch:   # the truth may lie anywhere beyond the bound: sigma of a uniform over the range

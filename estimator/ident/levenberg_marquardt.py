@@ -23,6 +23,7 @@ import numpy as np
 
 LAMBDA_START = 1e-3      # the first damping, relative to J'J's diagonal
 LAMBDA_MIN = 1e-12
+LAMBDA_MAX = 1e16        # damped this far without a step that lowers the cost: nothing left to gain
 
 
 @dataclass(frozen=True)
@@ -61,6 +62,8 @@ def least_squares_lm(residual: Callable[[np.ndarray], np.ndarray], jacobian: Cal
             step[free] = np.linalg.solve(a[np.ix_(free, free)] + lam * np.diag(d[free]), -g[free])
         except np.linalg.LinAlgError:
             lam, grow = lam * grow, grow * 2.0
+            if lam > LAMBDA_MAX:      # a Jacobian no damping makes solvable (not finite): stop where it is
+                break
             continue
         x_new = np.clip(x + step, lo, hi)
         step = x_new - x

@@ -75,16 +75,51 @@ def model_error_cov(x: np.ndarray, other: np.ndarray | None, config: IdentConfig
     return cov
 
 
-def preload_cov(model: CostModel, fit: LocalFit, rel_sigma: float) -> np.ndarray:
-    """The covariance (N/V, µm) a relative preload-force uncertainty ``rel_sigma`` adds to the fit:
-    ``s s'`` with ``s = (J'J)^-1 J' dU/dF * sigma_F`` (zero where a simulation fails)."""
-    if rel_sigma <= 0:
+@dataclass(frozen=True)
+class PreloadSensitivity:
+    """How a fit's samples and point depend on F_open (:func:`preload_sensitivity`): the fit's Jacobian
+    ``jac`` (2, N) in V per (N/V, µm), the voltage's derivative ``du`` (N,) in V/N, and ``s``, how far
+    the fit's point moves per N of F_open (N/V, µm per N: ``(J'J)^-1 J' dU/dF``)."""
+
+    jac: np.ndarray
+    du: np.ndarray
+    s: np.ndarray
+
+
+def preload_sensitivity(model: CostModel, fit: LocalFit) -> PreloadSensitivity | None:
+    """The :class:`PreloadSensitivity` of a fit over its model's window, from one batch of four
+    simulations; None where a simulation fails or the problem is degenerate (projected off the
+    nuisance span in robust mode)."""
+    x = fit.x
+    fo = model.injection.f_open_n
+    if not fit.success or fo <= 0:
+        return None
+    box_nu = model.sim.nu_range
+    h_nu = FD_NU if x[0] + FD_NU <= box_nu[1] else -FD_NU
+    nu = np.array([x[0], x[0] + h_nu, x[0], x[0]])
+    lh = np.array([x[1], x[1], x[1] + FD_LH_UM, x[1]]) / UM_PER_M
+    res = model.sim.simulate(model.current, nu, lh, np.array([fo, fo, fo, fo * (1 + PRELOAD_STEP)]))
+    if not res.success.all():
+        return None
+    u = res.voltage_v[:, : model.n]
+    jac = np.stack([(u[1] - u[0]) / h_nu, (u[2] - u[0]) / FD_LH_UM])   # (2, N): dU/dx
+    du = (u[3] - u[0]) / (PRELOAD_STEP * fo)                            # dU/dF_open
+    if model.robust:
+        jac = np.stack([model.without_nuisance(j) for j in jac])
+        du = model.without_nuisance(du)
+    jtj = jac @ jac.T
+    if not np.all(np.isfinite(jtj)) or abs(np.linalg.det(jtj)) <= 1e-14 * jtj[0, 0] * jtj[1, 1]:
+        return None
+    return PreloadSensitivity(jac, du, np.linalg.solve(jtj, jac @ du))
+
+
+def preload_cov(sens: PreloadSensitivity | None, f_open_n: float, rel_sigma: float) -> np.ndarray:
+    """The covariance (N/V, µm) a relative preload-force uncertainty ``rel_sigma`` of the header's
+    ``f_open_n`` (N) adds to the fit: ``s s'`` for the move per sigma of F_open (zero where the
+    sensitivity could not be simulated)."""
+    if rel_sigma <= 0 or sens is None:
         return np.zeros((2, 2))
-    sens = _preload_sensitivity(model, fit)
-    if sens is None:
-        return np.zeros((2, 2))
-    jac, du = sens
-    s = np.linalg.solve(jac @ jac.T, jac @ du) * model.injection.f_open_n * rel_sigma   # the move per sigma of F_open
+    s = sens.s * f_open_n * rel_sigma
     return np.outer(s, s)
 
 
@@ -125,49 +160,20 @@ class PreloadCheck:
                 f"{f_open_n + self.delta_f_n:.1f} ± {self.sd_f_n:.1f} N, chi2 {self.chi2:.0f})")
 
 
-def preload_check(model: CostModel, fit: LocalFit, threshold: float) -> PreloadCheck | None:
-    """Test the header's preload force against a plain fit's samples: the score of F_open at the
-    header's value (its derivative's part the fit's own two directions cannot take up, against the
-    residual), chi-square(1) if the header is right. An ECU computes the force from the rail pressure;
-    10 % off at the nominal 28 N moves L_h by about 0.3 µm while the residual stays white, and one
-    injection carries F_open to about ±0.6 N. Four simulations; None where one fails."""
-    sens = _preload_sensitivity(model, fit)
+def preload_check(sens: PreloadSensitivity | None, fit: LocalFit, n: int, threshold: float) -> PreloadCheck | None:
+    """Test the header's preload force against a plain fit's samples (its first ``n`` residuals): the
+    score of F_open at the header's value (its derivative's part the fit's own two directions cannot
+    take up, against the residual), chi-square(1) if the header is right. An ECU computes the force
+    from the rail pressure; 10 % off at the nominal 28 N moves L_h by about 0.3 µm while the residual
+    stays white, and one injection carries F_open to about ±0.6 N. None where the sensitivity could
+    not be simulated."""
     if sens is None:
         return None
-    jac, du = sens
-    s = np.linalg.solve(jac @ jac.T, jac @ du)      # dx/dF_open of the fit (N/V, µm per N)
-    g = du - s @ jac                                # the part of dU/dF the fit cannot absorb
+    g = sens.du - sens.s @ sens.jac                 # the part of dU/dF the fit cannot absorb
     gg = float(g @ g)
     if not (math.isfinite(gg) and gg > 0):
         return None
-    r = fit.residual[: model.n]
+    r = fit.residual[:n]
     sigma = fit.sigma_v
     delta = float(g @ r) / gg
-    return PreloadCheck(delta * delta * gg / sigma ** 2, delta, sigma / math.sqrt(gg), s * delta, threshold)
-
-
-def _preload_sensitivity(model: CostModel, fit: LocalFit) -> tuple[np.ndarray, np.ndarray] | None:
-    """The plain fit's Jacobian (2, N) in V per (N/V, µm) and the voltage's derivative in F_open (N,) in
-    V/N at the fit's point over its window, from one batch of four simulations; None where a simulation
-    fails or the problem is degenerate (projected off the nuisance span in robust mode)."""
-    x = fit.x
-    fo = model.injection.f_open_n
-    if not fit.success or fo <= 0:
-        return None
-    box_nu = model.sim.nu_range
-    h_nu = FD_NU if x[0] + FD_NU <= box_nu[1] else -FD_NU
-    nu = np.array([x[0], x[0] + h_nu, x[0], x[0]])
-    lh = np.array([x[1], x[1], x[1] + FD_LH_UM, x[1]]) / UM_PER_M
-    res = model.sim.simulate(model.current, nu, lh, np.array([fo, fo, fo, fo * (1 + PRELOAD_STEP)]))
-    if not res.success.all():
-        return None
-    u = res.voltage_v[:, : model.n]
-    jac = np.stack([(u[1] - u[0]) / h_nu, (u[2] - u[0]) / FD_LH_UM])   # (2, N): dU/dx
-    du = (u[3] - u[0]) / (PRELOAD_STEP * fo)                            # dU/dF_open
-    if model.robust:
-        jac = np.stack([model.without_nuisance(j) for j in jac])
-        du = model.without_nuisance(du)
-    jtj = jac @ jac.T
-    if not np.all(np.isfinite(jtj)) or abs(np.linalg.det(jtj)) <= 1e-14 * jtj[0, 0] * jtj[1, 1]:
-        return None
-    return jac, du
+    return PreloadCheck(delta * delta * gg / sigma ** 2, delta, sigma / math.sqrt(gg), sens.s * delta, threshold)
