@@ -10,7 +10,8 @@ class Choice(str, Enum):
     """A setting's word (a ``str``: comparisons with the word and JSON keep working)."""
 
     def __str__(self) -> str:
-        return self.value
+        result: str = self.value
+        return result
 
     @classmethod
     def words(cls) -> tuple[str, ...]:

@@ -340,7 +340,8 @@ class Codec:
 
     def frame_id(self, record_type: type[Record]) -> int:
         """The arbitration id of a record class's message."""
-        return self.messages[record_type].frame_id
+        result: int = self.messages[record_type].frame_id
+        return result
 
     def output_ids(self) -> set[int]:
         """Arbitration ids of the messages the estimator publishes."""
@@ -374,7 +375,8 @@ class Codec:
         if sig.scale == 1 and sig.offset == 0:
             return int(round(v))
         # round to the wire grid so that strict encoding never sees an off-grid value
-        return round((v - sig.offset) / sig.scale) * sig.scale + sig.offset
+        result: float | int = round((v - sig.offset) / sig.scale) * sig.scale + sig.offset
+        return result
 
     def encode_samples(self, injector_id: int, counter: int, block_index: int, current_raw: np.ndarray,
                        voltage_raw: np.ndarray) -> Frame:

@@ -55,7 +55,8 @@ class SampleLayout:
                 raise ContractError(f"{sig.name}: numpy decoding needs byte-aligned signed 16-bit little-endian")
             if sig.offset != 0:
                 raise ContractError(f"{sig.name}: offsets are not supported for samples")
-            return sig.start // 8
+            result: int = sig.start // 8
+            return result
 
         cur = [off(c) for c, _ in pairs]
         vol = [off(v) for _, v in pairs]

@@ -87,7 +87,8 @@ def _noise_level(r: np.ndarray, trim: float, floor: float) -> float:
     acc = 0.0
     for k in range(n):
         acc += min(d[k] * d[k], clip * clip)
-    return max(np.sqrt(acc / n / 2.0), floor)
+    result: float = max(np.sqrt(acc / n / 2.0), floor)
+    return result
 
 
 @functools.lru_cache(maxsize=32)

@@ -194,7 +194,8 @@ def gauss_newton_fit(model: CostModel, start: np.ndarray, box: Box, config: Iden
 
 def sd_radius(fit: LocalFit, k: float) -> np.ndarray:
     """A trust region of ``k`` of the fit's standard deviations (N/V, µm), each at least :data:`RING_MIN_SD`."""
-    return k * np.maximum(fit.sd_x, RING_MIN_SD)
+    result: np.ndarray = k * np.maximum(fit.sd_x, RING_MIN_SD)
+    return result
 
 
 def unchecked_fit(model: CostModel, start: np.ndarray, box: Box, config: IdentConfig,

@@ -104,7 +104,8 @@ def noise_sigma(r: np.ndarray) -> float:
     for k in range(n - 1):
         d[k] = abs(r[k + 1] - r[k])
     mad = np.partition(d, (n - 1) // 2)[(n - 1) // 2]
-    return max(mad / MAD_PER_SIGMA / np.sqrt(2.0), NOISE_FLOOR_V)
+    result: float = max(mad / MAD_PER_SIGMA / np.sqrt(2.0), NOISE_FLOOR_V)
+    return result
 
 
 def model_error_statistic(residual_v: np.ndarray, basis: np.ndarray, sigma_v: float | None = None) -> float:
@@ -361,7 +362,8 @@ class CostModel:
 
     def without_nuisance(self, r: np.ndarray) -> np.ndarray:
         """One residual (N,) in V with this window's nuisance span projected out."""
-        return r - self.basis @ (self.basis.T @ r)
+        result: np.ndarray = r - self.basis @ (self.basis.T @ r)
+        return result
 
     def from_result(self, res: BatchResult) -> np.ndarray:
         """The cost of simulated candidates: V^2*s (l2) or V*s (l1); +inf where infeasible."""

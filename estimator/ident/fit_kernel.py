@@ -271,7 +271,8 @@ def widened_radius(rad: np.ndarray, cov: np.ndarray, k: float, min_sd: np.ndarra
             r = k * _max_nan(np.sqrt(abs(cov[i, i])), min_sd[i])
             if r > out[i] and r < np.inf:
                 out[i] = r
-    return out
+    result: np.ndarray = out
+    return result
 
 
 @njit(cache=True, nogil=True)
@@ -388,4 +389,5 @@ def run_point_costs(model: CostModel, pts: np.ndarray) -> np.ndarray:
     if not simulated:
         raise _refuse(model, pts[0])
     model.evaluations += int(j.shape[0])
-    return j
+    result: np.ndarray = j
+    return result

@@ -65,7 +65,8 @@ def predict(x: np.ndarray, p: np.ndarray, dt_s: float, d_temp_c: float | None,
             noise: ProcessNoise) -> tuple[np.ndarray, np.ndarray]:
     """State and covariance ``dt_s`` seconds and ``d_temp_c`` degC (None: not measured) later."""
     known = d_temp_c is not None     # a measured temperature explains most drift: less left to chase
-    return _PREDICT(c_float(x), c_float(p), float(dt_s), float(d_temp_c or 0.0), *noise._predict_args[known])
+    result: tuple[np.ndarray, np.ndarray] = _PREDICT(c_float(x), c_float(p), float(dt_s), float(d_temp_c or 0.0), *noise._predict_args[known])
+    return result
 
 
 @njit(cache=True, nogil=True)
@@ -148,7 +149,8 @@ def _innovation(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> t
 
 def update(x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Kalman update with ``z`` (Joseph form: stays symmetric positive definite)."""
-    return _UPDATE(c_float(x), c_float(p), c_float(z), c_float(r))
+    result: tuple[np.ndarray, np.ndarray] = _UPDATE(c_float(x), c_float(p), c_float(z), c_float(r))
+    return result
 
 
 @njit(cache=True, nogil=True)

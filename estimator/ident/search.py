@@ -25,7 +25,8 @@ class Box:
 
     def clip(self, x: np.ndarray) -> np.ndarray:
         """Points moved into the box."""
-        return np.minimum(np.maximum(x, self.lo), self.hi)
+        result: np.ndarray = np.minimum(np.maximum(x, self.lo), self.hi)
+        return result
 
     def alpha_range(self, x: np.ndarray, d: np.ndarray) -> tuple[float, float]:
         """The range of alpha for which x + alpha d stays inside the box."""

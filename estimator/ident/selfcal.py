@@ -155,7 +155,8 @@ def _held_out_residual(sim: FastSimulator, inj: Injection) -> np.ndarray:
     est = identify(inj, sim, IdentConfig())
     if not (math.isfinite(est.nu_n_per_v) and math.isfinite(est.lh_m)):
         return np.full(inj.voltage_v.size, 1e3)
-    return measured_voltage(sim, inj, est.nu_n_per_v, est.lh_m * 1e6)[0] - inj.voltage_v
+    result: np.ndarray = measured_voltage(sim, inj, est.nu_n_per_v, est.lh_m * 1e6)[0] - inj.voltage_v
+    return result
 
 
 @dataclass

@@ -288,7 +288,9 @@ class TrackResult:
 
     def filtered_dict(self) -> dict[str, Any]:
         """The published estimate with units in the keys."""
-        f = lambda v, s=1.0: None if not math.isfinite(v) else round(v * s, 6)  # noqa: E731
+        def f(v: float, s: float = 1.0) -> float | None:
+            return None if not math.isfinite(v) else round(v * s, 6)
+
         return {"nu_n_per_v": f(self.nu_n_per_v), "lh_um": f(self.lh_m, 1e6),
                 "sigma_nu_n_per_v": f(self.sigma_nu), "sigma_lh_um": f(self.sigma_lh_m, 1e6),
                 "status": self.status.value, "reason": self.reason, "t_contact_us": f(self.t_contact_s, 1e6),
@@ -304,7 +306,8 @@ def _robust_cov(est: Estimate, config: TrackerConfig) -> np.ndarray:
     cov = est.cov_um - est.model_error_cov
     if est.robust:
         cov = cov + np.diag(np.square(config.robust_floor))
-    return cov
+    result: np.ndarray = cov
+    return result
 
 
 def _warm_estimate(state: TrackerState, x0: np.ndarray, inj: Injection, sim: FastSimulator, config: TrackerConfig,

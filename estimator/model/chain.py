@@ -94,7 +94,8 @@ def unfilter(y: np.ndarray, tau_s: float, dt_s: float) -> np.ndarray:
     """The input of a first-order filter ``tau y' + y = x`` from its sampled output: ``y + tau y'``."""
     y = np.asarray(y, dtype=float)
     if y.size < 3:
-        return y.copy()
+        result: np.ndarray = y.copy()
+        return result
     dy = np.empty_like(y)
     dy[1:-1] = (y[2:] - y[:-2]) / (2 * dt_s)
     dy[0] = (y[1] - y[0]) / dt_s
@@ -111,11 +112,13 @@ def lowpass(x: np.ndarray, tau_s: float, dt_s: float) -> np.ndarray:
     a = math.exp(-dt_s / tau_s)
     c = 1.0 - tau_s / dt_s * (1.0 - a)
     # y[k] = a y[k-1] + c x[k] + (1 - a - c) x[k-1], from y = x = 0
-    return lfilter([c, (1.0 - a) - c], [1.0, -a], x, axis=-1)
+    result: np.ndarray = lfilter([c, (1.0 - a) - c], [1.0, -a], x, axis=-1)
+    return result
 
 
 def shift(x: np.ndarray, samples: float) -> np.ndarray:
     """``x`` read ``samples`` later (linear interpolation; the ends held): ``out[k] = x(k + samples)``."""
     x = np.asarray(x, dtype=float)
     k = np.arange(x.size, dtype=float) + samples
-    return np.interp(k, np.arange(x.size, dtype=float), x)
+    result: np.ndarray = np.interp(k, np.arange(x.size, dtype=float), x)
+    return result

@@ -91,7 +91,8 @@ def standard_drive(t_s: np.ndarray, amplitude_a: float = STANDARD_AMPLITUDE_A) -
     charge = trapezoid(t, amplitude_a, 0.0, CHARGE_RISE_S, CHARGE_FALL_START_S, CHARGE_END_S)
     dis = trapezoid(t, -amplitude_a, DISCHARGE_START_S, CHARGE_RISE_S,
                     DISCHARGE_START_S + CHARGE_FALL_START_S, DISCHARGE_START_S + CHARGE_END_S)
-    return charge + dis
+    result: np.ndarray = charge + dis
+    return result
 
 
 @dataclass(frozen=True)
@@ -121,7 +122,8 @@ class ChopperRipple(TimeFunction):
             return base
         saw = ((t_s / self.period_s + self.phase) % 1.0)
         tri = 4.0 * np.abs(saw - 0.5) - 1.0
-        return base + self.ripple_a * tri * (np.abs(base) > self.above_a)
+        result: np.ndarray = base + self.ripple_a * tri * (np.abs(base) > self.above_a)
+        return result
 
 
 @dataclass(frozen=True, eq=False)
@@ -158,7 +160,8 @@ class TableDrive(TimeFunction):
         return cls(np.arange(i.size) * dt_s, i, float(dt_s))
 
     def current(self, t_s: np.ndarray) -> np.ndarray:
-        return np.interp(np.asarray(t_s, dtype=float), self.t_s, self.current_a, left=0.0, right=0.0)
+        result: np.ndarray = np.interp(np.asarray(t_s, dtype=float), self.t_s, self.current_a, left=0.0, right=0.0)
+        return result
 
     def samples(self, t_end_s: float, dt_s: float = SAMPLE_PERIOD_S) -> np.ndarray:
         if self.dt_s is not None:

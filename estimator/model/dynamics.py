@@ -193,7 +193,8 @@ def region_matrices(structure: HybridStructure, p: InjectorParameters, nu: np.nd
     nu = np.atleast_1d(np.asarray(nu, dtype=float))
     c = np.asarray(coupling(p.psa.ks_n_per_m, nu))[:, None, None, None]
     d = np.asarray(damping(p.psa.rb_v2s_per_mn, nu))[:, None, None, None]
-    return structure.a_const[None] + c * structure.a_coupling[None] + d * structure.a_damping[None]
+    result: np.ndarray = structure.a_const[None] + c * structure.a_coupling[None] + d * structure.a_damping[None]
+    return result
 
 
 def output_rows(p: InjectorParameters, nu: np.ndarray) -> np.ndarray:
@@ -235,7 +236,8 @@ def output_row_into(ks_n_per_m: float, r0a_ohm: float, r0b_v_per_n: float, nu: f
 
 def output_row(p: InjectorParameters, nu: float) -> np.ndarray:
     """The output row of :func:`output_rows` for one N_u (N/V)."""
-    return output_rows(p, np.array([nu]))[0]
+    result: np.ndarray = output_rows(p, np.array([nu]))[0]
+    return result
 
 
 def psa_state_space(p: InjectorParameters, nu: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -107,7 +107,8 @@ def plateau_mean(t_s: np.ndarray, values: np.ndarray, window_s: tuple[float, flo
     ks = plateau_samples(t_s, window_s)
     if ks is None:
         return np.full(np.shape(values)[:-1], np.nan)
-    return np.mean(values[..., ks[0]:ks[1]], axis=-1)
+    result: np.ndarray = np.mean(values[..., ks[0]:ks[1]], axis=-1)
+    return result
 
 
 _V = TypeVar("_V")
@@ -169,7 +170,8 @@ class FastSimulator:
     # ---- discretisation -------------------------------------------------------------------
     def _scaled(self, a_si: np.ndarray) -> np.ndarray:
         """SI matrices -> scaled units (per µs), see dynamics.Z_SCALE."""
-        return a_si * (self._d[:, None] / self._d[None, :]) / dyn.TIME_SCALE
+        result: np.ndarray = a_si * (self._d[:, None] / self._d[None, :]) / dyn.TIME_SCALE
+        return result
 
     def scaled_matrices(self, nu: np.ndarray) -> np.ndarray:
         """Continuous region matrices in scaled units (per µs), shape (B, 6, NZ, NZ)."""
@@ -177,7 +179,8 @@ class FastSimulator:
 
     def _exact_uncached(self, nu: float) -> np.ndarray:
         a = self.scaled_matrices(np.array([nu]))[0]
-        return expm(a * (self.dt_s * dyn.TIME_SCALE))
+        result: np.ndarray = expm(a * (self.dt_s * dyn.TIME_SCALE))
+        return result
 
     def _exact_cache(self, nu: float) -> np.ndarray:
         """exp(A_r(N_u) h) for one N_u, cached (at most 256 values, oldest out)."""
@@ -191,7 +194,8 @@ class FastSimulator:
         to :meth:`use_table` of a simulator of the same parameters and sample period elsewhere."""
         view = self._table().view()
         view.setflags(write=False)
-        return view
+        result: np.ndarray = view
+        return result
 
     def use_table(self, table: np.ndarray) -> None:
         """Take a table built by :meth:`transition_table` of an equal simulator (e.g. in another
@@ -222,7 +226,8 @@ class FastSimulator:
     def transition_matrices(self, nu: np.ndarray | float, exact: bool = False) -> np.ndarray:
         """One-sample transition matrices exp(A_r h), shape (B, 6, NZ, NZ), scaled units."""
         src, idx, w = self._phi_source(self.check_nu(nu), exact)
-        return np.einsum("bq,bqrij->brij", w, src[idx])
+        result: np.ndarray = np.einsum("bq,bqrij->brij", w, src[idx])
+        return result
 
     def _phi_source(self, nu: np.ndarray, exact: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if exact:

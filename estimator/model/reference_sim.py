@@ -61,7 +61,9 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
     t_contact = t_open = np.nan
 
     def result(status: int) -> BatchResult:
-        one = lambda v: np.array([v], dtype=float)  # noqa: E731
+        def one(v: float) -> np.ndarray:
+            return np.array([v], dtype=float)
+
         return BatchResult(
             t_s=t_us / dyn.TIME_SCALE, current_a=cur, nu_n_per_v=one(nu_n_per_v), lh_m=one(lh_m),
             f_open_n=one(f_open), voltage_v=out["u"][None], s3_m=out["s3"][None] / 1e6,
@@ -104,7 +106,8 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
             def rhs(tt: float, xv: np.ndarray, ax: np.ndarray = ax, au: np.ndarray = au) -> np.ndarray:
                 u = consts.copy()
                 u[0] = np.interp(tt, t_us, cur)
-                return ax @ xv + au @ u
+                result: np.ndarray = ax @ xv + au @ u
+                return result
 
             events = []
             for j in active:
