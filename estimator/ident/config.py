@@ -62,6 +62,9 @@ class IdentConfig:
     mismatch_floor: tuple[float, float] = (0.01, 0.6)   # model-error sigma of an inadequate fit: N_u relative, L_h µm
     mismatch_scale: tuple[float, float] = (0.002, 0.18)  # ... plus this per sqrt(structure chi2 / 24): N_u relative, L_h µm
     preload_rel_sigma: float = 0.0         # relative uncertainty (1 sigma) of the header's PreloadForce; enters sigma
+    window_disagreement_chi2: float = 20.0  # the robust fit (its longer window) worse than the plain one over the
+                                           # plain window by more than this (chi-square units): the later samples
+                                           # disagree with the plain fit, a model mismatch (exact model: > -7); 0: off
     preload_check_chi2: float = 15.0       # chi-square(1) of the header's PreloadForce against the samples above which
                                            # it is taken as wrong (P = 1e-4 when right); 0: not tested
 
@@ -77,7 +80,7 @@ class IdentConfig:
             raise ValueError(f"start_point {self.start_point!r} must be two numbers (N/V, µm)")
         _positive(self, "window_s", "robust_window_s", "model_error_threshold", "sigma_limit_lh_um", "local_accept_z",
                   "adequacy_structure", "adequacy_excess_z")
-        _positive(self, "preload_rel_sigma", "preload_check_chi2", allow_zero=True)
+        _positive(self, "preload_rel_sigma", "preload_check_chi2", "window_disagreement_chi2", allow_zero=True)
         if self.preload_rel_sigma > 0.5:
             raise ValueError(f"preload_rel_sigma = {self.preload_rel_sigma!r} must be within 0..0.5")
         for name in ("mismatch_floor", "mismatch_scale"):

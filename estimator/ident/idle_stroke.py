@@ -15,6 +15,8 @@ used.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from estimator.ident.cold_start import (SharedGrid, bound_tolerance, cold_fit, excess_residual_z, local_first_fit,
@@ -219,6 +221,11 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
         return rejected("simulation failed at the optimum", evaluations)
     x = fit.x
     mismatch = robust or (adequacy is not None and not adequacy.adequate)
+    # the robust fit of the longer window explains the plain window much worse than the plain fit: the
+    # samples after the plain window pull the estimate elsewhere, which no noise does
+    disagrees = (not robust and config.window_disagreement_chi2 > 0 and math.isfinite(stat)
+                 and stat < -config.window_disagreement_chi2)
+    mismatch = mismatch or disagrees
     check = None
     # the preload force's sensitivity (four simulations) serves its uncertainty and its test alike
     checking = check_preload and not mismatch and model is not None and config.preload_check_chi2 > 0
@@ -255,6 +262,10 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
         status = Status.MODEL_MISMATCH
         if adequacy is not None and not adequacy.adequate:
             msg = adequacy.reason
+        elif disagrees:
+            msg = (f"the samples after the {1e6 * model.window_s:.0f} µs window disagree with the fit (likelihood "
+                   f"ratio {stat:.0f}): model cannot explain the whole trace") if model is not None else \
+                "the samples after the fit's window disagree with it: model cannot explain the whole trace"
         elif wrong_preload:
             msg = check.reason(injection.f_open_n) if check is not None else (
                 "the header's preload force disagrees with this injector's samples (as last tested)")

@@ -235,6 +235,25 @@ def test_a_mismatched_injector_is_reacquired_by_a_local_fit_not_the_global_searc
     assert worst < 0.5, worst
 
 
+def test_samples_after_the_window_that_disagree_with_a_white_plain_fit_make_it_a_mismatch():
+    # a seeded series part whose plain fit leaves a white residual over its 100 µs window, 0.6 µm off
+    # with sigma 0.06 µm; the robust fit of 150 µs explains that window far worse (ratio about -58)
+    rng = np.random.default_rng(1259)
+    part = draw(rng, 0.10)
+    plant = Plant(PlantConfig(window_s=200e-6), part.params)
+    nu, lh = float(rng.uniform(15.5, 20.5)), float(rng.uniform(0.5, 8)) * 1e-6
+    inj = _inj(plant.measure(nu, lh, 28.0, rng))
+    sim = FastSimulator()
+    unchecked = identify(inj, sim, IdentConfig(window_disagreement_chi2=0.0))
+    assert unchecked.status == Status.OK and unchecked.model_error_stat < -20
+    assert abs(unchecked.lh_m - lh) > 0.3e-6 and abs(unchecked.lh_m - lh) > 3 * unchecked.sigma_lh_m
+    est = identify(inj, sim)
+    assert est.status == Status.MODEL_MISMATCH and "disagree" in est.message
+    assert abs(est.lh_m - lh) <= 3 * est.sigma_lh_m
+    with pytest.raises(ValueError, match="window_disagreement_chi2"):
+        IdentConfig(window_disagreement_chi2=-1.0)
+
+
 def test_a_header_preload_force_off_by_10_percent_is_found_in_the_samples():
     """An ECU's preload force 10 % off the true 28 N moves L_h by about 0.3 µm and leaves a white
     residual; one injection carries F_open to about ±0.6 N, and the test of the header's value makes
