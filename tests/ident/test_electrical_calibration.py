@@ -227,3 +227,44 @@ def test_the_uncertainty_a_calibration_leaves_is_in_every_sigma_and_is_not_avera
     assert min(r.sigma_nu for r in results[5:]) >= 17.5 * 0.002 * 0.99
     with pytest.raises(ParameterError, match="calibration"):
         InjectorParameters.from_mapping({**calibrated.to_mapping(), "calibration": {"nu_rel_sigma": -1.0}})
+
+
+def _nominal_batch(current_noise_a: float) -> list[Injection]:
+    from sim_bench.plant import AdcConfig
+    rng = np.random.default_rng(21)
+    plant = Plant(PlantConfig(window_s=200e-6, adc=AdcConfig(current_noise_a=current_noise_a)))
+    out = []
+    for f, nu in BATCH:
+        m = plant.measure(nu, LH_UM * 1e-6, f, rng)
+        out.append(Injection(m.current_a, m.voltage_v, m.dt_s, f))
+    return out
+
+
+def test_the_pull_of_the_measured_currents_noise_on_the_chain_is_in_its_sigma(monkeypatch):
+    """The simulated voltage is driven by the measured current, whose noise a U filter plus an equal I
+    skew smooth away: an exact injector's chain comes out at about 0.2 µs each at 0.02 A of current
+    noise. Its reported standard deviation includes that pull; without it the chain was beyond four
+    of them."""
+    from estimator.ident import electrical
+
+    batch = _nominal_batch(0.02)
+    res = calibrate_electrical(batch)
+    for name, sd in res.chain_sigma_us.items():
+        assert abs(getattr(res.params.chain, name) * 1e6) <= 3 * sd, (name, getattr(res.params.chain, name), sd)
+    monkeypatch.setattr(electrical, "current_noise_a", lambda current: 0.0)   # the pull left out
+    biased = calibrate_electrical(batch)
+    assert any(abs(getattr(biased.params.chain, n) * 1e6) > 3 * sd for n, sd in biased.chain_sigma_us.items())
+
+
+def test_noise_gain_and_current_noise():
+    from estimator.ident.electrical import current_noise_a, noise_gain
+
+    dt = 0.5e-6
+    assert noise_gain(0.0, 0.0, dt) == 1.0
+    assert noise_gain(0.0, 0.25e-6, dt) == pytest.approx(0.5)          # half a sample: (1/2)^2 + (1/2)^2
+    assert noise_gain(0.0, 0.5e-6, dt) == pytest.approx(1.0)           # a whole sample moves, smooths nothing
+    assert 0.3 < noise_gain(0.53e-6, 0.0, dt) < 0.7 and noise_gain(2e-6, 0.0, dt) < noise_gain(0.5e-6, 0.0, dt)
+    rng = np.random.default_rng(4)
+    t = np.arange(400)
+    ripple = 4.3 + 0.3 * np.abs((t % 16) - 8) / 8                      # an 8 µs triangle, as the bench amplifier's
+    assert current_noise_a(ripple + 0.01 * rng.standard_normal(t.size)) == pytest.approx(0.01, rel=0.3)   # the corners: 0.0125
