@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +22,7 @@ from estimator.codec.ingest import Ingest
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateState, EstimatorStatus, ModelCalibration
 from estimator.service.bus import open_bus, to_frame, to_message
-from estimator.service.latency import STAGES
+from estimator.service.latency import STAGES, Stats
 from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench import series_part
 from sim_bench.bench import resolve_bus
@@ -130,6 +131,16 @@ def _feed(bus, codec: Codec, pool, rate: float, seconds: float, watcher: _Watche
     return {"offered": k, "offered_per_s": k / seconds, "feeder_late": late}
 
 
+def _wait_for(done: Callable[[], bool], timeout_s: float) -> bool:
+    """Poll ``done`` every 20 ms until it holds or ``timeout_s`` passed; whether it holds."""
+    deadline = time.monotonic() + timeout_s
+    while not done():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
 def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float = 10.0,
                              overload_factor: float = 2.0, bus: str | None = None,
                              self_calibration: bool = False) -> dict:
@@ -154,8 +165,16 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
                 raise RuntimeError(f"daemon did not start: {d.why()}")
             # warm-up: the first injection of each injector is a cold start (grid search, ~60 ms); the
             # heartbeat's p99 covers the last 10 s, so the nominal phase must start after it
-            _feed(b, codec, pool, rate, 3.0, w)
-            time.sleep(0.5)
+            if self_calibration:
+                # only the cold starts: a calibration needs a window of injections and must run while
+                # the latency is measured, not before; then the cold starts leave the p99's window
+                injectors = len({i for i, _ in pool})
+                _feed(b, codec, pool, rate, injectors / rate, w)
+                _wait_for(lambda: w.estimates >= injectors, 60.0)
+                time.sleep(Stats().window_s + 0.5)
+            else:
+                _feed(b, codec, pool, rate, 3.0, w)
+                time.sleep(0.5)
             for phase, r in (("nominal", rate), ("overload", rate * overload_factor)):
                 w.latency.clear()
                 e0 = w.estimates
@@ -171,7 +190,12 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
                 th = threading.Thread(target=sample_rss, daemon=True)
                 th.start()
                 fed = _feed(b, codec, pool, r, seconds, w)
-                time.sleep(2.0)
+                # the queue drained (or what overflowed is given up on), then a heartbeat after it:
+                # its p99 covers the phase's last 10 s
+                target = e0 + fed["offered"]
+                _wait_for(lambda target=target: w.estimates >= target, 5.0)
+                w.got_status.clear()
+                w.got_status.wait(2.0)
                 stop_rss.set()
                 st = w.status
                 lat = np.array(w.latency) * 1e3
