@@ -43,6 +43,7 @@ from estimator.choices import ColdStart, Robust
 from estimator.ident.config import TrackerConfig
 from estimator.ident.coords import NuLh
 from estimator.ident.cost import CostModel, plain_model_error
+from estimator.ident.cold_start import bound_tolerance
 from estimator.ident.electrical import beyond_bounds
 from estimator.ident.estimate import Estimate, rejected
 from estimator.ident.idle_stroke import (check_injection, complement_fit, effective_window_s, finish, identify,
@@ -50,7 +51,7 @@ from estimator.ident.idle_stroke import (check_injection, complement_fit, effect
 from estimator.ident.mismatch import model_error_cov, plain_adequacy
 from estimator.ident.selfcal import (Calibrator, CalibrationStatus, CalibrationWindow, InlineCalibrator,
                                      SelfCalConfig)
-from estimator.ident.local_fit import refine
+from estimator.ident.local_fit import next_steps, refine
 from estimator.ident.measurement import Injection
 from estimator.ident.model_selection import likelihood_ratio
 from estimator.ident.search import Box
@@ -62,7 +63,7 @@ from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParamet
 
 STATE_VERSION = 2
 LOCAL_ACCEPT_MARGIN = 3.0      # a mismatched injector's re-acquisition keeps a local fit within 3x its usual residual excess
-ROBUST_CHECK_EVERY = 4         # in robust mode, every 4th injection also fits the plain model (model-error test)
+ROBUST_CHECK_EVERY = 8         # in robust mode, every 8th injection also fits the plain model (model-error test)
 PRELOAD_CHECK_EVERY = 8        # every 8th warm update tests the header's preload force (four simulations)
 
 
@@ -316,6 +317,12 @@ def _warm_estimate(state: TrackerState, x0: np.ndarray, inj: Injection, sim: Fas
     model = CostModel(sim, inj, effective_window_s(ic, inj, state.robust), ic.norm, state.robust)
     fit, converged, _ = refine(model, x0, np.array(state.directions), np.array(state.steps), box, ic,   # refine clips x0
                                max_cycles=config.warm_cycles, batched=True)
+    if not converged and state.robust and fit.success and not box.at_bound(fit.x, bound_tolerance(ic)):
+        # a mismatched injector's optimum moves with the operating point (its model error does): the
+        # search goes on from where it stopped, cheaper than a re-acquisition (≈ 3 ms)
+        d, w = fit.directions
+        fit, converged, _ = refine(model, fit.x, d, next_steps(fit.sigma_v, w, (float(ic.tol[0]), float(ic.tol[1]))),
+                                   box, ic, max_cycles=config.warm_cycles, batched=True)
     stat = float("nan")
     adequacy, other, extra = None, None, 0
     if fit.success and not state.robust:   # the plain residual against the nuisance span (normal equations)

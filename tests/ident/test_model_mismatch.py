@@ -10,6 +10,7 @@ import pytest
 from estimator.errors import ParameterError
 from estimator.ident.adequacy import assess, noise_level_v, smooth_basis
 from estimator.ident.config import IdentConfig, TrackerConfig
+from estimator.ident.estimate import rejected
 from estimator.ident.idle_stroke import identify
 from estimator.ident.measurement import Injection
 from estimator.ident.status import ESTIMATED, Status
@@ -305,3 +306,35 @@ def test_the_tracker_holds_a_wrong_header_preload_between_its_tests_and_keeps_it
     assert back.preload_shift == st.preload_shift and back.preload_wrong == st.preload_wrong
     with pytest.raises(ValueError):
         TrackerState.from_dict({**st.to_dict(), "preload_shift": [1.0, float("nan")]})
+
+
+def test_a_robust_warm_search_that_runs_out_of_cycles_goes_on_instead_of_reacquiring(monkeypatch):
+    """A mismatched injector's optimum moves with its operating point: where the warm search stops
+    short, it continues from there (≈ 0.5 ms) rather than re-acquiring the injector (2-4 ms)."""
+    import estimator.ident.tracker as tracker_module
+
+    rng = np.random.default_rng(8)
+    part = SeriesPart({"psa.kg1_n_per_m": 0.9, "psa.kp_n_per_m": 1.1, "valve.kv1_n_per_m": 0.8})
+    plant = Plant(PlantConfig(window_s=150e-6), part.params)
+    tr = Tracker(TrackerConfig())
+    k = 0
+    while not tr.states.get(0, TrackerState()).robust and k < 12:
+        m = plant.measure(17.0, 3e-6, 28.0, rng)
+        tr.update(Injection(m.current_a, m.voltage_v, m.dt_s, 28.0, counter=k, time_s=0.1 * k))
+        k += 1
+    assert tr.states[0].robust
+    real_refine, calls, colds = tracker_module.refine, [], []
+
+    def short_first(model, x0, *args, **kwargs):   # the first search stops after one cycle, unconverged
+        if not calls:
+            kwargs["max_cycles"] = 1
+        fit, converged, cycles = real_refine(model, x0, *args, **kwargs)
+        calls.append(np.array(x0, dtype=float))
+        return fit, converged and len(calls) > 1, cycles
+
+    monkeypatch.setattr(tracker_module, "refine", short_first)
+    monkeypatch.setattr(tracker_module, "_cold_estimate", lambda *a, **kw: colds.append(1) or rejected("cold", 0))
+    m = plant.measure(17.0, 3e-6, 60.0, rng)     # another preload force: the optimum moves
+    r = tr.update(Injection(m.current_a, m.voltage_v, m.dt_s, 60.0, counter=k, time_s=0.1 * k))
+    assert len(calls) >= 2 and not colds
+    assert r.status in (Status.MODEL_MISMATCH, Status.UNCONFIRMED)
