@@ -2,11 +2,12 @@
 
 A batch calibration takes seconds of computing; the injection worker must keep its sub-millisecond
 updates meanwhile. :class:`BackgroundCalibrator` runs :func:`~estimator.ident.selfcal.self_calibrate`
-in one worker process (started with the calibrator, ``spawn``: the daemon has threads, a forked copy of them would not be safe),
-niced so that the kernel prefers the daemon's own threads, one calibration at a time. When one
-finishes, a thread of the executor (not the injection worker) builds the simulator tables for the
-adopted parameters; the tracker collects the outcome at its next update with :meth:`poll`, which
-only takes a lock and a list.
+in one worker process (started with the calibrator, ``spawn``: the daemon has threads, a forked copy
+of them would not be safe), at idle priority (``SCHED_IDLE``; niced where that is not available) so
+that the kernel prefers the daemon's own threads, one calibration at a time. When one finishes, a
+thread of the executor (not the injection worker) builds the simulator tables for the adopted
+parameters; the tracker collects the outcome at its next update with :meth:`poll`, which only takes a
+lock and a list.
 
 The worker process also builds the adopted parameters' simulator table (≈ 26 ms of computing that
 would hold the daemon's interpreter lock), and the daemon takes it as it is.
@@ -38,11 +39,19 @@ NICE = 10     # added to the worker's niceness: it yields the cores to the daemo
 
 def _lower_priority(increment: int) -> None:
     """In the worker process: lower its priority (best effort), and load the compiled kernels the
-    calibration uses, so that the first calibration does not pay for it."""
+    calibration uses, so that the first calibration does not pay for it. On Linux the worker runs
+    under ``SCHED_IDLE`` (it gets a core only where nothing else wants it; a niced process still
+    takes a share of a busy one); elsewhere, or where that is refused, it is niced by ``increment``."""
+    idle = getattr(os, "SCHED_IDLE", None)
     try:
-        os.nice(increment)
-    except OSError:   # pragma: no cover - a platform without nice
-        pass
+        if idle is None:
+            raise OSError("no SCHED_IDLE")
+        os.sched_setscheduler(0, idle, os.sched_param(0))
+    except OSError:
+        try:
+            os.nice(increment)
+        except OSError:   # pragma: no cover - a platform without nice
+            pass
     from estimator.model.drive import SAMPLE_PERIOD_S, StandardDrive
     from estimator.model.fast_sim import FastSimulator
 
