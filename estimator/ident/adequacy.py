@@ -75,6 +75,16 @@ def noise_level_v(residual_v: np.ndarray) -> float:
     return float(_noise_level(r, TRIM_SIGMA, NOISE_FLOOR_V))
 
 
+def current_noise_a(current_a: np.ndarray) -> float:
+    """White-noise level (A, 1 sigma) of a measured current: the median absolute second difference over
+    0.6745 sqrt(6). An amplifier's current is piecewise linear (its switching ripple, a triangle of a
+    few µs), which first differences would count as noise; second differences see only its corners
+    (on the bench's 8 µs ripple: 0.0118 A measured for 0.0104 A of noise and quantisation; a
+    quarter too high where a corner falls every 8 samples)."""
+    d2 = np.diff(np.asarray(current_a, dtype=float), 2)
+    return float(np.median(np.abs(d2)) / (0.6745 * math.sqrt(6.0))) if d2.size else 0.0
+
+
 @njit(cache=True, nogil=True)
 def _noise_level(r: np.ndarray, trim: float, floor: float) -> float:
     n = r.shape[0] - 1

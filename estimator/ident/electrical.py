@@ -41,7 +41,7 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from estimator.ident.adequacy import SMOOTH_COLUMNS, assess, noise_level_v
+from estimator.ident.adequacy import SMOOTH_COLUMNS, assess, current_noise_a, noise_level_v
 from estimator.ident.config import IdentConfig
 from estimator.ident.idle_stroke import identify
 from estimator.ident.levenberg_marquardt import LeastSquaresResult, least_squares_lm
@@ -373,16 +373,6 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
         params, tuple(names), np.exp(x[:k]), sd[:k], x[p::2].copy(), x[p + 1::2].copy(), rms_before,
         float(np.sqrt(np.mean(np.concatenate(after) ** 2))), correlated, weak, warnings, evaluations + count[0],
         z <= MISFIT_Z, z, {n: float(v) for n, v in zip(chain_names, sd[k:p])}, d[p::2].copy(), d[p + 1::2].copy())
-
-
-def current_noise_a(current_a: np.ndarray) -> float:
-    """White-noise level (A, 1 sigma) of a measured current: the median absolute second difference over
-    0.6745 sqrt(6). An amplifier's current is piecewise linear (its switching ripple, a triangle of a
-    few µs), which first differences would count as noise; second differences see only its corners
-    (on the bench's 8 µs ripple: 0.0118 A measured for 0.0104 A of noise and quantisation; a
-    quarter too high where a corner falls every 8 samples)."""
-    d2 = np.diff(np.asarray(current_a, dtype=float), 2)
-    return float(np.median(np.abs(d2)) / (0.6745 * math.sqrt(6.0))) if d2.size else 0.0
 
 
 def noise_gain(u_filter_tau_s: float, i_skew_s: float, dt_s: float) -> float:

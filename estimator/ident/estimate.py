@@ -52,6 +52,7 @@ class Estimate:
     preload_delta_n: float = float("nan")   # the change of preload force the samples point to (N)
     preload_shift: np.ndarray | None = None  # (N/V, µm) the move the samples' own preload force implies (if suspect)
     preload_wrong: bool = False              # the header's preload force cannot explain the samples
+    current_noise_cov: np.ndarray | None = None  # (N/V, µm) what the measured current's noise adds (in ``cov``)
 
     @property
     def point(self) -> NuLh:

@@ -28,7 +28,8 @@ from estimator.ident.cost import CostModel
 from estimator.ident.estimate import Estimate, rejected
 from estimator.ident.local_fit import LocalFit
 from estimator.ident.measurement import Injection
-from estimator.ident.mismatch import model_error_cov, plain_adequacy, preload_check, preload_cov, preload_sensitivity
+from estimator.ident.mismatch import (current_noise_cov, model_error_cov, plain_adequacy, preload_check, preload_cov,
+                                     preload_sensitivity)
 from estimator.ident.model_selection import likelihood_ratio, prefers_robust
 from estimator.ident.search import Box
 from estimator.ident.status import Status
@@ -203,7 +204,7 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
            robust: bool, stat: float, config: IdentConfig, predict: bool = True, adequacy: Adequacy | None = None,
            other: np.ndarray | None = None, model: CostModel | None = None, structure: float | None = None,
            check_preload: bool = False, preload_shift: np.ndarray | None = None,
-           preload_wrong: bool = False) -> Estimate:
+           preload_wrong: bool = False, current_cov: np.ndarray | None = None) -> Estimate:
     """Turn a local fit into an Estimate with status and (``predict``) the plateau stroke.
 
     ``adequacy`` is the plain model's test on these samples; a robust fit, or a plain one that fails
@@ -215,8 +216,11 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
     force is a ``model_mismatch`` too, its covariance widened by the move that force implies (also
     where the force is only suspect, without the status); ``preload_shift`` (N/V, µm) and
     ``preload_wrong`` are that move and verdict as a recent test of this injector found them, where it
-    was not tested now. Contact and opening times are those of the fitted window; the stroke needs one
-    more, longer simulation (see :func:`predict_valve`)."""
+    was not tested now. Where the preload force's sensitivity is simulated, the measured current's
+    noise is sized too (:func:`~estimator.ident.mismatch.current_noise_cov`) and enters the covariance;
+    elsewhere ``current_cov`` (N/V, µm), as a recent estimate of this injector sized it, does. Contact
+    and opening times are those of the fitted window; the stroke needs one more, longer simulation
+    (see :func:`predict_valve`)."""
     if not fit.success:
         return rejected("simulation failed at the optimum", evaluations)
     x = fit.x
@@ -233,6 +237,9 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
     if model is not None and (checking or config.preload_rel_sigma > 0):
         sens = preload_sensitivity(model, fit)
         evaluations += 4
+        fresh = current_noise_cov(model, fit, sens)
+        if fresh is not None:
+            current_cov, evaluations = fresh, evaluations + 1
     if checking and model is not None:
         check = preload_check(sens, fit, model.n, config.preload_check_chi2)
         preload_shift = check.shift if check is not None and check.suspect else None
@@ -250,6 +257,8 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
     if not sim.params.calibration.zero:   # what a calibrated parameter set leaves uncertain: a bias too
         bias = bias + sim.params.calibration.cov(float(x[0]))
     cov_x = fit.cov_x + bias
+    if current_cov is not None:   # the measured current's noise: noise, not a bias
+        cov_x = cov_x + current_cov
     if config.preload_rel_sigma > 0:
         cov_x = cov_x + preload_cov(sens, injection.f_open_n, config.preload_rel_sigma)
     if box.at_bound(x, bound_tolerance(config)):
@@ -286,4 +295,5 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
                     evaluations + 1, status, msg, robust, stat, fit.sigma_v, tc, to, stroke, fit.jtj, d, structure, bias,
                     diff, mismatch, excess, check.chi2 if check is not None else float("nan"),
                     check.delta_f_n if check is not None else float("nan"),
-                    None if preload_shift is None else np.array(preload_shift, dtype=float), wrong_preload)
+                    None if preload_shift is None else np.array(preload_shift, dtype=float), wrong_preload,
+                    current_cov)

@@ -103,7 +103,9 @@ class TrackerState:
     deviations), which lets a re-acquisition keep a local fit that leaves as much (see :func:`_cold_estimate`);
     ``preload_shift`` the move (N/V, µm) the samples' own preload force implied at the last test of the
     header's (None: the header's agreed, or no test yet) and ``preload_wrong`` that test's verdict, both
-    held until the next test.
+    held until the next test; ``current_noise_cov`` the covariance (N/V, µm) the measured current's
+    noise added to the last estimate that sized it (with the preload force's test), added to the
+    estimates in between.
     """
 
     initialized: bool = False
@@ -129,6 +131,7 @@ class TrackerState:
     excess_z: float | None = None
     preload_shift: list[float] | None = None
     preload_wrong: bool = False
+    current_noise_cov: list[list[float]] | None = None
     version: int = STATE_VERSION
 
     def to_dict(self) -> dict[str, Any]:
@@ -151,6 +154,11 @@ class TrackerState:
         st.excess_z = _check_optional_float(d, "excess_z") if "excess_z" in d else None
         if d.get("preload_shift") is not None:
             st.preload_shift = _check_array(d, "preload_shift", (2,), True).tolist()
+        if d.get("current_noise_cov") is not None:
+            c = _check_array(d, "current_noise_cov", (2, 2), True)
+            if not np.allclose(c, c.T, rtol=1e-9, atol=1e-15) or np.any(np.linalg.eigvalsh(c) < -1e-15):
+                raise ValueError("current_noise_cov is not a symmetric positive semi-definite covariance")
+            st.current_noise_cov = c.tolist()
         st.x = _check_array(d, "x", (kalman.N_STATE,), st.initialized).tolist()
         p = _check_array(d, "p", (kalman.N_STATE, kalman.N_STATE), True)
         if st.initialized and (not np.allclose(p, p.T, rtol=1e-9, atol=1e-15) or np.any(np.linalg.eigvalsh(p) < 0)):
@@ -347,9 +355,11 @@ def _warm_estimate(state: TrackerState, x0: np.ndarray, inj: Injection, sim: Fas
     # preload force is tested every PRELOAD_CHECK_EVERY-th update, its verdict held in between
     check = not state.robust and state.updates % PRELOAD_CHECK_EVERY == 0
     held = None if check or state.preload_shift is None else np.array(state.preload_shift)
+    held_current = None if check or state.current_noise_cov is None else np.array(state.current_noise_cov)
     return finish(sim, inj, fit, converged, model.evaluations + extra, box, state.robust, stat, ic, predict=False,
                   adequacy=adequacy, other=other, model=model, structure=state.model_error_structure,
-                  check_preload=check, preload_shift=held, preload_wrong=state.preload_wrong and not check)
+                  check_preload=check, preload_shift=held, preload_wrong=state.preload_wrong and not check,
+                  current_cov=held_current)
 
 
 def _cold_estimate(state: TrackerState, inj: Injection, sim: FastSimulator, config: TrackerConfig) -> Estimate:
@@ -443,6 +453,8 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
     restart = _robust_hysteresis(st, raw, config, cold) or cold
     if restart and raw.robust != st.robust:
         raw = _cold_estimate(st, inj, sim, config)
+    if raw.current_noise_cov is not None:
+        st.current_noise_cov = raw.current_noise_cov.tolist()
     z = raw.point.array()
     r = _robust_cov(raw, config)
     if not all(map(math.isfinite, r.ravel().tolist() + z.tolist())):

@@ -257,7 +257,8 @@ def test_the_pull_of_the_measured_currents_noise_on_the_chain_is_in_its_sigma(mo
 
 
 def test_noise_gain_and_current_noise():
-    from estimator.ident.electrical import current_noise_a, noise_gain
+    from estimator.ident.adequacy import current_noise_a
+    from estimator.ident.electrical import noise_gain
 
     dt = 0.5e-6
     assert noise_gain(0.0, 0.0, dt) == 1.0

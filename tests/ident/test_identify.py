@@ -37,6 +37,28 @@ def test_reported_sigma_is_consistent_with_the_scatter(sim):
     assert 0.4 < ratio < 2.0
 
 
+def test_sigma_covers_the_measured_currents_noise(sim, monkeypatch):
+    """The simulation is driven by the measured current: at 0.02 A of current noise the N_u errors were
+    1.8 times their voltage-noise-only sigma. With the current's noise in sigma they are covered."""
+    from estimator.ident import idle_stroke
+    from sim_bench.plant import AdcConfig, Plant, PlantConfig
+
+    def z_rms() -> float:
+        plant = Plant(PlantConfig(window_s=150e-6, adc=AdcConfig(current_noise_a=0.02)))
+        rng = np.random.default_rng(3)
+        z = []
+        for _ in range(60):
+            nu, lh = float(rng.uniform(15.0, 21.0)), float(rng.uniform(0.0, 9.0)) * 1e-6
+            m = plant.measure(nu, lh, 28.0, rng)
+            est = identify(Injection(m.current_a, m.voltage_v, m.dt_s, 28.0), sim)
+            z.append((est.nu_n_per_v - nu) / est.sigma_nu)
+        return float(np.sqrt(np.mean(np.square(z))))
+
+    assert 0.7 < z_rms() < 1.3
+    monkeypatch.setattr(idle_stroke, "current_noise_cov", lambda *a: None)   # the current's noise left out
+    assert z_rms() > 1.5
+
+
 @pytest.mark.parametrize("nu,lh_um,seed", [(16.39, 2.5, 11), (18.0, 8.5, 12), (16.0, -0.5, 13)])
 def test_model_error_detected_and_absorbed(sim, nu, lh_um, seed):
     inj, _ = measured(nu, lh_um, seed, mismatch=True)

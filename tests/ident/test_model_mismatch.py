@@ -338,3 +338,25 @@ def test_a_robust_warm_search_that_runs_out_of_cycles_goes_on_instead_of_reacqui
     r = tr.update(Injection(m.current_a, m.voltage_v, m.dt_s, 60.0, counter=k, time_s=0.1 * k))
     assert len(calls) >= 2 and not colds
     assert r.status in (Status.MODEL_MISMATCH, Status.UNCONFIRMED)
+
+
+def test_the_current_noise_sizing_is_held_between_tests_and_kept_in_the_state():
+    from estimator.ident.tracker import PRELOAD_CHECK_EVERY
+    rng = np.random.default_rng(5)
+    plant = Plant(PlantConfig(window_s=150e-6))
+    tr = Tracker(TrackerConfig())
+    for k in range(PRELOAD_CHECK_EVERY + 2):
+        m = plant.measure(17.0, 3e-6, 28.0, rng)
+        tr.update(Injection(m.current_a, m.voltage_v, m.dt_s, 28.0, counter=k, time_s=0.1 * k))
+    st = tr.states[0]
+    c = np.array(st.current_noise_cov)
+    assert c.shape == (2, 2) and c[0, 0] > 0 and c[1, 1] > 0
+    back = TrackerState.from_dict(json.loads(json.dumps(st.to_dict())))
+    np.testing.assert_allclose(back.current_noise_cov, c)
+    bad = st.to_dict()
+    bad["current_noise_cov"] = [[1.0, 2.0], [2.0, 1.0]]     # not positive semi-definite
+    with pytest.raises(ValueError, match="current_noise_cov"):
+        TrackerState.from_dict(bad)
+    old = st.to_dict()
+    del old["current_noise_cov"]                            # a state written before it was kept
+    assert TrackerState.from_dict(old).current_noise_cov is None
