@@ -22,7 +22,7 @@ from estimator.codec.ingest import Ingest
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateState, EstimatorStatus, ModelCalibration
 from estimator.service.bus import open_bus, to_frame, to_message
-from estimator.service.latency import STAGES, Stats
+from estimator.service.latency import STAGES, WINDOW_S
 from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench import series_part
 from sim_bench.bench import resolve_bus
@@ -171,7 +171,7 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
                 injectors = len({i for i, _ in pool})
                 _feed(b, codec, pool, rate, injectors / rate, w)
                 _wait_for(lambda: w.estimates >= injectors, 60.0)
-                time.sleep(Stats().window_s + 0.5)
+                time.sleep(WINDOW_S + 0.5)
             else:
                 _feed(b, codec, pool, rate, 3.0, w)
                 time.sleep(0.5)

@@ -227,7 +227,7 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
     mismatch = robust or (adequacy is not None and not adequacy.adequate)
     # the robust fit of the longer window explains the plain window much worse than the plain fit: the
     # samples after the plain window pull the estimate elsewhere, which no noise does
-    disagrees = (not robust and config.window_disagreement_chi2 > 0 and math.isfinite(stat)
+    disagrees = (not robust and model is not None and config.window_disagreement_chi2 > 0 and math.isfinite(stat)
                  and stat < -config.window_disagreement_chi2)
     mismatch = mismatch or disagrees
     check = None
@@ -271,10 +271,9 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
         status = Status.MODEL_MISMATCH
         if adequacy is not None and not adequacy.adequate:
             msg = adequacy.reason
-        elif disagrees:
+        elif disagrees and model is not None:
             msg = (f"the samples after the {1e6 * model.window_s:.0f} µs window disagree with the fit (likelihood "
-                   f"ratio {stat:.0f}): model cannot explain the whole trace") if model is not None else \
-                "the samples after the fit's window disagree with it: model cannot explain the whole trace"
+                   f"ratio {stat:.0f}): model cannot explain the whole trace")
         elif wrong_preload:
             msg = check.reason(injection.f_open_n) if check is not None else (
                 "the header's preload force disagrees with this injector's samples (as last tested)")

@@ -47,6 +47,7 @@ from estimator.ident.local_fit import LocalFit
 PRELOAD_STEP = 0.01          # relative step of F_open for its sensitivity
 PRELOAD_SUSPECT_CHI2 = 4.0   # the samples' own preload force two standard deviations off the header's
 FD_NU, FD_LH_UM = 2e-3, 2e-3  # finite-difference steps of the Jacobian (N/V, µm)
+CURRENT_PROBE = 1e-3         # current step of current_noise_cov's probe simulation, relative to the current's peak
 
 
 def plain_adequacy(model: CostModel, fit: LocalFit, config: IdentConfig) -> Adequacy:
@@ -74,8 +75,6 @@ def model_error_cov(x: np.ndarray, other: np.ndarray | None, config: IdentConfig
         cov = cov + np.outer(d, d)
     return cov
 
-
-CURRENT_PROBE = 1e-3   # current step of current_noise_cov's probe simulation, relative to the current's peak
 
 @dataclass(frozen=True)
 class PreloadSensitivity:

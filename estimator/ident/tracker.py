@@ -156,12 +156,12 @@ class TrackerState:
             st.preload_shift = _check_array(d, "preload_shift", (2,), True).tolist()
         if d.get("current_noise_cov") is not None:
             c = _check_array(d, "current_noise_cov", (2, 2), True)
-            if not np.allclose(c, c.T, rtol=1e-9, atol=1e-15) or np.any(np.linalg.eigvalsh(c) < -1e-15):
+            if not _is_covariance(c, -1e-15):
                 raise ValueError("current_noise_cov is not a symmetric positive semi-definite covariance")
             st.current_noise_cov = c.tolist()
         st.x = _check_array(d, "x", (kalman.N_STATE,), st.initialized).tolist()
         p = _check_array(d, "p", (kalman.N_STATE, kalman.N_STATE), True)
-        if st.initialized and (not np.allclose(p, p.T, rtol=1e-9, atol=1e-15) or np.any(np.linalg.eigvalsh(p) < 0)):
+        if st.initialized and not _is_covariance(p):
             raise ValueError("p is not a symmetric positive semi-definite covariance")
         st.p = p.tolist()
         st.directions = _check_array(d, "directions", (2, 2), True).tolist()
@@ -216,6 +216,11 @@ def _check_optional_float(d: dict[str, Any], name: str) -> float | None:
     return float(v)
 
 
+def _is_covariance(m: np.ndarray, floor: float = 0.0) -> bool:
+    """``m`` symmetric (to rounding) with no eigenvalue below ``floor``."""
+    return bool(np.allclose(m, m.T, rtol=1e-9, atol=1e-15) and not np.any(np.linalg.eigvalsh(m) < floor))
+
+
 def _check_array(d: dict[str, Any], name: str, shape: tuple[int, ...], finite: bool) -> np.ndarray:
     v = d.get(name)
     try:
@@ -259,7 +264,7 @@ def physical_problem(st: TrackerState, config: TrackerConfig, box: Box,
     if st.pending is not None:
         points.append(("pending z", np.asarray(st.pending.z, dtype=float)))
         r = np.asarray(st.pending.r, dtype=float)
-        if not np.allclose(r, r.T, rtol=1e-9, atol=1e-15) or np.any(np.linalg.eigvalsh(r) < 0):
+        if not _is_covariance(r):
             return "pending r is not a covariance"
     for what, (nu, lh) in points:
         if not (lo[0] <= nu <= hi[0]):

@@ -37,17 +37,24 @@ log = logging.getLogger(__name__)
 NICE = 10     # added to the worker's niceness: it yields the cores to the daemon's threads
 
 
+def _run_when_idle() -> bool:
+    """Put this process under ``SCHED_IDLE``; whether the platform has it and allowed it."""
+    idle = getattr(os, "SCHED_IDLE", None)
+    if idle is None:
+        return False
+    try:
+        os.sched_setscheduler(0, idle, os.sched_param(0))
+    except OSError:
+        return False
+    return True
+
+
 def _lower_priority(increment: int) -> None:
     """In the worker process: lower its priority (best effort), and load the compiled kernels the
     calibration uses, so that the first calibration does not pay for it. On Linux the worker runs
     under ``SCHED_IDLE`` (it gets a core only where nothing else wants it; a niced process still
     takes a share of a busy one); elsewhere, or where that is refused, it is niced by ``increment``."""
-    idle = getattr(os, "SCHED_IDLE", None)
-    try:
-        if idle is None:
-            raise OSError("no SCHED_IDLE")
-        os.sched_setscheduler(0, idle, os.sched_param(0))
-    except OSError:
+    if not _run_when_idle():
         try:
             os.nice(increment)
         except OSError:   # pragma: no cover - a platform without nice

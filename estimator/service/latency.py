@@ -12,6 +12,9 @@ import numpy as np
 STAGES = ("queue", "assembly", "estimation", "send")   # the parts of the latency, in order
 
 
+WINDOW_S = 10.0    # the heartbeat's p99s cover the last 10 s
+
+
 @dataclass
 class Stats:
     """Latency samples (last 10 s, at most 100 000) for the heartbeat's p99s; the worker adds, the
@@ -22,7 +25,7 @@ class Stats:
     handing the frame to the bus.
     """
 
-    window_s: float = 10.0
+    window_s: float = WINDOW_S
 
     def __post_init__(self) -> None:
         self.samples: collections.deque[tuple[float, float, tuple[float, ...]]] = collections.deque(maxlen=100_000)
