@@ -151,7 +151,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 
 def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     """The injector's structural parameters from current and voltage alone (no displacement)."""
-    from estimator.ident.electrical import calibrate_electrical
+    from estimator.ident.electrical import calibrate_electrical, out_of_tolerance
     from estimator.io.mdf import read_injections
 
     meta = {k: str(v) for k, v in (("preload_force_n", args.preload_n), ("temperature_c", args.temperature_c))
@@ -169,13 +169,24 @@ def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     header = (f"parameters calibrated electrically (python -m estimator calibrate --electrical) from "
               f"{len(injections)} injections;\nRMS voltage residual {res.rms_before_v * 1e3:.1f} mV before, "
               f"{res.rms_after_v * 1e3:.1f} mV after; SI units.")
-    toml = res.params.to_toml(header)
-    if args.out:
-        args.out.write_text(toml)
-        print(f"wrote {args.out}")
-    else:
-        print(toml)
+    flagged = out_of_tolerance(res, args.part_tolerance)
+    if res.adequate:
+        toml = res.params.to_toml(header)
+        if args.out:
+            args.out.write_text(toml)
+            print(f"wrote {args.out}")
+        else:
+            print(toml)
     print(res.report())
+    if flagged:
+        print(f"out_of_tolerance: {', '.join(flagged)} beyond ±{100 * args.part_tolerance:g} % of the tables by "
+              f"more than 3 sigma (a part to reject)")
+    if args.json:
+        args.json.write_text(json.dumps(res.to_dict() | {"out_of_tolerance": flagged,
+                                                         "part_tolerance": args.part_tolerance}, indent=1))
+    if not res.adequate:
+        print("error: calibration refused: the calibrated model does not explain the batch; no parameter file "
+              "written", file=sys.stderr)
     if bad:
         print(f"error: {bad} of {len(args.traces)} file(s) could not be read (skipped, named above)", file=sys.stderr)
     return 0 if res.adequate and not bad else 1
@@ -407,9 +418,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("track", help="recursive estimator over trace CSVs, one JSON line each")
     s.add_argument("traces", type=Path, nargs="+", help="traces in order: CSV or MDF4")
-    s.add_argument("--self-calibrate", action="store_true", help="an injector the model cannot explain learns "
-                   "its own structural parameters from its injections (a window spanning its preload forces; "
-                   "adopted when they explain held-out injections better)")
+    s.add_argument("--self-calibrate", action=argparse.BooleanOptionalAction, default=True,
+                   help="learning (on by default): an injector the model cannot explain learns its own "
+                   "structural parameters from its injections (a window spanning its preload forces; adopted "
+                   "when they explain held-out injections better), and is learned again when its model stops "
+                   "explaining it; --no-self-calibrate turns it off")
     ident_opts(s)
     s.set_defaults(func=cmd_track)
 
@@ -423,6 +436,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "serial= or injector_key=); default: all traces, one structure shared by all (a lot)")
     s.add_argument("--tolerance", type=float, default=0.10, help="--electrical: relative standard deviation of "
                    "the prior on each structural parameter (default 0.10)")
+    s.add_argument("--part-tolerance", type=float, default=0.10, help="--electrical: the part's datasheet tolerance "
+                   "(relative); a parameter beyond it by more than 3 sigma is reported out_of_tolerance (default 0.10)")
+    s.add_argument("--json", type=Path, default=None, help="--electrical: write the result (parameters, sigma, "
+                   "out_of_tolerance, adequacy) as JSON here")
     s.add_argument("--window-us", type=float, default=None, help="cost window in µs (default 170; --electrical 200)")
     s.add_argument("--gamma", type=float, default=1e6, help="weight of the s3 error in V/m (default 1e6)")
     s.add_argument("--out", type=Path, help="write the TOML here (default: print it)")

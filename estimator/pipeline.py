@@ -27,12 +27,18 @@ def build_pool(cfg: DaemonConfig) -> SimulatorPool:
 def build_tracker(cfg: DaemonConfig, pool: SimulatorPool | None = None,
                   calibrator: Calibrator | None = None, codec: Codec | None = None) -> Tracker:
     """The recursive estimator as configured (on ``pool`` if given: its simulators' tables are built
-    once). With self-calibration on, calibrations run on ``calibrator`` (default: at once, in the
-    caller's thread, as an offline replay wants; the daemon passes its background calibrator)."""
+    once), each injector with a configured parameter file of its own starting from it. With learning
+    on, calibrations run on ``calibrator`` (default: at once, in the caller's thread, as an offline
+    replay wants; the daemon passes its background calibrator)."""
+    from estimator.model.parameters import load_parameters
+
     codec = codec or build_codec(cfg)
-    return Tracker(cfg.tracker_config(), pool=pool if pool is not None else build_pool(cfg),
-                   self_calibration=cfg.self_calibration_config(), calibrator=calibrator,
-                   temperature_range_c=codec.signal_range(InjectionHeader, "fuel_temperature_c"))
+    tracker = Tracker(cfg.tracker_config(), pool=pool if pool is not None else build_pool(cfg),
+                      self_calibration=cfg.self_calibration_config(), calibrator=calibrator,
+                      temperature_range_c=codec.signal_range(InjectionHeader, "fuel_temperature_c"))
+    for iid, path in sorted(cfg.injector_params.items()):   # end-of-line calibrations: each injector's start
+        tracker.seed(iid, load_parameters(path))
+    return tracker
 
 
 def build_codec(cfg: DaemonConfig) -> Codec:

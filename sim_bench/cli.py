@@ -135,6 +135,14 @@ def cmd_tracking(args: argparse.Namespace) -> int:
     """The recursive estimator on drift, steps, glitches and warm-ups; exit 1 if a target is missed."""
     from sim_bench import tracking_bench
 
+    from sim_bench import lot_life
+
+    if args.scenario == "lot-life":
+        life = lot_life.run(args.seed)
+        print(lot_life.format_report(life))
+        _write_json(args.json_out, life)
+        return 0 if life["summary"]["passed"] else 1
+    lot = lot_life.run(args.seed) if args.scenario == "all" and args.plant != "mismatch" else None
     names = list(tracking_bench.TRACKING) if args.scenario == "all" else [args.scenario]
     runs = []
     if args.plant in ("matched", "both", "default"):
@@ -145,6 +153,9 @@ def cmd_tracking(args: argparse.Namespace) -> int:
         runs += [(n, True) for n in names if n in tracking_bench.DEFAULT_MISMATCH]
     reports = [tracking_bench.tracking(n, args.seed, m, args.injections, drive=_drive(args)) for n, m in runs]
     print(tracking_bench.format_tracking(reports))
+    if lot is not None:
+        print(lot_life.format_report(lot))
+        reports.append(lot)
     _write_json(args.json_out, {"benchmark": "tracking", "reports": reports})
     return 0 if all(r["summary"]["passed"] for r in reports) else 1
 
@@ -443,7 +454,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_accuracy)
 
     s = sub.add_parser("tracking", help="recursive estimator on injection sequences")
-    s.add_argument("--scenario", choices=("all", *tracking_bench.TRACKING), default="all", help="scenario, or all of them (default all)")
+    s.add_argument("--scenario", choices=("all", *tracking_bench.TRACKING, "lot-life"), default="all",
+                   help="scenario, or all of them (default all); lot-life: a lot of series injectors through their "
+                   "life with learning on")
     s.add_argument("--plant", choices=("default", "matched", "mismatch", "both"), default="default",
                    help="default: every scenario matched, and " + ", ".join(tracking_bench.DEFAULT_MISMATCH)
                         + " on the hysteresis plant too")

@@ -147,16 +147,14 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
     """Latency at ``rate`` injections/s, then ``overload_factor`` x that; returns the report.
     ``self_calibration``: series injectors and the daemon's self-calibration on, so that its
     background calibrations run while the latency is measured (the report counts them)."""
+    out_dir = out_dir.resolve()   # the daemon runs in another working directory
     out_dir.mkdir(parents=True, exist_ok=True)
     codec = Codec()
     pool = injection_pool(codec, series=self_calibration)
     bus, hub = resolve_bus(bus, out_dir)
     report: dict = {"bus": bus, "rate_per_s": rate, "seconds": seconds, "self_calibration": self_calibration}
-    config = None
-    if self_calibration:
-        config = out_dir / "daemon-bench-selfcal.toml"
-        config.write_text('[estimator.self_calibration]\nmode = "on"\n')
-    d = DaemonProcess(bus, out_dir / "daemon-bench.log", config=config).start()
+    # the daemon's default configuration: learning on (the nominal injectors never start it)
+    d = DaemonProcess(bus, out_dir / "daemon-bench.log").start()
     try:
         with open_bus(bus) as b:
             w = _Watcher(b, codec)
@@ -270,7 +268,7 @@ def format_report(ing: dict, rep: dict) -> str:
         for phase in ("nominal", "overload"):
             st = rep[phase]["calibration_states"]
             lines.append(f"self-calibration during {phase}: {st.count('calibrating')} calibration(s) started, "
-                         f"{st.count('adopted')} adopted, {st.count('rejected')} rejected; injectors with their own "
+                         f"{st.count('adopted')} adopted, {st.count('refused')} refused; injectors with their own "
                          f"model by the end: {rep[phase]['adopted_injectors']}")
     lines.append("latencies in ms; ext = trailer sent -> EstimateState received (includes the bus), "
                  "daemon = last frame arrived -> EstimateState sent (heartbeat LatencyP99, last 10 s)")

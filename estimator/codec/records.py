@@ -36,6 +36,7 @@ class Command(IntEnum):
     NONE = 0
     RESET = 1
     SET_PRIOR = 2
+    RELEARN = 3
 
 
 @dataclass(frozen=True)
@@ -153,8 +154,10 @@ class ValvePrediction(Record):
 
 @dataclass(frozen=True)
 class ModelCalibration(Record):
-    """Where one injector's self-calibration stands (``state``: the index of
-    :data:`estimator.ident.selfcal.STATES`, the DBC's VAL_ table)."""
+    """Where one injector's learning stands (``state``: the code of a
+    :class:`~estimator.ident.status.Learning` word, the DBC's VAL_ table; ``preload_span`` the
+    learning's progress, relative; ``out_of_tolerance`` how many structural parameters the last
+    calibration found beyond the part's tolerance)."""
 
     injector_id: int
     state: int
@@ -162,12 +165,15 @@ class ModelCalibration(Record):
     rms_before_v: float
     rms_after_v: float
     calibrations: int
+    preload_span: float = 0.0
+    out_of_tolerance: int = 0
     MESSAGE: ClassVar[str] = "ModelCalibration"
     CLASSIC: ClassVar[bool] = True
     OUTPUT: ClassVar[bool] = True
     SIGNALS: ClassVar[dict[str, str]] = {"injector_id": "InjectorId", "state": "State", "batch": "Batch",
                                          "rms_before_v": "RmsBefore", "rms_after_v": "RmsAfter",
-                                         "calibrations": "Calibrations"}
+                                         "calibrations": "Calibrations", "preload_span": "PreloadSpan",
+                                         "out_of_tolerance": "OutOfTolerance"}
 
 
 @dataclass(frozen=True)

@@ -84,7 +84,8 @@ def process_group(key: str | None, paths: tuple[str, ...], cfg: Any, trace_optio
     from estimator.service.estimates import iter_estimates, new_pipeline, source_kind
 
     pool, codec = _worker_parts(cfg)
-    tracker = Tracker(tracker_config or cfg.tracker_config(), pool=pool)   # one per group: state per injector key
+    tracker = Tracker(tracker_config or cfg.tracker_config(), pool=pool,   # one per group: state per injector key
+                      self_calibration=cfg.self_calibration_config())
     pipeline = None    # a keyed group's captures continue one pipeline; an unkeyed capture gets its own
     rows: list[dict] = []
     for path in paths:

@@ -57,7 +57,10 @@ WEAK_FRACTION = 0.7        # posterior sd above this fraction of the prior sd: t
 CORRELATED = 0.9
 SIMULATORS_KEPT = 16
 NU_STEP = 0.5              # N/V: a coarser table than the estimator's (voltage error ≤ 2e-4 V), 20x cheaper to build
-MISFIT_Z = 4.0             # an injection's smooth residual this many sd above noise: the model does not explain the batch
+RESTART_Z = 4.0            # an injection's smooth residual this many sd above noise: try another start
+MISFIT_Z = 8.0             # ... and this many after the restarts: the model does not explain the batch. Measured on
+                           # 120 seeded good batches (parts within ±10 %, with and without a chain, wandering preload,
+                           # warm-up, wear): largest 5.2, 99th percentile 4.8; hysteresis parts 1,000-6,000
 RESTART_SEED = 20261124    # restarts from a local minimum are seeded: the same traces give the same parameters
 STRUCTURAL_NAMES = tuple(f"{table}.{name}" for table, name in STRUCTURAL)   # what is fitted by default
 BOUND_SDS = 4.0            # a structural factor is bounded to this many prior standard deviations
@@ -111,6 +114,17 @@ class ElectricalCalibration:
     chain_sigma_us: dict[str, float] = field(default_factory=dict)
     sigma_nu_n_per_v: np.ndarray = field(default_factory=lambda: np.zeros(0))
     sigma_lh_um: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-ready: each fitted parameter's factor and relative sigma, the chain, the residuals and
+        the verdict (units in the keys)."""
+        return {"adequate": self.adequate, "misfit_z": round(self.misfit_z, 3),
+                "rms_before_v": self.rms_before_v, "rms_after_v": self.rms_after_v,
+                "parameters": {n: {"factor": float(f), "sigma_rel": float(sd)}
+                               for n, f, sd in zip(self.names, self.factors, self.sigma_rel)},
+                "chain_us": {n: getattr(self.params.chain, n) * 1e6 for n in self.chain_sigma_us},
+                "chain_sigma_us": dict(self.chain_sigma_us), "weak": list(self.weak), "warnings": list(self.warnings),
+                "injections": [{"nu_n_per_v": float(nu), "lh_um": float(lh)} for nu, lh in zip(self.nu_n_per_v, self.lh_um)]}
 
     def report(self) -> str:
         """A table of the parameters, the residual before and after, and the warnings."""
@@ -312,7 +326,7 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
     fit = solve(x0)
     rng = np.random.default_rng(RESTART_SEED)
     restarts = 0
-    while misfit_z(fit) > MISFIT_Z and restarts < max_restarts:
+    while misfit_z(fit) > RESTART_Z and restarts < max_restarts:
         # a local minimum: the valve's stiffness and damping trade against each other and L_h, and an
         # injection's (N_u, L_h) can sit in the wrong basin of its own cost. Start again with every
         # injection re-identified from a cold start (a global search of its own two parameters), first on
@@ -387,6 +401,19 @@ def noise_gain(u_filter_tau_s: float, i_skew_s: float, dt_s: float) -> float:
     h = shift(e, i_skew_s / dt_s) if i_skew_s else e
     h = lowpass(h, u_filter_tau_s, dt_s) if u_filter_tau_s > 0 else h
     return float(h @ h)
+
+
+def out_of_tolerance(res: ElectricalCalibration, part_tolerance: float, sigmas: float = 3.0) -> list[str]:
+    """The structural parameters ``res`` found beyond ``±part_tolerance`` (relative) of their base
+    values by more than ``sigmas`` of their standard deviations: a part a tester rejects. A parameter
+    the batch hardly informs cannot be flagged (its standard deviation is the prior's)."""
+    hi, lo = math.log1p(part_tolerance), math.log1p(-min(part_tolerance, 0.99))
+    out = []
+    for name, f, sd in zip(res.names, res.factors, res.sigma_rel):
+        x = math.log(float(f))
+        if x - hi > sigmas * sd or lo - x > sigmas * sd:
+            out.append(name)
+    return out
 
 
 def beyond_bounds(params: InjectorParameters, base: InjectorParameters, tolerance: float,

@@ -30,9 +30,9 @@ import numpy as np
 
 from estimator.ident.adequacy import noise_level_v
 from estimator.ident.config import IdentConfig
-from estimator.ident.electrical import WINDOW_S, calibrate_electrical, measured_voltage
+from estimator.ident.electrical import WINDOW_S, calibrate_electrical, measured_voltage, out_of_tolerance
 from estimator.ident.idle_stroke import identify
-from estimator.ident.status import CALIBRATION_STATES
+from estimator.ident.status import CALIBRATION_STATES, Learning
 from estimator.ident.measurement import Injection
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import InjectorParameters
@@ -51,13 +51,24 @@ class SelfCalConfig:
     min_preload_spread: float = 0.5   # (max - min) / mean of the preload forces before a calibration is tried
     adopt_chi2: float = 25.0       # held-out improvement needed to adopt (chi-square units)
     tolerance: float = 0.10        # prior relative standard deviation of each structural parameter
+    part_tolerance: float = 0.10   # the datasheet tolerance: a parameter beyond ±this of the tables ...
+    tolerance_sigmas: float = 3.0  # ... by more than this many of its standard deviations is out_of_tolerance
+    monitor_drift: float = 0.5     # the monitor's allowance: a cumulative sum of (mismatched - this) per injection
+    monitor_limit: float = 4.0     # ... whose reaching this starts re-learning (8 mismatched injections in a row)
+    confirm: int = 5               # injections an adopted model serves before it is monitoring
+    retry_after: int = 12          # injections after a refused calibration before the next window (doubling, x8 at most)
 
     def __post_init__(self) -> None:
         if not (isinstance(self.window, int) and isinstance(self.held_out, int) and 1 <= self.held_out
                 and self.window >= self.held_out + 3):
             raise ValueError(f"self-calibration window {self.window!r} must hold held_out {self.held_out!r} "
                              "injections and at least three more")
-        for name in ("min_preload_spread", "adopt_chi2", "tolerance"):
+        for name in ("confirm", "retry_after"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ValueError(f"self-calibration {name} = {v!r} must be a non-negative whole number")
+        for name in ("min_preload_spread", "adopt_chi2", "tolerance", "part_tolerance", "tolerance_sigmas",
+                     "monitor_drift", "monitor_limit"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"self-calibration {name} = {v!r} must be a positive number")
@@ -65,23 +76,73 @@ class SelfCalConfig:
 
 @dataclass
 class CalibrationStatus:
-    """Where an injector's self-calibration stands (``state`` one of :data:`STATES`)."""
+    """Where an injector's learning stands (``state`` a :class:`~estimator.ident.status.Learning`).
 
-    state: str = "idle"
+    ``batch`` and ``preload_span`` are the progress of a window being collected (injections, and the
+    (max - min) / mean of their preload forces); ``rms_before_v``/``rms_after_v``/``held_out_chi2``
+    the last calibration's figures; ``out_of_tolerance`` the structural parameters it found beyond the
+    part's tolerance; ``evidence`` the monitor's cumulative sum (re-learning at the configured limit);
+    ``served`` the injections the model in use has served since its adoption; ``refusals`` the
+    calibrations refused in a row and ``retry_in`` the injections left before the next window;
+    ``source`` where the model in use comes from (``tables``, ``learned`` or ``seeded``).
+    """
+
+    state: str = Learning.IDLE
     batch: int = 0
     rms_before_v: float = float("nan")
     rms_after_v: float = float("nan")
     held_out_chi2: float = float("nan")
     message: str = ""
     calibrations: int = 0          # calibrations run for this injector so far
+    preload_span: float = 0.0
+    out_of_tolerance: tuple[str, ...] = ()
+    evidence: float = 0.0
+    served: int = 0
+    refusals: int = 0
+    retry_in: int = 0
+    source: str = "tables"
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (NaN as None)."""
         def num(v: float) -> float | None:
             return round(v, 4) if math.isfinite(v) else None
-        return {"state": self.state, "batch": self.batch, "rms_before_v": num(self.rms_before_v),
-                "rms_after_v": num(self.rms_after_v), "held_out_chi2": num(self.held_out_chi2),
-                "message": self.message, "calibrations": self.calibrations}
+        return {"state": str(self.state), "batch": self.batch, "preload_span": round(self.preload_span, 3),
+                "rms_before_v": num(self.rms_before_v), "rms_after_v": num(self.rms_after_v),
+                "held_out_chi2": num(self.held_out_chi2), "message": self.message,
+                "calibrations": self.calibrations, "out_of_tolerance": list(self.out_of_tolerance),
+                "evidence": round(self.evidence, 3), "served": self.served, "refusals": self.refusals,
+                "retry_in": self.retry_in, "source": self.source}
+
+    @classmethod
+    def from_dict(cls, d: Any) -> CalibrationStatus:
+        """Inverse of :meth:`to_dict`, validating every field; ValueError names the first bad one."""
+        if not isinstance(d, dict):
+            raise ValueError("a learning status must be an object")
+        st = cls()
+        if d.get("state") not in CALIBRATION_STATES:
+            raise ValueError(f"state = {d.get('state')!r} is not a learning state")
+        st.state = Learning(d["state"])
+        for name in ("batch", "calibrations", "served", "refusals", "retry_in"):
+            v = d.get(name, 0)
+            if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < 2 ** 31:
+                raise ValueError(f"{name} = {v!r} must be a non-negative whole number")
+            setattr(st, name, v)
+        for name in ("rms_before_v", "rms_after_v", "held_out_chi2", "preload_span", "evidence"):
+            v = d.get(name)
+            if v is None:
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"{name} = {v!r} must be a non-negative number or null")
+            setattr(st, name, float(v))
+        msg, source, oot = d.get("message", ""), d.get("source", "tables"), d.get("out_of_tolerance", [])
+        if not isinstance(msg, str) or len(msg) > 1000:
+            raise ValueError("message must be a short string")
+        if source not in ("tables", "learned", "seeded"):
+            raise ValueError(f"source = {source!r} must be tables, learned or seeded")
+        if not (isinstance(oot, list) and len(oot) <= 64 and all(isinstance(n, str) and len(n) < 64 for n in oot)):
+            raise ValueError("out_of_tolerance must be a list of parameter names")
+        st.message, st.source, st.out_of_tolerance = msg, source, tuple(oot)
+        return st
 
 
 @dataclass
@@ -112,29 +173,32 @@ class CalibrationWindow:
         return len(self.items) >= config.window and self.preload_spread() >= config.min_preload_spread
 
 
-def self_calibrate(window: CalibrationWindow, base: InjectorParameters,
-                   config: SelfCalConfig) -> tuple[CalibrationStatus, InjectorParameters | None]:
-    """Calibrate on the window but its newest ``held_out`` injections, test on those; the status and
-    the parameters to adopt (None if the calibration is rejected)."""
-    status, sim = _calibrate(window, base, config)
+def self_calibrate(window: CalibrationWindow, base: InjectorParameters, config: SelfCalConfig,
+                   current: InjectorParameters | None = None) -> tuple[CalibrationStatus, InjectorParameters | None]:
+    """Calibrate on the window but its newest ``held_out`` injections, test on those against the model
+    in use (``current``, default ``base``: the configured tables, which are the calibration's prior);
+    the status and the parameters to adopt (None if the calibration is refused)."""
+    status, sim = _calibrate(window, base, config, current)
     return status, (sim.params if sim is not None else None)
 
 
-def _calibrate(window: CalibrationWindow, base: InjectorParameters,
-               config: SelfCalConfig) -> tuple[CalibrationStatus, FastSimulator | None]:
+def _calibrate(window: CalibrationWindow, base: InjectorParameters, config: SelfCalConfig,
+               current: InjectorParameters | None = None) -> tuple[CalibrationStatus, FastSimulator | None]:
     """:func:`self_calibrate`, with the simulator of the adopted parameters it tested them on."""
     injections = [i for i, _ in window.items]
     batch, held = injections[:-config.held_out], injections[-config.held_out:]
     try:
         res = calibrate_electrical(batch, base, tolerance=config.tolerance)
     except ValueError as exc:
-        return CalibrationStatus("rejected", len(batch), message=str(exc)), None
-    status = CalibrationStatus("rejected", len(batch), res.rms_before_v, res.rms_after_v)
+        return CalibrationStatus(Learning.REFUSED, len(batch), message=str(exc)), None
+    status = CalibrationStatus(Learning.REFUSED, len(batch), res.rms_before_v, res.rms_after_v,
+                               out_of_tolerance=tuple(out_of_tolerance(res, config.part_tolerance,
+                                                                       config.tolerance_sigmas)))
     if not res.adequate:
         status.message = "the calibrated model does not explain the batch"
         return status, None
     dt = held[0].dt_s
-    old, new = FastSimulator(base, dt), FastSimulator(res.params, dt)
+    old, new = FastSimulator(current if current is not None else base, dt), FastSimulator(res.params, dt)
     chi2 = 0.0
     for inj in held:
         r_old, r_new = _held_out_residual(old, inj), _held_out_residual(new, inj)
@@ -145,7 +209,7 @@ def _calibrate(window: CalibrationWindow, base: InjectorParameters,
         status.message = (f"the calibrated model explains the held-out injections no better (chi-square gain "
                           f"{chi2:.1f} <= {config.adopt_chi2:g})")
         return status, None
-    status.state, status.message = "adopted", f"held-out chi-square gain {chi2:.0f}"
+    status.state, status.message = Learning.ADOPTED, f"held-out chi-square gain {chi2:.0f}"
     return status, new
 
 
@@ -178,18 +242,19 @@ class Calibrator(Protocol):
     prepare: Callable[[InjectorParameters, dict[float, np.ndarray]], Any] | None
 
     def submit(self, injector_id: int, window: CalibrationWindow, base: InjectorParameters,
-               config: SelfCalConfig) -> None: ...
+               config: SelfCalConfig, current: InjectorParameters | None = None) -> None: ...
 
     def poll(self) -> list[CalibrationOutcome]: ...
 
     def close(self) -> None: ...
 
 
-def calibrate_and_tabulate(window: CalibrationWindow, base: InjectorParameters, config: SelfCalConfig
+def calibrate_and_tabulate(window: CalibrationWindow, base: InjectorParameters, config: SelfCalConfig,
+                           current: InjectorParameters | None = None
                            ) -> tuple[CalibrationStatus, InjectorParameters | None, dict[float, np.ndarray]]:
     """:func:`self_calibrate`, and for adopted parameters the simulator table of the window's sample
     period (the one the held-out test built, handed over so that the estimating process only takes it)."""
-    status, sim = _calibrate(window, base, config)
+    status, sim = _calibrate(window, base, config, current)
     if sim is None:
         return status, None, {}
     return status, sim.params, {sim.dt_s: sim.transition_table()}
@@ -203,8 +268,8 @@ class InlineCalibrator:
         self.prepare = prepare
 
     def submit(self, injector_id: int, window: CalibrationWindow, base: InjectorParameters,
-               config: SelfCalConfig) -> None:
-        status, params, tables = calibrate_and_tabulate(window, base, config)
+               config: SelfCalConfig, current: InjectorParameters | None = None) -> None:
+        status, params, tables = calibrate_and_tabulate(window, base, config, current)
         prepared = self.prepare(params, tables) if params is not None and self.prepare is not None else None
         self._done.append(CalibrationOutcome(injector_id, status, params, prepared))
 

@@ -29,8 +29,25 @@ class Status(str, Enum):
         return self.value
 
 
-#: where an injector's self-calibration stands (the words of ``ModelCalibration.State``)
-CALIBRATION_STATES = ("idle", "collecting", "calibrating", "adopted", "rejected")
+class Learning(str, Enum):
+    """Where an injector's learning of its own model stands (the words of ``ModelCalibration.State``;
+    their codes are the DBC's, ``VAL_ 515 State``). See :mod:`estimator.ident.learning`."""
+
+    IDLE = "idle"                    # the configured tables explain this injector: nothing to learn
+    LEARNING = "learning"            # collecting injections over operating points (progress: batch, preload span)
+    CALIBRATING = "calibrating"      # a calibration of the collected window runs (in the background in the daemon)
+    ADOPTED = "adopted"              # the injector's own parameter set was just adopted; being confirmed
+    REFUSED = "refused"              # the calibration did not explain the injector: tried again later
+    MONITORING = "monitoring"        # the injector's own (learned or seeded) model is in use and watched
+    RELEARNING = "relearning"        # the model in use stopped explaining the injector (or a relearn command):
+                                     # collecting again while it keeps serving
+
+    def __str__(self) -> str:
+        return self.value
+
+
+#: the words of the learning states, in the order of their bus codes
+CALIBRATION_STATES = tuple(s.value for s in Learning)
 
 #: statuses whose published (N_u, L_h) is an estimate of this injection (not the previous one held)
 ESTIMATED = frozenset({Status.OK, Status.AT_BOUND, Status.NOT_CONVERGED, Status.UNCERTAIN, Status.UNCONFIRMED,

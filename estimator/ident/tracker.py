@@ -49,14 +49,14 @@ from estimator.ident.estimate import Estimate, rejected
 from estimator.ident.idle_stroke import (check_injection, complement_fit, effective_window_s, finish, identify,
                                          predict_valve, search_box)
 from estimator.ident.mismatch import model_error_cov, plain_adequacy
-from estimator.ident.selfcal import (Calibrator, CalibrationStatus, CalibrationWindow, InlineCalibrator,
-                                     SelfCalConfig)
+from estimator.ident.learning import Learner
+from estimator.ident.selfcal import Calibrator, CalibrationStatus, SelfCalConfig
 from estimator.ident.local_fit import next_steps, refine
 from estimator.ident.measurement import Injection
 from estimator.ident.model_selection import likelihood_ratio
 from estimator.ident.search import Box
 from estimator.ident.simulators import SimulatorPool
-from estimator.ident.status import ESTIMATED, Status
+from estimator.ident.status import Learning, Status
 from estimator.model.fast_sim import FastSimulator, remember
 from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters
@@ -475,8 +475,11 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
     x_pred, p_pred = held
     inn = kalman.innovation(x_pred, p_pred, z, r)
     if not (st.mismatch or st.robust) and raw.mismatch and inn.d2 > config.gate_chi2:
-        # an injector the model explained, and an injection it cannot explain that disagrees: a glitch
+        # an injector the model explained, and an injection it cannot explain that disagrees: a glitch.
+        # It counts towards the injector's run of mismatched injections: a part swapped under its id
+        # looks like this first, and the fit that follows must not be published ok on its own
         st.rejected += 1
+        st.mismatch_run += 1
         reason = (f"outlier (innovation chi2 {inn.d2:.1f} > {config.gate_chi2:.1f}, the model mismatched "
                   f"on this injection only)")
         return st, _publish(_widen(held, st, config, sim), raw, Status.REJECTED, reason, sim, inj, predict=True,
@@ -495,6 +498,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
                                          raw.model_error_stat > config.ident.model_error_threshold)):
         # the plain model cannot explain this injection and it disagrees with the filter: a glitch
         st.rejected += 1
+        st.mismatch_run += 1
         reason = (f"outlier (innovation chi2 {inn.d2:.1f} > {config.gate_chi2:.1f}, model error "
                   f"{raw.model_error_stat:.0f})")
         return st, _publish(_widen(held, st, config, sim), raw, Status.REJECTED, reason, sim, inj, predict=True, outliers=1)
@@ -747,7 +751,9 @@ def _publish(filt: tuple[np.ndarray, np.ndarray] | None, raw: Estimate, status: 
 
 
 class Tracker:
-    """Thin stateful wrapper: one :class:`TrackerState` per injector id, simulators from a bounded pool."""
+    """The per-injector bank: one :class:`TrackerState` per injector id, simulators from a bounded
+    pool, and (with ``self_calibration``) each injector's learning lifecycle
+    (:class:`~estimator.ident.learning.Learner`) with the injector's own model once it has one."""
 
     def __init__(self, config: TrackerConfig | None = None, sim: FastSimulator | None = None,
                  pool: SimulatorPool | None = None, self_calibration: SelfCalConfig | None = None,
@@ -760,17 +766,25 @@ class Tracker:
         if sim is not None:
             self.pool.add(sim)
         self.states: dict[int, TrackerState] = {}
-        # self-calibration (None: off): per injector its window, its status and, once adopted, its own model
+        # learning (None: off): per injector its lifecycle and, once it has one, its own model's pool
         self.self_calibration = self_calibration
         self.own_pools: dict[int, SimulatorPool] = {}
-        self.calibration: dict[int, CalibrationStatus] = {}
-        self._windows: dict[int, CalibrationWindow] = {}
-        self.calibrator: Calibrator | None = None
+        self.learning: Learner | None = None
         if self_calibration is not None:
-            self.calibrator = calibrator if calibrator is not None else InlineCalibrator()
-            if self.calibrator.prepare is None:
-                self.calibrator.prepare = self.own_pool
-        self._calibration_changed: set[int] = set()
+            self.learning = Learner(self_calibration, self.pool.params, calibrator, self._use_model,
+                                    self._model_of)
+            if self.learning.calibrator.prepare is None:
+                self.learning.calibrator.prepare = self.own_pool
+
+    @property
+    def calibrator(self) -> Calibrator | None:
+        """Where calibrations run (None: learning is off)."""
+        return self.learning.calibrator if self.learning is not None else None
+
+    @property
+    def calibration(self) -> dict[int, CalibrationStatus]:
+        """Each injector's learning status (empty with learning off)."""
+        return self.learning.status if self.learning is not None else {}
 
     @property
     def params(self) -> InjectorParameters:
@@ -786,8 +800,8 @@ class Tracker:
 
         A sample period the pool refuses gives a ``rejected`` result and leaves the state alone.
         """
-        if self.calibrator is not None:
-            self._collect_calibrations()
+        if self.learning is not None:
+            self.learning.collect()
         state = self.states.get(inj.injector_id)
         if state is None:
             state = TrackerState()
@@ -797,50 +811,25 @@ class Tracker:
             return _publish(None, rejected(refusal), Status.REJECTED, refusal, None, inj, False)
         new_state, result = update(state, inj, pool.get(inj.dt_s), self.config)
         self.states[inj.injector_id] = new_state
-        if self.self_calibration is not None:
-            self._self_calibrate(inj, new_state, result, self.self_calibration)
+        if self.learning is not None:
+            self.learning.observe(inj, result.raw.nu_n_per_v, new_state.mismatch, result.raw.mismatch,
+                                  result.status, result.raw.status)
         return result
 
-    def _self_calibrate(self, inj: Injection, st: TrackerState, result: TrackResult, config: SelfCalConfig) -> None:
-        """Collect a mismatched injector's accepted injections; hand the window to the calibrator once
-        it is ready (which runs it now or in the background, never on this thread's real-time path
-        in the daemon)."""
-        iid = inj.injector_id
-        status = self.calibration.setdefault(iid, CalibrationStatus())
-        if status.state in ("adopted", "calibrating"):
-            return
-        if not st.mismatch:
-            if status.state == "collecting":   # the model explains this injector again
-                self._windows.pop(iid, None)
-                self._set_calibration(iid, replace(status, state="idle", batch=0))
-            return
-        if result.status == Status.REJECTED or result.raw.status not in ESTIMATED:
-            return
-        window = self._windows.setdefault(iid, CalibrationWindow(config.window))
-        window.add(inj, result.raw.nu_n_per_v)
-        self._set_calibration(iid, replace(status, state="collecting", batch=len(window.items)))
-        if not window.ready(config):
-            return
-        del self._windows[iid]
-        self._set_calibration(iid, replace(self.calibration[iid], state="calibrating"))
-        assert self.calibrator is not None
-        self.calibrator.submit(iid, window, self.pool.params, config)
-        self._collect_calibrations()
+    def _model_of(self, injector_id: int) -> InjectorParameters | None:
+        """The injector's own parameter set, None while it is estimated with the configured one."""
+        pool = self.own_pools.get(injector_id)
+        return pool.params if pool is not None else None
 
-    def _set_calibration(self, iid: int, status: CalibrationStatus) -> None:
-        if self.calibration.get(iid) != status:
-            self._calibration_changed.add(iid)
-        self.calibration[iid] = status
-
-    def _collect_calibrations(self) -> None:
-        """Take the calibrator's finished calibrations: adopt those it accepted (the injector is
-        re-acquired under its own model)."""
-        assert self.calibrator is not None
-        for out in self.calibrator.poll():
-            before = self.calibration.get(out.injector_id, CalibrationStatus())
-            self._set_calibration(out.injector_id, replace(out.status, calibrations=before.calibrations + 1))
-            if out.params is not None:
-                self.adopt(out.injector_id, out.params, out.prepared)
+    def _use_model(self, injector_id: int, params: InjectorParameters | None, pool: Any = None) -> None:
+        """Estimate ``injector_id`` with ``params`` (None: the configured ones) from now on, re-acquired
+        from a cold start."""
+        if params is None:
+            self.own_pools.pop(injector_id, None)
+        else:
+            self.own_pools[injector_id] = pool if isinstance(pool, SimulatorPool) else SimulatorPool(
+                params, self.pool.max_size, self.pool.periods_ns)
+        self.states.pop(injector_id, None)
 
     def own_pool(self, params: InjectorParameters, tables: dict[float, np.ndarray] | None = None) -> SimulatorPool:
         """A simulator pool for an injector's own ``params`` with its simulators' tables: those in
@@ -858,36 +847,51 @@ class Tracker:
 
     def adopt(self, injector_id: int, params: InjectorParameters, pool: SimulatorPool | None = None) -> None:
         """Estimate ``injector_id`` with its own ``params`` from now on (re-acquired from a cold start)."""
-        self.own_pools[injector_id] = pool if isinstance(pool, SimulatorPool) else SimulatorPool(
-            params, self.pool.max_size, self.pool.periods_ns)
-        self.states.pop(injector_id, None)
-        status = self.calibration.get(injector_id, CalibrationStatus())
-        if status.state != "adopted":
-            self._set_calibration(injector_id, replace(status, state="adopted"))
+        self._use_model(injector_id, params, pool)
+        if self.learning is not None:
+            self.learning.adopted(injector_id)
+
+    def seed(self, injector_id: int, params: InjectorParameters) -> None:
+        """Start ``injector_id`` from its own (end-of-line) parameter set, monitored like a learned one."""
+        self._use_model(injector_id, params)
+        if self.learning is not None:
+            self.learning.seeded(injector_id)
+
+    def relearn(self, injector_id: int) -> None:
+        """Learn the injector's model again (a new part), keeping its estimates and the model in use
+        until a new one is adopted; nothing with learning off."""
+        if self.learning is not None:
+            self.learning.relearn(injector_id)
 
     def take_calibration_changes(self) -> list[tuple[int, CalibrationStatus]]:
-        """The injectors whose self-calibration status changed since the last call, with that status."""
-        changed = sorted(self._calibration_changed)
-        self._calibration_changed.clear()
-        return [(i, self.calibration[i]) for i in changed]
+        """The injectors whose learning status changed since the last call, with that status."""
+        return self.learning.take_changes() if self.learning is not None else []
 
     def own_parameters(self) -> dict[int, InjectorParameters]:
         """The parameter sets adopted per injector (to persist)."""
         return {i: p.params for i, p in self.own_pools.items()}
 
-    def restore_calibrations(self, params: dict[int, InjectorParameters]) -> list[str]:
+    def restore_calibrations(self, params: dict[int, InjectorParameters],
+                             statuses: dict[int, CalibrationStatus] | None = None) -> list[str]:
         """Adopt persisted parameter sets that are a calibration of this estimator's parameters (every
-        structural parameter within the calibration's bounds of the base value); one line per set
-        dropped."""
+        structural parameter within the calibration's bounds of the base value), and the persisted
+        learning statuses; one line per set dropped (that injector is learned again)."""
         problems = []
         tol = (self.self_calibration or SelfCalConfig()).tolerance
+        restored = []
         for iid, p in params.items():
             far = beyond_bounds(p, self.pool.params, tol)
             if far:
                 problems.append(f"injector {iid}: parameter set is not a calibration of the configured one "
-                                f"({', '.join(far[:3])} beyond its bounds)")
+                                f"({', '.join(far[:3])} beyond its bounds); it is learned again")
                 continue
-            self.adopt(iid, p)
+            self._use_model(iid, p)
+            restored.append(iid)
+        if self.learning is not None:
+            for iid in restored:
+                self.learning.adopted(iid, Learning.MONITORING)
+            for iid, st in (statuses or {}).items():
+                self.learning.restore(iid, st, iid in self.own_pools)
         return problems
 
     def restore(self, states: dict[int, TrackerState]) -> list[str]:
@@ -920,7 +924,7 @@ class Tracker:
         sim = self.simulator(SAMPLE_PERIOD_S)
         cur = StandardDrive().samples(100e-6, SAMPLE_PERIOD_S)
         res = sim.simulate(cur, np.array([16.0, 17.0, 18.0]), np.array([-0.5e-6, 2e-6, 6e-6]))
-        scratch = Tracker(self.config, pool=self.pool)
+        scratch = Tracker(self.config, pool=self.pool, self_calibration=None)
         if not cold_start:
             scratch.set_prior(0, 17.0, 2.0)   # N/V, µm: the injection's own values
         for k in range(3):
@@ -931,8 +935,12 @@ class Tracker:
         plain_model_error(res.voltage_v[0] - res.voltage_v[1], cur, SAMPLE_PERIOD_S, 0.1)
 
     def reset(self, injector_id: int) -> None:
-        """Forget everything about one injector."""
+        """Forget everything about one injector, its own (learned or seeded) model included: it is
+        estimated with the configured model and learned again."""
         self.states.pop(injector_id, None)
+        self.own_pools.pop(injector_id, None)
+        if self.learning is not None:
+            self.learning.forget(injector_id)
 
     def set_prior(self, injector_id: int, nu_n_per_v: float, lh_um: float) -> None:
         """Start one injector from a prior (N/V, µm)."""

@@ -31,6 +31,7 @@ import numpy as np
 
 from estimator.ident.selfcal import (CalibrationOutcome, CalibrationStatus, CalibrationWindow, SelfCalConfig,
                                      calibrate_and_tabulate)
+from estimator.ident.status import Learning
 from estimator.model.parameters import InjectorParameters
 
 log = logging.getLogger(__name__)
@@ -91,10 +92,10 @@ class BackgroundCalibrator:
         return self._executor
 
     def submit(self, injector_id: int, window: CalibrationWindow, base: InjectorParameters,
-               config: SelfCalConfig) -> None:
+               config: SelfCalConfig, current: InjectorParameters | None = None) -> None:
         """Queue a calibration of ``window`` (returns at once)."""
         try:
-            fut = self._pool().submit(calibrate_and_tabulate, window, base, config)
+            fut = self._pool().submit(calibrate_and_tabulate, window, base, config, current)
         except (BrokenProcessPool, RuntimeError) as exc:   # a dead worker: start a new one next time
             self._executor = None
             self._finish_failed(injector_id, f"calibration worker unavailable ({exc})")
@@ -126,7 +127,7 @@ class BackgroundCalibrator:
     def _finish_failed(self, injector_id: int, message: str) -> None:
         with self._lock:
             self._running.discard(injector_id)
-            self._done.append(CalibrationOutcome(injector_id, CalibrationStatus("rejected", message=message), None))
+            self._done.append(CalibrationOutcome(injector_id, CalibrationStatus(Learning.REFUSED, message=message), None))
             self._finished.notify_all()
 
     def poll(self) -> list[CalibrationOutcome]:

@@ -86,6 +86,11 @@ def _path_or_none(v: Any) -> str | None:
     return None if v is None or isinstance(v, Path) else "must be a path (a string)"
 
 
+def _seeds(v: Any) -> str | None:
+    ok = isinstance(v, dict) and all(isinstance(k, int) and 0 <= k <= 7 and isinstance(p, Path) for k, p in v.items())
+    return None if ok else 'must be a table of injector ids 0..7 and parameter files ("3" = "eol/3.toml")'
+
+
 def _periods(v: Any) -> str | None:
     ok = isinstance(v, tuple) and len(v) <= 64 and all(
         isinstance(x, int) and not isinstance(x, bool) and 1 <= x <= MAX_SAMPLE_PERIOD_NS for x in v)
@@ -104,6 +109,8 @@ class DaemonConfig:
     state_dir: Path | None = None
     dbc: Path | None = None
     params: Path | None = None          # model parameters (what `estimator calibrate --out` writes); default Tables 1-2
+    injector_params: dict[int, Path] = field(default_factory=dict)   # [estimator.injector_params]: an injector's own
+                                        # (end-of-line) parameter file by id, its starting model (still monitored)
     queue_frames: int = 8192            # bounded input queue, drop-oldest when full
     assembly_timeout_ms: float = 50.0   # header without trailer -> rejected, judged by bus timestamps
     silent_bus_s: float = 1.0           # wall-clock guard: no frame at all for this long -> pending injections time out
@@ -115,7 +122,7 @@ class DaemonConfig:
     commands: str = "reset-only"        # EstimatorCommand policy: off | reset-only | all
     log_level: str = "INFO"
     tracker: TrackerConfig = field(default_factory=TrackerConfig)   # [estimator.tracker], its ident [estimator.ident]
-    self_calibration: SelfCalConfig | None = None   # [estimator.self_calibration] with mode = "on"; None: off
+    self_calibration: SelfCalConfig | None = field(default_factory=SelfCalConfig)   # [estimator.self_calibration]; None: mode = "off"
 
     def __post_init__(self) -> None:
         for name, check in _RULES.items():
@@ -196,7 +203,7 @@ class DaemonConfig:
         ident = build_section(IdentConfig, "ident", sections["ident"])
         values["tracker"] = build_section(TrackerConfig, "tracker", {**sections["tracker"], "ident": ident})
         calibration = dict(sections["self_calibration"])
-        mode = calibration.pop("mode", Switch.OFF.value)
+        mode = calibration.pop("mode", Switch.ON.value)   # learning is on unless turned off
         if mode not in Switch.words():
             raise ConfigError(f"[estimator.self_calibration] mode = {_show(mode)}: must be one of "
                               f"{', '.join(repr(w) for w in Switch.words())}")
@@ -210,6 +217,12 @@ class DaemonConfig:
                 values[key] = Path(v)
             elif v is not None and not isinstance(v, Path):
                 raise ConfigError(f"{key} = {_show(v)}: must be a path (a string)")
+        seeds = values.get("injector_params")
+        if isinstance(seeds, dict):
+            try:
+                values["injector_params"] = {int(k): Path(p) if isinstance(p, str) else p for k, p in seeds.items()}
+            except ValueError:
+                pass   # the rule names what the table must be
         if isinstance(values.get("sample_periods_ns"), list):
             values["sample_periods_ns"] = tuple(values["sample_periods_ns"])
         if isinstance(values.get("log_level"), str):
@@ -220,12 +233,17 @@ class DaemonConfig:
 
     def check_files(self) -> None:
         """Fail fast on a parameter file that cannot be used (the DBC is checked when it is loaded)."""
+        from estimator.model.parameters import InjectorParameters   # noqa: PLC0415 (only when configured)
         if self.params is not None:
-            from estimator.model.parameters import InjectorParameters   # noqa: PLC0415 (only when configured)
             try:
                 InjectorParameters.from_toml(self.params)
             except EstimatorError as exc:
                 raise ConfigError(f"params = {str(self.params)!r}: {exc}") from None
+        for iid, path in self.injector_params.items():
+            try:
+                InjectorParameters.from_toml(path)
+            except EstimatorError as exc:
+                raise ConfigError(f"[estimator.injector_params] {iid} = {str(path)!r}: {exc}") from None
 
     def with_bus(self, bus: str) -> DaemonConfig:
         """A copy on another bus."""
@@ -303,6 +321,7 @@ _RULES: dict[str, Callable[[Any], str | None]] = {
     "state_dir": _path_or_none,
     "dbc": _path_or_none,
     "params": _path_or_none,
+    "injector_params": _seeds,
     "queue_frames": _whole(16, 1_000_000),
     "assembly_timeout_ms": _number(1.0, 10_000.0),
     "silent_bus_s": _number(0.05, 3600.0),

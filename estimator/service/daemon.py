@@ -34,7 +34,7 @@ from estimator.service.latency import Stats
 from estimator.service.ratelimit import RateLimitedLog
 from estimator.service.sdnotify import SdNotify
 from estimator.service.calibration_worker import BackgroundCalibrator
-from estimator.service.state_store import keep_rejected, load_calibrations, load_states, save_states
+from estimator.service.state_store import keep_rejected, load_calibrations, load_learning, load_states, save_states
 
 log = logging.getLogger(__name__)
 STATE_FILE = "estimator-state.json"
@@ -128,7 +128,9 @@ class Daemon:
         states, problem = load_states(self.state_path)
         problems = ([problem] if problem else []) + self.tracker.restore(states)
         calibrations, problem = load_calibrations(self.state_path)
-        problems += ([problem] if problem else []) + self.tracker.restore_calibrations(calibrations)
+        problems += [problem] if problem else []
+        learning, problem = load_learning(self.state_path)
+        problems += ([problem] if problem else []) + self.tracker.restore_calibrations(calibrations, learning)
         if problems:
             kept = keep_rejected(self.state_path)
             log.warning("state file %s: dropped (starting those injectors cold; original kept as %s): %s",
@@ -141,7 +143,8 @@ class Daemon:
         if self.state_path is None:
             return
         try:
-            save_states(self.state_path, dict(self.tracker.states), self.tracker.own_parameters())
+            save_states(self.state_path, dict(self.tracker.states), self.tracker.own_parameters(),
+                        dict(self.tracker.calibration))
             self._dirty = False
         except OSError as exc:
             self.rlog.log(logging.ERROR, "persist", "cannot write state %s: %s", self.state_path, exc)
@@ -269,7 +272,9 @@ class Daemon:
                                 self.calibrator if new.self_calibration is not None else None)
         tracker.states = old.states
         if same_pool:   # the injectors' own models are calibrations of these parameters
-            tracker.own_pools, tracker.calibration = old.own_pools, old.calibration
+            tracker.own_pools = old.own_pools
+            if tracker.learning is not None and old.learning is not None:
+                tracker.learning.carry(old.learning)
         self.processor.tracker = tracker
         self.processor.commands = new.commands
         self.ingest.assembler.timeout_s = new.assembly_timeout_ms * 1e-3

@@ -64,7 +64,7 @@ def iter_estimates(source: Path, cfg: DaemonConfig | None = None, *, kind: str |
     res = tracker.update(inj)
     counter = int(trace.meta_float("counter", 0.0) or 0)
     t = inj.time_s if math.isfinite(inj.time_s) else float("nan")
-    yield {"source": str(source), **result_row(res, inj.injector_id, counter, t)}
+    yield {"source": str(source), **result_row(res, inj.injector_id, counter, t, tracker.calibration.get(inj.injector_id))}
 
 
 def new_pipeline(cfg: DaemonConfig | None = None, pool: SimulatorPool | None = None, codec: Codec | None = None) -> tuple:

@@ -18,7 +18,7 @@ from estimator.codec.records import (HEARTBEAT_COUNTERS, Codec, Command, Estimat
 from estimator.errors import ParameterError
 from estimator.ident.measurement import Injection
 from estimator.ident.selfcal import CalibrationStatus
-from estimator.ident.status import Status
+from estimator.ident.status import Learning, Status
 from estimator.ident.tracker import Tracker, TrackResult
 from estimator.service.ratelimit import RateLimitedLog
 
@@ -27,12 +27,15 @@ COMMAND_POLICIES = ("off", "reset-only", "all")   # who may steer the estimator 
 
 
 ROW_FIELDS = ("time_s", "injector_id", "counter", "status", "nu_n_per_v", "lh_um", "sigma_nu_n_per_v", "sigma_lh_um",
-              "raw_nu_n_per_v", "raw_lh_um", "t_contact_us", "t_open_us", "stroke_um", "evaluations", "reason")
+              "raw_nu_n_per_v", "raw_lh_um", "t_contact_us", "t_open_us", "stroke_um", "evaluations", "reason",
+              "learning", "out_of_tolerance")
 
 
-def result_row(res: TrackResult, injector_id: int, counter: int, time_s: float) -> dict:
-    """One injection as a flat row (``ROW_FIELDS``): filtered and raw estimate, prediction, status; units in
-    the names; None where there is no value."""
+def result_row(res: TrackResult, injector_id: int, counter: int, time_s: float,
+               learning: CalibrationStatus | None = None) -> dict:
+    """One injection as a flat row (``ROW_FIELDS``): filtered and raw estimate, prediction, status, the
+    injector's learning state and the parameters its last calibration found out of tolerance
+    (``;``-separated); units in the names; None where there is no value."""
     f = res.filtered_dict()
     raw = res.raw.to_dict()
     row = {"time_s": round(time_s, 6) if math.isfinite(time_s) else None, "injector_id": injector_id,
@@ -40,6 +43,8 @@ def result_row(res: TrackResult, injector_id: int, counter: int, time_s: float) 
            "raw_lh_um": raw.get("lh_um"), "evaluations": res.evaluations, "reason": res.reason}
     for k in ("nu_n_per_v", "lh_um", "sigma_nu_n_per_v", "sigma_lh_um", "t_contact_us", "t_open_us", "stroke_um"):
         row[k] = f.get(k)
+    row["learning"] = str(learning.state) if learning is not None else None
+    row["out_of_tolerance"] = ";".join(learning.out_of_tolerance) if learning is not None else None
     return row
 
 
@@ -59,7 +64,8 @@ def output_frames(codec: Codec, injector_id: int, counter: int, res: TrackResult
 def calibration_frame(codec: Codec, injector_id: int, status: CalibrationStatus):
     """The ModelCalibration frame of one injector's self-calibration status."""
     return codec.encode(ModelCalibration(injector_id, codec.calibration_code(status.state), status.batch, status.rms_before_v,
-                                         status.rms_after_v, status.calibrations & 0xFF))
+                                         status.rms_after_v, status.calibrations & 0xFF, status.preload_span,
+                                         len(status.out_of_tolerance)))
 
 
 @dataclass(frozen=True)
@@ -72,6 +78,7 @@ class Published:
     result: TrackResult
     codec: Codec = field(repr=False, compare=False)
     calibrations: tuple[tuple[int, CalibrationStatus], ...] = ()   # self-calibration changes (injector, status)
+    learning: CalibrationStatus | None = None   # where this injector's learning stands (None: learning off)
 
     @cached_property
     def frames(self) -> list:
@@ -83,7 +90,7 @@ class Published:
 
     def to_row(self, time_s: float) -> dict:
         """One table row (replay ``--csv``, fleet): see :func:`result_row`."""
-        return result_row(self.result, self.injector_id, self.counter, time_s)
+        return result_row(self.result, self.injector_id, self.counter, time_s, self.learning)
 
     def to_dict(self) -> dict:
         """JSON-ready line (replay output)."""
@@ -143,26 +150,27 @@ class Processor:
         return None
 
     def _command(self, c: EstimatorCommand) -> None:
-        """Apply a command as the policy allows: ``off`` none, ``reset-only`` resets, ``all`` resets and priors."""
+        """Apply a command as the policy allows: ``off`` none, ``reset-only`` resets and relearns,
+        ``all`` priors too. Applied commands are logged rate-limited per kind, like rejects."""
         cnt = self.counters
         if c.command == Command.NONE:
             return
-        if c.command not in (Command.RESET, Command.SET_PRIOR):
+        if c.command not in (Command.RESET, Command.SET_PRIOR, Command.RELEARN):
             cnt.commands_unknown += 1
             self.rlog.log(logging.WARNING, "command-unknown", "injector %d: undefined command code %d ignored",
                           c.injector_id, c.command)
             return
         name = Command(c.command).name.lower()
-        allowed = self.commands == "all" or (self.commands == "reset-only" and c.command == Command.RESET)
+        allowed = self.commands == "all" or (self.commands == "reset-only" and c.command != Command.SET_PRIOR)
         if not allowed:
             cnt.commands_refused += 1
             self.rlog.log(logging.WARNING, f"command-policy-{name}", "injector %d: command %s refused (commands = %s)",
                           c.injector_id, name, self.commands)
             return
-        if c.command == Command.RESET:
-            self.tracker.reset(c.injector_id)
+        if c.command in (Command.RESET, Command.RELEARN):
+            (self.tracker.reset if c.command == Command.RESET else self.tracker.relearn)(c.injector_id)
             cnt.commands_applied += 1
-            log.info("injector %d: reset by command", c.injector_id)
+            self.rlog.log(logging.INFO, f"command-{name}", "injector %d: %s by command", c.injector_id, name)
             return
         problem = self.prior_problem(c.prior_nu_n_per_v, c.prior_lh_um)
         if problem:
@@ -190,9 +198,13 @@ class Processor:
                           h.injector_id, h.counter, res.reason)
         changes = tuple(self.tracker.take_calibration_changes()) if self.tracker.calibrator is not None else ()
         for iid, st in changes:
-            if st.state in ("adopted", "rejected"):
-                log.info("injector %d: self-calibration %s (%s)", iid, st.state, st.message)
-        return Published(h.injector_id, h.counter, e.t_last, res, self.codec, changes)
+            if st.state in (Learning.ADOPTED, Learning.REFUSED, Learning.RELEARNING):
+                log.info("injector %d: learning %s (%s)", iid, st.state, st.message)
+            if st.state == Learning.ADOPTED and st.out_of_tolerance:
+                log.warning("injector %d: out_of_tolerance: %s beyond the part's tolerance", iid,
+                            ", ".join(st.out_of_tolerance))
+        return Published(h.injector_id, h.counter, e.t_last, res, self.codec, changes,
+                         self.tracker.calibration.get(h.injector_id))
 
     def status_frame(self, queue_depth: int, latency_p99_ms: float, uptime_s: float,
                      stage_p99_ms: dict[str, float] | None = None):

@@ -1,7 +1,8 @@
 """Per-injector estimator state on disk: atomic (write, fsync, rename), validated on load.
 
-Beside each injector's tracker state the file holds the parameter set a self-calibration adopted
-for it (``calibrations``), so that a restarted daemon estimates it with its own model at once.
+Beside each injector's tracker state the file holds the parameter set its learning adopted for it
+(``calibrations``), so that a restarted daemon estimates it with its own model at once, and where
+its learning stands (``learning``: the lifecycle state, the refusals and the diagnostics).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from estimator.errors import EstimatorError
+from estimator.ident.selfcal import CalibrationStatus
 from estimator.ident.tracker import TrackerState
 from estimator.model.parameters import InjectorParameters
 
@@ -27,14 +29,17 @@ MAX_BYTES = 1 << 20   # 8 injectors take about 10 kB; anything this large is not
 
 
 def save_states(path: Path, states: dict[int, TrackerState],
-                calibrations: dict[int, InjectorParameters] | None = None) -> None:
-    """Write all injector states (and the injectors' own parameter sets) atomically: a crash leaves
-    the old file or the new one, never a mix."""
+                calibrations: dict[int, InjectorParameters] | None = None,
+                learning: dict[int, CalibrationStatus] | None = None) -> None:
+    """Write all injector states (and the injectors' own parameter sets and learning statuses)
+    atomically: a crash leaves the old file or the new one, never a mix."""
     path.parent.mkdir(parents=True, exist_ok=True)
     doc: dict[str, Any] = {"format": FORMAT, "version": VERSION, "saved_at": time.time(),
                            "injectors": {str(k): v.to_dict() for k, v in sorted(states.items())}}
     if calibrations:
         doc["calibrations"] = {str(k): p.to_mapping() for k, p in sorted(calibrations.items())}
+    if learning:
+        doc["learning"] = {str(k): st.to_dict() for k, st in sorted(learning.items())}
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w") as f:
@@ -93,6 +98,25 @@ def load_calibrations(path: Path) -> tuple[dict[int, InjectorParameters], str | 
             out[_injector(key)] = InjectorParameters.from_mapping(value)
         except (ValueError, TypeError, RecursionError, EstimatorError) as exc:
             problems.append(f"calibration of injector {key}: {exc}")
+    return out, ("; ".join(problems) if problems else None)
+
+
+def load_learning(path: Path) -> tuple[dict[int, CalibrationStatus], str | None]:
+    """The injectors' learning statuses from ``path`` and a problem description (None if fine or
+    absent); a bad entry is skipped (that injector's learning starts afresh)."""
+    doc, problem = _read(path)
+    if doc is None:
+        return {}, problem
+    entries = doc.get("learning") or {}
+    if not isinstance(entries, dict):
+        return {}, f"state file {path}: 'learning' is not an object; ignoring it"
+    out: dict[int, CalibrationStatus] = {}
+    problems = []
+    for key, value in entries.items():
+        try:
+            out[_injector(key)] = CalibrationStatus.from_dict(value)
+        except (ValueError, TypeError, RecursionError) as exc:
+            problems.append(f"learning of injector {key}: {exc}")
     return out, ("; ".join(problems) if problems else None)
 
 

@@ -158,7 +158,7 @@ def test_self_calibration_adopts_the_injectors_own_model_and_then_it_is_ok():
         results.append(tracker.update(inj))
         states.append(tracker.calibration[0].state)
     adopted = states.index("adopted")
-    assert 8 <= adopted <= 14 and states[adopted - 1] == "collecting"
+    assert 8 <= adopted <= 14 and states[adopted - 1] == "learning"
     assert tracker.calibration[0].held_out_chi2 > 25 and 0 in tracker.own_pools
     assert all(r.status.value != "ok" for r in results[:adopted])
     after = results[adopted + 2:]
@@ -190,7 +190,7 @@ def test_cli_track_self_calibrate(tmp_path):
     assert r.returncode == 0, r.stderr
     lines = [json.loads(line) for line in r.stdout.splitlines()]
     states = [line["self_calibration"]["state"] for line in lines]
-    assert states[0] == "collecting" and states[-1] == "adopted", states
+    assert states[0] == "learning" and states[-1] == "adopted", states
     assert lines[-1]["status"] in ("ok", "unconfirmed") and abs(lines[-1]["filtered"]["lh_um"] - LH_UM) < 0.1
 
 

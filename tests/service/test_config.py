@@ -60,7 +60,8 @@ def test_the_sub_tables_build_the_settings_objects(tmp_path):
     assert cfg.commands == "all" and cfg.ident.window_s == 1.2e-4 and cfg.ident.robust == "on"
     assert cfg.ident.start_point == (17, 3.5) and cfg.ident.tol == (1e-4, 1e-3) and cfg.tracker.q_lh_um == 0.004
     assert cfg.self_calibration is not None and cfg.self_calibration.window == 8
-    assert load_text(tmp_path, "[estimator.self_calibration]\nwindow = 8\n").self_calibration is None   # mode off
+    assert load_text(tmp_path, "[estimator.self_calibration]\nwindow = 8\n").self_calibration.window == 8   # on by default
+    assert load_text(tmp_path, "[estimator.self_calibration]\nmode = \"off\"\n").self_calibration is None
     with pytest.raises(ConfigError, match=r"\[estimator.ident\]"):
         load_text(tmp_path, "[estimator.tracker.ident]\nwindow_s = 1e-4\n")
 

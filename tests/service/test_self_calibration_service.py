@@ -65,7 +65,7 @@ class HeldCalibrator:
         self.release = False
         self.prepare = None
 
-    def submit(self, injector_id: int, window: CalibrationWindow, base, config) -> None:
+    def submit(self, injector_id: int, window: CalibrationWindow, base, config, current=None) -> None:
         self.submitted.append((injector_id, len(window.items)))
 
     def poll(self):
@@ -93,11 +93,12 @@ def test_the_tracker_hands_the_window_over_and_keeps_estimating_until_the_outcom
         states.append(tracker.calibration[0].state)
         changes += [st.state for _, st in tracker.take_calibration_changes()]
     first = states.index("calibrating")
-    assert cal.submitted == [] and states[first - 1] == "collecting"
+    assert cal.submitted == [] and states[first - 1] == "learning"
     assert set(states[first:14]) == {"calibrating"}          # nothing collected while it runs
-    assert states[14:] == ["adopted"] * 6 and 0 in tracker.own_pools
+    # adopted, confirmed over SelfCalConfig.confirm (5) injections, then monitored
+    assert states[14:] == ["adopted"] * 4 + ["monitoring"] * 2 and 0 in tracker.own_pools
     assert tracker.own_parameters()[0] == part.params
-    assert changes.count("calibrating") == 1 and changes.count("adopted") == 1 and changes[-1] == "adopted"
+    assert changes.count("calibrating") == 1 and changes.count("adopted") == 1 and changes[-1] == "monitoring"
     assert tracker.calibration[0].calibrations == 1
 
 
@@ -116,7 +117,7 @@ def test_the_background_calibrator_runs_in_another_process_and_reports_a_failed_
         assert cal.wait(timeout=120), "the calibration never came back"
         outcomes = cal.poll()
         assert len(outcomes) == 1 and outcomes[0].injector_id == 2
-        assert outcomes[0].status.state == "rejected" and outcomes[0].params is None
+        assert outcomes[0].status.state == "refused" and outcomes[0].params is None
         assert "at least two usable injections" in outcomes[0].status.message
         assert cal.running == 0
     finally:
@@ -133,7 +134,7 @@ def test_the_state_file_keeps_an_adopted_parameter_set_and_refuses_a_foreign_one
     assert problem is None and loaded == {1: own, 3: foreign}
     tracker = Tracker(self_calibration=SelfCalConfig())
     problems = tracker.restore_calibrations(loaded)
-    assert set(tracker.own_pools) == {1} and tracker.calibration[1].state == "adopted"
+    assert set(tracker.own_pools) == {1} and tracker.calibration[1].state == "monitoring"
     assert len(problems) == 1 and "injector 3" in problems[0] and "psa.kp_n_per_m" in problems[0]
     text = path.read_text().replace('"m4_kg": ', '"m4_kg": -', 1)        # a corrupt entry is skipped, named
     path.write_text(text)
@@ -166,7 +167,7 @@ def _send(bus, codec, inj: Injection, counter: int) -> None:
 
 def test_the_daemon_calibrates_a_mismatched_injector_in_the_background_and_keeps_its_model(tmp_path):
     """As a HIL bench runs it: self_calibration = "on"; a series injector the nominal model cannot
-    explain goes collecting -> calibrating -> adopted on the bus (ModelCalibration) while the
+    explain goes learning -> calibrating -> adopted on the bus (ModelCalibration) while the
     daemon keeps answering every injection; its estimates are then ok and within 0.15 µm; the
     adopted parameters are in the state file, and a restarted daemon uses them at once."""
     part, injections = _series_injections(5, 40)
@@ -205,7 +206,7 @@ def test_the_daemon_calibrates_a_mismatched_injector_in_the_background_and_keeps
                 during += 1              # answered while the calibration runs in its process
                 if during >= 2:          # then until it comes back: the next injection adopts it
                     assert d.calibrator is not None and d.calibrator.wait(timeout=180), "calibration never came back"
-        assert states[0] == "collecting" and "calibrating" in states
+        assert states[0] == "learning" and "calibrating" in states
         assert states.index("calibrating") < states.index("adopted")
         after = [e for s, e in estimates if s == "adopted"][3:]
         assert after and all(e.status in (0, 6) for e in after), [e.status for e in after]
@@ -221,7 +222,7 @@ def test_the_daemon_calibrates_a_mismatched_injector_in_the_background_and_keeps
     try:
         _send(bus, codec, injections[k], k)
         got = _collect(bus, codec, lambda g: any(isinstance(r, ModelCalibration) for r in g), 30.0)
-        assert any(isinstance(r, ModelCalibration) and codec.calibration_state(r.state) == "adopted" for r in got)
+        assert any(isinstance(r, ModelCalibration) and codec.calibration_state(r.state) == "monitoring" for r in got)
         assert 0 in d.tracker.own_pools
     finally:
         d.stop.set()

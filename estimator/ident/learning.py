@@ -1,0 +1,241 @@
+"""Every injector learned for its whole life: the per-injector learning lifecycle.
+
+An ECU adaptation learns by default, gated by conditions, reports its progress, raises a diagnostic
+when a learned value is beyond its limits and learns again when the part is replaced. So does this
+estimator, per injector id (states: :class:`~estimator.ident.status.Learning`):
+
+``idle``
+    The configured tables explain the injector. When its estimates go ``model_mismatch`` (the
+    tracker's flag, with its hysteresis) it starts ``learning``.
+``learning``
+    Accepted injections are collected into a bounded window spanning the operating points
+    (:class:`~estimator.ident.selfcal.CalibrationWindow`; progress: ``batch`` and ``preload_span``).
+    Should the tables explain the injector again before the window is ready, back to ``idle``.
+``calibrating``
+    The window was handed to the calibrator (in the daemon a low-priority process: never the
+    real-time worker). It comes back ``adopted`` (the injector is re-acquired under its own model)
+    or ``refused``.
+``refused``
+    The calibration did not explain the injector (or its held-out injections no better): the model
+    in use keeps serving; a new window is started after ``retry_after`` injections, doubling with
+    each refusal in a row (eight times at most), so that a part no parameter set explains does not
+    keep the calibrator busy.
+``adopted`` -> ``monitoring``
+    The injector's own model serves; after ``confirm`` injections it is ``monitoring``. A model
+    seeded from the injector's own end-of-line parameter file starts here too.
+``relearning``
+    The monitor is a one-sided cumulative sum over the injections' adequacy verdicts (each
+    injection's own model-error test, not the tracker's smoothed flag): ``S <- max(0, S + m - k)``
+    with ``m`` 1 for a mismatched injection, ``k = monitor_drift``. One mismatched injection among
+    adequate ones (the test's false-alarm rate) never reaches the limit; a model that stopped
+    explaining the injector (a swapped part, aging that moved the structure, a wrong parameter file)
+    reaches ``monitor_limit`` within ``limit / (1 - k)`` injections. The injections seen while the sum
+    grew are kept, and collection goes on while the old model keeps serving; the new calibration
+    starts from the configured tables (a new part is a new draw of the lot) and is adopted if it
+    explains the held-out injections better than the model in use. A ``relearn`` command starts
+    this state at once.
+
+Every calibration compares each structural parameter with the part's tolerance
+(``part_tolerance``, ``tolerance_sigmas``): ``out_of_tolerance`` names those beyond it, a diagnostic
+for a tester; the model is adopted all the same (its estimates are better than the tables').
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import replace
+from typing import Any
+
+from estimator.ident.measurement import Injection
+from estimator.ident.selfcal import (Calibrator, CalibrationOutcome, CalibrationStatus, CalibrationWindow,
+                                     InlineCalibrator, SelfCalConfig)
+from estimator.ident.status import ESTIMATED, Learning, Status
+from estimator.model.parameters import InjectorParameters
+
+MAX_BACKOFF = 8      # a refused injector waits at most this many times retry_after
+
+
+class Learner:
+    """The learning lifecycle of every injector of one tracker (see the module docstring).
+
+    ``base`` is the configured parameter set (the tables, the calibrations' prior); ``adopt`` the
+    tracker's hook that swaps an injector's own model in (``None`` params: back to the tables);
+    ``current`` tells which parameter set an injector is estimated with now.
+    """
+
+    def __init__(self, config: SelfCalConfig, base: InjectorParameters, calibrator: Calibrator | None,
+                 adopt: Callable[[int, InjectorParameters | None, Any], None],
+                 current: Callable[[int], InjectorParameters | None]) -> None:
+        self.config = config
+        self.base = base
+        self.calibrator: Calibrator = calibrator if calibrator is not None else InlineCalibrator()
+        self._adopt = adopt
+        self._current = current
+        self.status: dict[int, CalibrationStatus] = {}
+        self._windows: dict[int, CalibrationWindow] = {}
+        self._relearning: dict[int, bool] = {}     # a calibration running for an injector that has its own model
+        self._changed: set[int] = set()
+
+    # ---- what the tracker calls -----------------------------------------------------------
+    def collect(self) -> None:
+        """Take the calibrator's finished calibrations (never waits for a running one)."""
+        for out in self.calibrator.poll():
+            self._finish(out)
+
+    def observe(self, inj: Injection, nu: float, mismatch: bool, raw_mismatch: bool, status: Status,
+                raw_status: Status) -> None:
+        """One update of ``inj.injector_id``: its raw N_u estimate (N/V), its tracker's model-mismatch
+        flag (smoothed), its own injection's adequacy verdict, the published and the raw status."""
+        iid = inj.injector_id
+        st = self.status.setdefault(iid, CalibrationStatus())
+        if st.state == Learning.CALIBRATING or status == Status.REJECTED or raw_status not in ESTIMATED:
+            return
+        if st.state in (Learning.ADOPTED, Learning.MONITORING, Learning.RELEARNING):
+            self._monitor(iid, st, inj, raw_mismatch, nu)
+            return
+        if st.state == Learning.REFUSED:
+            if not mismatch:          # the model in use explains the injector again
+                self._set(iid, replace(st, state=Learning.MONITORING if st.source != "tables" else Learning.IDLE,
+                                       retry_in=0, batch=0, preload_span=0.0))
+            elif st.retry_in > 1:
+                self._set(iid, replace(st, retry_in=st.retry_in - 1))
+            else:
+                self._set(iid, replace(st, state=Learning.LEARNING, retry_in=0, batch=0, preload_span=0.0))
+            return
+        if not mismatch:
+            if st.state == Learning.LEARNING:   # the tables explain this injector again
+                self._windows.pop(iid, None)
+                self._set(iid, replace(st, state=Learning.IDLE, batch=0, preload_span=0.0))
+            return
+        self._add(iid, inj, nu, Learning.LEARNING)
+
+    def _monitor(self, iid: int, st: CalibrationStatus, inj: Injection, raw_mismatch: bool, nu: float) -> None:
+        """An own model in service: confirm it, watch it, collect while re-learning."""
+        c = self.config
+        evidence = max(0.0, st.evidence + (1.0 if raw_mismatch else 0.0) - c.monitor_drift)
+        served = st.served + 1
+        if st.state == Learning.RELEARNING:
+            self._set(iid, replace(st, evidence=evidence, served=served), quiet=True)
+            self._add(iid, inj, nu, Learning.RELEARNING)
+            return
+        state = Learning.MONITORING if st.state == Learning.ADOPTED and served >= c.confirm else st.state
+        if raw_mismatch:     # keep what the sum grew on: the new window starts with it
+            window = self._windows.setdefault(iid, CalibrationWindow(c.window))
+            window.add(inj, nu)
+        elif evidence == 0.0:
+            self._windows.pop(iid, None)
+        if evidence >= c.monitor_limit:
+            self._set(iid, replace(st, state=Learning.RELEARNING, evidence=evidence, served=served,
+                                   message=f"the model in use stopped explaining this injector (monitor "
+                                           f"{evidence:.1f} >= {c.monitor_limit:g})"))
+            self._add(iid, None, nu, Learning.RELEARNING)
+            return
+        self._set(iid, replace(st, state=state, evidence=evidence, served=served), quiet=state == st.state)
+
+    def _add(self, iid: int, inj: Injection | None, nu: float, state: Learning) -> None:
+        """Add ``inj`` to the injector's window (None: only check it); submit the window once it is ready."""
+        c = self.config
+        window = self._windows.setdefault(iid, CalibrationWindow(c.window))
+        if inj is not None:
+            window.add(inj, nu)
+        st = self.status[iid]
+        self._set(iid, replace(st, state=state, batch=len(window.items), preload_span=window.preload_spread()),
+                  quiet=st.state == state)
+        if not window.ready(c):
+            return
+        del self._windows[iid]
+        relearning = state == Learning.RELEARNING
+        self._set(iid, replace(self.status[iid], state=Learning.CALIBRATING))
+        self._relearning[iid] = relearning
+        self.calibrator.submit(iid, window, self.base, c, self._current(iid))
+        self.collect()
+
+    def _finish(self, out: CalibrationOutcome) -> None:
+        iid = out.injector_id
+        before = self.status.get(iid, CalibrationStatus())
+        relearning = self._relearning.pop(iid, False)
+        own = self._current(iid) is not None
+        calibrations = before.calibrations + 1
+        new = replace(out.status, calibrations=calibrations, source=before.source)
+        if out.params is not None:
+            self._adopt(iid, out.params, out.prepared)
+            self._set(iid, replace(new, state=Learning.ADOPTED, source="learned", evidence=0.0, served=0,
+                                   refusals=0, retry_in=0, batch=0, preload_span=0.0))
+            return
+        if relearning and math.isfinite(out.status.held_out_chi2):
+            # an adequate calibration that explains the held-out injections no better than the model
+            # in use: that model still serves (a passing disturbance, or a relearn of a good model)
+            self._set(iid, replace(new, state=Learning.MONITORING if own else Learning.IDLE, evidence=0.0,
+                                   batch=0, preload_span=0.0))
+            return
+        refusals = before.refusals + 1
+        wait = self.config.retry_after * min(2 ** (refusals - 1), MAX_BACKOFF)
+        self._set(iid, replace(new, state=Learning.REFUSED, refusals=refusals, retry_in=wait, batch=0,
+                               preload_span=0.0, evidence=0.0))
+
+    # ---- commands, seeds and persistence -----------------------------------------------------
+    def forget(self, iid: int) -> None:
+        """Forget the injector's learning (its own model goes back to the tables: ``reset``)."""
+        self._windows.pop(iid, None)
+        self._relearning.pop(iid, None)
+        if iid in self.status:
+            self._set(iid, CalibrationStatus(calibrations=self.status[iid].calibrations))
+
+    def relearn(self, iid: int) -> None:
+        """Start a new learning cycle now; the model in use serves until a new one is adopted."""
+        st = self.status.get(iid, CalibrationStatus())
+        if st.state == Learning.CALIBRATING:
+            return
+        self._windows.pop(iid, None)
+        self._set(iid, replace(st, state=Learning.RELEARNING, batch=0, preload_span=0.0, evidence=0.0,
+                               retry_in=0, message="relearn command"))
+
+    def seeded(self, iid: int) -> None:
+        """The injector starts from its own (end-of-line) parameter set: monitored like a learned one."""
+        self._set(iid, CalibrationStatus(Learning.MONITORING, source="seeded", message="seeded from its parameter file"))
+
+    def adopted(self, iid: int, state: Learning = Learning.ADOPTED, source: str = "learned") -> None:
+        """The injector's own model was put in place from outside (``adopted``: by the caller;
+        ``monitoring``: restored from the state file)."""
+        self._windows.pop(iid, None)
+        st = self.status.get(iid, CalibrationStatus())
+        self._set(iid, replace(st, state=state, source=source, evidence=0.0, served=0, batch=0, preload_span=0.0))
+
+    def restore(self, iid: int, st: CalibrationStatus, has_model: bool) -> None:
+        """A persisted status: its window is gone (collection starts again), a running calibration
+        is lost (the injector collects again)."""
+        state = st.state
+        if state == Learning.CALIBRATING:
+            state = Learning.RELEARNING if has_model else Learning.LEARNING
+        if has_model and state in (Learning.IDLE, Learning.LEARNING):
+            state = Learning.MONITORING
+        if not has_model and state in (Learning.ADOPTED, Learning.MONITORING, Learning.RELEARNING):
+            state = Learning.IDLE
+        self._set(iid, replace(st, state=state, batch=0, preload_span=0.0,
+                               source=st.source if has_model else "tables"), quiet=True)
+
+    def carry(self, old: Learner) -> None:
+        """Go on where ``old`` stands (a reloaded configuration): statuses, windows, running calibrations."""
+        self.status, self._windows, self._relearning = old.status, old._windows, old._relearning
+        self._changed |= old._changed
+
+    def take_changes(self) -> list[tuple[int, CalibrationStatus]]:
+        """The injectors whose learning status changed since the last call, with that status."""
+        changed = sorted(self._changed)
+        self._changed.clear()
+        return [(i, self.status[i]) for i in changed]
+
+    def _set(self, iid: int, status: CalibrationStatus, quiet: bool = False) -> None:
+        """Set a status; a change of state or progress is reported (``quiet``: the monitor's own
+        bookkeeping is not a change anyone needs on the bus)."""
+        old = self.status.get(iid)
+        if not quiet and old != status:
+            self._changed.add(iid)
+        elif old is not None and (old.state, old.batch) != (status.state, status.batch):
+            self._changed.add(iid)
+        self.status[iid] = status
+
+    def close(self) -> None:
+        """Stop the calibrator."""
+        self.calibrator.close()

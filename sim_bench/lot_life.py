@@ -1,0 +1,132 @@
+"""The tracking bench's ``lot-life`` scenario: a lot of series injectors through their life, learning on.
+
+Twelve seeded positions of one lot (:mod:`sim_bench.series_life`): series parts within ±10 % of
+Tables 1-2 on one amplifier chain, two of them beyond the datasheet tolerance, a warm-up, a wandering
+rail pressure, slow wear, and the part at one position swapped half-way under the same injector id.
+Each position runs through the tracker with the default settings (learning on, calibrations inline so
+the run is deterministic). Judged on what a user of the lot needs:
+
+- from injection ``FROM`` on, the filtered L_h within ``LH_UM`` of the truth on every part within
+  tolerance (the swapped position: again within ``SWAP_SETTLE`` injections of the swap);
+- never ``ok`` while the filtered L_h is more than ``OK_UM`` off;
+- every part beyond tolerance flagged ``out_of_tolerance``, none within it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from estimator.ident.config import TrackerConfig
+from estimator.ident.selfcal import SelfCalConfig
+from estimator.ident.tracker import Tracker
+from sim_bench.series_life import LotSpec, draw_lot
+from sim_bench.table import Column, keyed, render
+
+POSITIONS, INJECTIONS, SWAP_AT, SWAPPED = 12, 80, 40, (9,)
+BEYOND_FRACTION = 2 / 12
+FROM, LH_UM, OK_UM, SWAP_SETTLE = 40, 0.15, 0.3, 30
+INTERVAL_S = 1.0
+DEFAULT_SEED = 5
+
+
+def run(seed: int = DEFAULT_SEED, positions: int = POSITIONS, injections: int = INJECTIONS) -> dict[str, Any]:
+    """Every position of a seeded lot through its life; a JSON-ready report with a row per position."""
+    spec = LotSpec(beyond_fraction=BEYOND_FRACTION, swap_at=SWAP_AT if injections > SWAP_AT else None,
+                   swapped=SWAPPED)
+    rows = [_run_life(life, injections) for life in draw_lot(positions, seed, spec)]
+    fails = [f"position {r['position']}: {f}" for r in rows for f in r["failures"]]
+    return {"benchmark": "tracking", "scenario": "lot-life", "seed": seed, "positions": positions,
+            "injections": injections, "swap_at": spec.swap_at, "rows": rows,
+            "summary": _summary(rows, fails, injections)}
+
+
+def _run_life(life: Any, n: int) -> dict[str, Any]:
+    tracker = Tracker(TrackerConfig(), self_calibration=SelfCalConfig())
+    out = []
+    seconds = []
+    for inj, _m, truth in life.injections(n, interval_s=INTERVAL_S):
+        t0 = time.perf_counter()
+        r = tracker.update(inj)
+        seconds.append(time.perf_counter() - t0)
+        st = tracker.calibration.get(inj.injector_id)
+        out.append({**truth, "lh_um": r.lh_m * 1e6, "sigma_lh_um": r.sigma_lh_m * 1e6, "status": r.status.value,
+                    "learning": str(st.state) if st else "idle",
+                    "flagged": list(st.out_of_tolerance) if st else []})
+    return _score_life(life, out, seconds)
+
+
+def _score_life(life: Any, out: list[dict[str, Any]], seconds: list[float]) -> dict[str, Any]:
+    err = np.array([o["lh_um"] - o["lh_true_um"] for o in out])
+    sigma = np.array([o["sigma_lh_um"] for o in out])
+    swap = life.swap_at
+    judged = [k for k in range(len(out)) if k >= FROM and not out[k]["beyond"]
+              and (swap is None or k < swap or k >= swap + SWAP_SETTLE)]
+    max_err = float(np.nanmax(np.abs(err[judged]))) if judged else float("nan")
+    ok_far = [o["k"] for o, e in zip(out, err) if o["status"] == "ok" and not abs(e) <= OK_UM]
+    beyond = life.beyond[-1]      # the part mounted at the end
+    flagged = out[-1]["flagged"]
+    adopted = [o["k"] for o in out if o["learning"] == "adopted"]
+    relearned_at = next((o["k"] for o in out if swap is not None and o["k"] >= swap and o["learning"] == "relearning"), None)
+    settled = None
+    if swap is not None:
+        after = [k for k in range(swap, len(out)) if all(abs(err[j]) <= LH_UM for j in range(k, len(out)))]
+        settled = after[0] - swap if after else None
+    fails = []
+    if judged and not max_err <= LH_UM:
+        fails.append(f"filtered L_h {max_err:.3f} µm off (target {LH_UM})")
+    if ok_far:
+        fails.append(f"ok while > {OK_UM} µm off at injection(s) {ok_far[:5]}")
+    if beyond and not flagged:
+        fails.append("beyond tolerance, not flagged")
+    if not beyond and flagged:
+        fails.append(f"within tolerance, flagged out_of_tolerance ({', '.join(flagged)})")
+    if swap is not None and (settled is None or settled > SWAP_SETTLE):
+        fails.append(f"swapped part not within {LH_UM} µm {SWAP_SETTLE} injections after the swap")
+    z = err[FROM:] / sigma[FROM:]
+    return {"position": life.position, "beyond": beyond, "swap_at": swap, "parts": [p.describe() for p in life.parts],
+            "lh_true_um": life.lh_um, "max_lh_err_from_um": max_err, "ok_far": ok_far,
+            "first_adopted": adopted[0] if adopted else None, "relearning_at": relearned_at,
+            "swap_settled_after": settled, "flagged": flagged, "final_learning": out[-1]["learning"],
+            "final_status": out[-1]["status"], "rms_z_from": float(np.sqrt(np.nanmean(z ** 2))),
+            "median_update_ms": float(np.median(seconds) * 1e3), "failures": fails, "trace": out}
+
+
+def _summary(rows: list[dict[str, Any]], fails: list[str], injections: int) -> dict[str, Any]:
+    within = [r for r in rows if not r["beyond"]]
+    return {"scenario": "lot-life", "mismatch": False, "injections": injections * len(rows),
+            "max_lh_err_within_um": max((r["max_lh_err_from_um"] for r in within
+                                         if math.isfinite(r["max_lh_err_from_um"])), default=float("nan")),
+            "ok_far": sum(len(r["ok_far"]) for r in rows),
+            "flagged_beyond": sum(1 for r in rows if r["beyond"] and r["flagged"]),
+            "beyond": sum(1 for r in rows if r["beyond"]),
+            "false_flags": sum(1 for r in within if r["flagged"]),
+            "failures": fails, "passed": not fails}
+
+
+COLUMNS = [keyed("pos", "", ">3", "position"),
+           Column("part", "", "<34", lambda r: ("BEYOND " if r["beyond"] else "") + r["parts"][-1][:27]),
+           Column("adopted", "[inj]", ">7", lambda r: "-" if r["first_adopted"] is None else r["first_adopted"]),
+           Column("swap", "settled", ">7", lambda r: "-" if r["swap_at"] is None else
+                  (r["swap_settled_after"] if r["swap_settled_after"] is not None else "never")),
+           keyed(f"max|dLh| {FROM}+", "[µm]", ">12.3f", "max_lh_err_from_um"),
+           keyed("err/σ", "rms", ">6.2f", "rms_z_from"),
+           Column("flagged", "", "<12", lambda r: ",".join(n.split(".")[1].split("_")[0] for n in r["flagged"]) or "-"),
+           keyed("learning", "", "<11", "final_learning"), keyed("status", "", "<15", "final_status")]
+
+
+def format_report(rep: dict[str, Any]) -> str:
+    """A row per position, then the lot's verdict."""
+    s = rep["summary"]
+    title = (f"lot-life - {rep['positions']} series injectors (±10 %, {s['beyond']} beyond tolerance, one swapped at "
+             f"injection {rep['swap_at']}), {rep['injections']} injections each, default settings (learning on); "
+             f"targets: filtered L_h within {LH_UM} µm from injection {FROM} (swapped: {SWAP_SETTLE} after the swap), "
+             f"never ok while > {OK_UM} µm off, parts beyond tolerance flagged")
+    table = render(COLUMNS, rep["rows"], lambda r: "PASS" if not r["failures"] else "FAIL: " + "; ".join(r["failures"]))
+    verdict = (f"lot: max |dL_h| within tolerance {s['max_lh_err_within_um']:.3f} µm, ok while far {s['ok_far']}, "
+               f"flagged {s['flagged_beyond']}/{s['beyond']} beyond tolerance, {s['false_flags']} false flags: "
+               + ("PASS" if s["passed"] else "FAIL"))
+    return "\n".join([title, table, verdict])

@@ -1,0 +1,133 @@
+"""Series injectors through their life: the operating conditions a learning estimator meets in a car.
+
+A :class:`Life` is one injector position of a lot: the series part mounted there (every structural
+parameter within the lot's spread of Tables 1-2, :mod:`sim_bench.series_part`; a configurable share
+of parts beyond the datasheet tolerance), the lot-wide amplifier chain (its own anti-aliasing filter
+and I/U skew), a warm-up that moves N_u, a rail pressure that wanders between idle and full load
+(preload force 28-300 N, a bounded random walk), slow wear of the idle stroke and, optionally, the
+part swapped for another one at a given injection under the same injector id.
+
+Everything is drawn from one seeded generator, so a seed names a lot: :func:`draw_lot` is what the
+tracking bench's ``lot-life`` scenario, the self-calibration bench's false-refusal sweep and the
+end-to-end ``series-lot`` bench run.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from estimator.ident.measurement import Injection
+from estimator.model.chain import MeasurementChain
+from estimator.model.parameters import NOMINAL_PRELOAD_N
+from sim_bench import series_part
+from sim_bench.plant import Measurement, Plant, PlantConfig
+
+PRELOAD_RANGE_N = (NOMINAL_PRELOAD_N, 300.0)   # idle to full load
+PRELOAD_STEP = 0.35          # the rail pressure's walk: a step of up to 35 % of the range per injection
+NU_COLD, NU_RISE = 15.6, 3.6  # N/V: the warm-up from cold, and its rise
+NU_OFFSET = 0.4              # N/V: a part's own offset, uniform
+WARM_UP_TAU = 25.0           # injections: the warm-up's time constant
+LH_UM = (1.0, 8.0)           # a part's idle stroke, uniform
+WEAR_UM = 0.05               # L_h grows by up to this much over a life (uniform)
+TOLERANCE = 0.10             # the datasheet tolerance of every structural parameter (relative)
+BEYOND = (0.15, 0.20)        # a part beyond tolerance: one mounting stiffness this far off (relative)
+WINDOW_S = 200e-6
+
+
+@dataclass(frozen=True)
+class LotSpec:
+    """What a lot is made of: its parts' spread, the share beyond tolerance, its chain and swaps.
+
+    ``swap_at``: the injection at which the part at each of ``swapped`` positions is replaced by
+    another one drawn from the same lot (None: no swap).
+    """
+
+    spread: float = TOLERANCE
+    beyond_fraction: float = 0.0
+    chain: MeasurementChain = series_part.TYPICAL_CHAIN
+    swap_at: int | None = None
+    swapped: tuple[int, ...] = ()
+    window_s: float = WINDOW_S
+    wear_um: float = WEAR_UM
+
+
+@dataclass
+class Life:
+    """One injector position: its parts (a second one after a swap), its truth per injection."""
+
+    position: int
+    parts: list[series_part.SeriesPart]
+    beyond: list[bool]
+    lh_um: list[float]
+    nu_offset: float
+    swap_at: int | None
+    chain: MeasurementChain
+    window_s: float
+    wear_um: float
+    seed: int
+    _plants: list[Plant] = field(default_factory=list, repr=False)
+
+    def part_at(self, k: int) -> int:
+        """Which part is mounted at injection ``k`` (0, or 1 after the swap)."""
+        return int(self.swap_at is not None and k >= self.swap_at)
+
+    def truth(self, k: int, n: int, preload_n: float) -> tuple[float, float]:
+        """(N_u N/V, L_h µm) at injection ``k`` of ``n``."""
+        nu = NU_COLD + NU_RISE * (1.0 - math.exp(-k / WARM_UP_TAU)) + self.nu_offset
+        lh = self.lh_um[self.part_at(k)] + self.wear_um * k / max(n - 1, 1)
+        return nu, lh
+
+    def injections(self, n: int, rng: np.random.Generator | None = None,
+                   interval_s: float = 1.0) -> Iterator[tuple[Injection, Measurement, dict]]:
+        """The first ``n`` injections: (what the estimator gets, the plant's measurement, the truth)."""
+        rng = rng if rng is not None else np.random.default_rng(self.seed)
+        if not self._plants:
+            cfg = PlantConfig(window_s=self.window_s, chain=self.chain)
+            self._plants = [Plant(cfg, p.params) for p in self.parts]
+        lo, hi = PRELOAD_RANGE_N
+        f = float(rng.uniform(lo, hi))
+        for k in range(n):
+            f += float(rng.uniform(-PRELOAD_STEP, PRELOAD_STEP)) * (hi - lo)
+            f = 2 * hi - f if f > hi else (2 * lo - f if f < lo else f)   # reflected at idle and full load
+            nu, lh = self.truth(k, n, f)
+            p = self.part_at(k)
+            m = self._plants[p].measure(nu, lh * 1e-6, f, rng)
+            inj = Injection(m.current_a, m.voltage_v, m.dt_s, f, self.position % 8, k % 256, float("nan"),
+                            k * interval_s)
+            yield inj, m, {"k": k, "part": p, "nu_true": nu, "lh_true_um": lh, "beyond": self.beyond[p],
+                           "f_open_n": f}
+
+
+def _draw_part(rng: np.random.Generator, spec: LotSpec, beyond: bool) -> series_part.SeriesPart:
+    part = series_part.draw(rng, spread=spec.spread, chain=spec.chain)
+    if not beyond:
+        return part
+    factors = dict(part.factors)   # one mounting stiffness beyond the tolerance, either way
+    name = "psa.kg1_n_per_m" if rng.uniform() < 0.5 else "psa.kg2_n_per_m"
+    factors[name] = 1.0 + float(rng.choice([-1.0, 1.0]) * rng.uniform(*BEYOND))
+    return series_part.SeriesPart(factors, spec.chain)
+
+
+def draw_lot(positions: int, seed: int, spec: LotSpec = LotSpec()) -> list[Life]:
+    """``positions`` seeded injector lives of one lot (``spec``)."""
+    rng = np.random.default_rng(seed)
+    n_beyond = int(round(spec.beyond_fraction * positions))
+    kept = [p for p in range(positions) if spec.swap_at is None or p not in spec.swapped]   # parts that stay
+    beyond_at = set(rng.choice(kept, size=min(n_beyond, len(kept)), replace=False).tolist()) if n_beyond else set()
+    lives = []
+    for pos in range(positions):
+        flags = [pos in beyond_at]
+        parts = [_draw_part(rng, spec, flags[0])]
+        lhs = [float(rng.uniform(*LH_UM))]
+        if spec.swap_at is not None and pos in spec.swapped:
+            flags.append(False)
+            parts.append(_draw_part(rng, spec, False))
+            lhs.append(float(rng.uniform(*LH_UM)))
+        lives.append(Life(pos, parts, flags, lhs, float(rng.uniform(-NU_OFFSET, NU_OFFSET)),
+                          spec.swap_at if len(parts) > 1 else None, spec.chain, spec.window_s,
+                          float(rng.uniform(0.0, spec.wear_um)), int(rng.integers(2 ** 31))))
+    return lives

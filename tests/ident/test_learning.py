@@ -1,0 +1,170 @@
+"""The learning lifecycle: on by default, re-learning a swapped part, reset and relearn, refusals
+that back off, tolerance diagnostics, and a status that survives the state file."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from estimator.codec.records import Codec, Command, EstimatorCommand
+from estimator.ident.selfcal import CalibrationOutcome, CalibrationStatus, SelfCalConfig
+from estimator.ident.status import Learning, Status
+from estimator.ident.tracker import Tracker
+from estimator.service.config import DaemonConfig
+from estimator.service.processor import Processor
+from estimator.codec.ingest import Counters
+from estimator.service.state_store import load_learning, save_states
+from sim_bench.series_life import LotSpec, draw_lot
+
+
+def _life(seed: int, swap_at: int | None = None, beyond: float = 0.0):
+    spec = LotSpec(swap_at=swap_at, swapped=(0,) if swap_at is not None else (), beyond_fraction=beyond)
+    return draw_lot(1, seed, spec)[0]
+
+
+def test_learning_is_on_by_default_and_a_documented_key_turns_it_off():
+    assert DaemonConfig().self_calibration == SelfCalConfig()
+    assert DaemonConfig.from_mapping({"self_calibration": {"mode": "off"}}).self_calibration is None
+
+
+def test_a_part_swapped_under_the_same_id_is_learned_again_without_a_command():
+    """Seeded lot position with a swap at injection 30: the first part is adopted, the monitor sees the
+    new part persistently mismatched, re-learns while the old model serves, adopts the new part's
+    model, and the filtered L_h is within 0.15 µm of the new part's within 30 injections of the swap;
+    never ok while more than 0.3 µm off."""
+    life = _life(seed=35, swap_at=30)
+    tracker = Tracker(self_calibration=SelfCalConfig())
+    states, rows = [], []
+    for inj, _m, truth in life.injections(70):
+        r = tracker.update(inj)
+        states.append(tracker.calibration[inj.injector_id].state)
+        rows.append((truth["k"], r.lh_m * 1e6 - truth["lh_true_um"], r.status))
+    assert states[29] == Learning.MONITORING
+    relearn = states.index(Learning.RELEARNING)
+    assert 30 < relearn < 45
+    assert states.index(Learning.ADOPTED, relearn) < 60
+    assert all(abs(e) <= 0.15 for k, e, _ in rows if k >= 60), [(k, round(e, 3)) for k, e, _ in rows if k >= 55]
+    assert not [k for k, e, s in rows if s == Status.OK and abs(e) > 0.3]
+    assert tracker.calibration[0].calibrations == 2
+
+
+def test_reset_forgets_the_learned_model_and_relearn_keeps_the_estimates():
+    life = _life(seed=32)
+    tracker = Tracker(self_calibration=SelfCalConfig())
+    injections = [inj for inj, _m, _t in life.injections(24)]
+    for inj in injections[:20]:
+        tracker.update(inj)
+    assert 0 in tracker.own_pools and tracker.calibration[0].state in (Learning.ADOPTED, Learning.MONITORING)
+    tracker.relearn(0)
+    assert tracker.calibration[0].state == Learning.RELEARNING
+    assert 0 in tracker.own_pools and 0 in tracker.states          # the model in use and the estimate stay
+    tracker.reset(0)
+    assert 0 not in tracker.own_pools and 0 not in tracker.states
+    assert tracker.calibration[0].state == Learning.IDLE
+    tracker.update(injections[20])
+    assert tracker.calibration[0].state in (Learning.IDLE, Learning.LEARNING)
+
+
+def test_relearn_and_reset_commands_follow_the_policy_and_are_counted():
+    codec = Codec()
+    tracker = Tracker(self_calibration=SelfCalConfig())
+    proc = Processor(codec, tracker, Counters(), "off")
+    proc.handle([EstimatorCommand(2, Command.RELEARN, 0.0, 0.0)])
+    assert proc.counters.commands_refused == 1 and 2 not in tracker.calibration
+    proc.commands = "reset-only"
+    proc.handle([EstimatorCommand(2, Command.RELEARN, 0.0, 0.0)])
+    assert proc.counters.commands_applied == 1 and tracker.calibration[2].state == Learning.RELEARNING
+
+
+class _Refusing:
+    """A calibrator whose every calibration is refused (a part no parameter set explains)."""
+
+    prepare = None
+
+    def __init__(self) -> None:
+        self.submitted: list[int] = []
+        self._done: list[CalibrationOutcome] = []
+
+    def submit(self, injector_id, window, base, config, current=None) -> None:
+        self.submitted.append(len(window.items))
+        self._done.append(CalibrationOutcome(injector_id, CalibrationStatus(Learning.REFUSED, message="no"), None))
+
+    def poll(self):
+        done, self._done = self._done, []
+        return done
+
+    def close(self) -> None:
+        pass
+
+
+def test_refused_calibrations_back_off():
+    """After each refusal the injector waits retry_after injections, doubling: the calibrator is not
+    kept busy by a part it cannot explain; the model in use keeps serving."""
+    life = _life(seed=33)
+    cal = _Refusing()
+    tracker = Tracker(self_calibration=SelfCalConfig(retry_after=4), calibrator=cal)
+    states = []
+    for inj, _m, _t in life.injections(60):
+        tracker.update(inj)
+        states.append(tracker.calibration[0].state)
+    refusals = tracker.calibration[0].refusals
+    assert 2 <= refusals <= 3 and len(cal.submitted) == refusals
+    gaps = [i for i in range(1, len(states)) if states[i] == Learning.LEARNING and states[i - 1] == Learning.REFUSED]
+    assert len(gaps) >= 2 and 0 not in tracker.own_pools
+
+
+def test_a_part_beyond_tolerance_is_flagged_and_parts_within_are_not():
+    """Seeded: a part with a mounting stiffness 15-20 % off is out_of_tolerance after its calibration;
+    four parts within ±10 % are not."""
+    flagged = {}
+    for seed, beyond in ((41, 1.0), (42, 0.0), (43, 0.0), (44, 0.0), (45, 0.0)):
+        life = _life(seed, beyond=beyond)
+        tracker = Tracker(self_calibration=SelfCalConfig())
+        for inj, _m, _t in life.injections(20):
+            tracker.update(inj)
+        assert tracker.calibration[0].calibrations >= 1
+        flagged[seed] = tracker.calibration[0].out_of_tolerance
+    assert flagged[41] and not any(flagged[s] for s in (42, 43, 44, 45)), flagged
+
+
+def test_the_learning_status_round_trips_through_the_state_file_and_a_corrupt_one_is_refused(tmp_path):
+    st = CalibrationStatus(Learning.MONITORING, 0, 0.5, 0.1, 40.0, "held-out chi-square gain 40", 3,
+                           out_of_tolerance=("psa.kg1_n_per_m",), refusals=1, source="learned")
+    path = tmp_path / "state.json"
+    save_states(path, {}, None, {4: st})
+    loaded, problem = load_learning(path)
+    assert problem is None and loaded == {4: st}
+    doc = json.loads(path.read_text())
+    doc["learning"]["4"]["state"] = "sleeping"
+    doc["learning"]["5"] = {"state": "adopted", "batch": -1}
+    path.write_text(json.dumps(doc))
+    loaded, problem = load_learning(path)
+    assert loaded == {} and "injector 4" in problem and "injector 5" in problem
+
+
+def test_a_restored_status_without_its_model_starts_learning_again():
+    tracker = Tracker(self_calibration=SelfCalConfig())
+    problems = tracker.restore_calibrations({}, {1: CalibrationStatus(Learning.MONITORING, source="learned")})
+    assert not problems and tracker.calibration[1].state == Learning.IDLE and 1 not in tracker.own_pools
+
+
+@pytest.mark.parametrize("bad", [{"window": 2}, {"monitor_limit": 0}, {"retry_after": -1}, {"part_tolerance": "x"}])
+def test_bad_learning_settings_are_refused(bad):
+    with pytest.raises((ValueError, TypeError)):
+        SelfCalConfig(**bad)
+
+
+def test_an_injectors_own_parameter_file_seeds_it_and_it_is_monitored(tmp_path):
+    from estimator.model.parameters import load_nominal, scaled
+    from estimator.pipeline import build_tracker
+
+    own = scaled(load_nominal(), {"psa.kp_n_per_m": 1.05})
+    path = tmp_path / "eol-3.toml"
+    path.write_text(own.to_toml("end-of-line calibration of injector 3"))
+    cfg = DaemonConfig.from_mapping({"injector_params": {"3": str(path)}})
+    tracker = build_tracker(cfg)
+    assert tracker.own_parameters() == {3: own}
+    assert tracker.calibration[3].state == Learning.MONITORING and tracker.calibration[3].source == "seeded"
+    with pytest.raises(Exception, match="injector_params"):
+        DaemonConfig.from_mapping({"injector_params": {"9": str(path)}})
