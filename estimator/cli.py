@@ -151,7 +151,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 
 def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     """The injector's structural parameters from current and voltage alone (no displacement)."""
-    from estimator.ident.electrical import calibrate_electrical, out_of_tolerance
+    from estimator.ident.electrical import calibrate_electrical, confirmed_out_of_tolerance
     from estimator.io.mdf import read_injections
 
     meta = {k: str(v) for k, v in (("preload_force_n", args.preload_n), ("temperature_c", args.temperature_c))
@@ -169,7 +169,9 @@ def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     header = (f"parameters calibrated electrically (python -m estimator calibrate --electrical) from "
               f"{len(injections)} injections;\nRMS voltage residual {res.rms_before_v * 1e3:.1f} mV before, "
               f"{res.rms_after_v * 1e3:.1f} mV after; SI units.")
-    flagged = out_of_tolerance(res, args.part_tolerance)
+    flagged = confirmed_out_of_tolerance(injections, _params(args), res, args.part_tolerance, tolerance=args.tolerance,
+                                         window_s=(200.0 if args.window_us is None else args.window_us) * 1e-6) \
+        if res.adequate else []
     if res.adequate:
         toml = res.params.to_toml(header)
         if args.out:

@@ -52,6 +52,13 @@ class InjectionSource:
         self.rng = np.random.default_rng(seed)
         self.plant = Plant(PlantConfig(drive=scenario.drive, mismatch=scenario.mismatch, window_s=scenario.window_s))
         self._pool: dict[int, list[tuple[Measurement, float]]] = {}
+        self.lives = []
+        if scenario.series_lot:
+            from sim_bench.series_life import LotSpec, draw_lot
+
+            spec = LotSpec(swap_at=scenario.swap_at, swapped=(1,), window_s=scenario.window_s)
+            self.lives = draw_lot(scenario.injectors, seed, spec)
+            self._life_length = int(round(scenario.seconds * scenario.rate_hz))
 
     def measure(self, injector: int, n: int, t: float) -> tuple[Measurement, float]:
         """The measurement of injection n of an injector at time t (s), and the temperature (degC)."""
@@ -64,6 +71,8 @@ class InjectionSource:
         return self._fresh(injector, n, t)
 
     def _fresh(self, injector: int, n: int, t: float) -> tuple[Measurement, float]:
+        if self.lives:   # a series part of the lot: its own structure, warm-up and rail pressure
+            return self.lives[injector].measure(n, self._life_length, self.rng)[0], float("nan")
         tr = self.scenario.truth(injector, n, t, self.rng)
         return self.plant.measure(tr.nu_n_per_v, tr.lh_um * 1e-6, tr.f_open_n, self.rng), tr.temperature_c
 

@@ -135,6 +135,11 @@ class Scenario:
     window_s: float = 100e-6
     decimation: int = 1                      # send every n-th sample (slower buses)
     pool: int = 0                            # >0: precompute this many injections per injector and cycle
+    series_lot: bool = False                 # the injectors are series parts of one lot (sim_bench.series_life):
+                                             # their own structure and rail-pressure walk, one amplifier chain
+    swap_at: int | None = None               # series lot: injector 1's part is swapped at this injection
+    settle: int = SETTLE                     # injections of each injector before the targets apply
+    ok_within_um: float = math.inf           # no ok published with L_h further off than this (any injection)
     description: str = ""
 
     def temperature(self, t: float) -> float:
@@ -180,6 +185,16 @@ register(Scenario("overload", BenchTargets(lh_um=None, nu_pct=None), injectors=4
                   rate_hz=2 * BUS_INJECTIONS_PER_S / 4, pool=64,
                   description=f"2 x the bus budget ({2 * BUS_INJECTIONS_PER_S:.0f} injections/s): latency and "
                               "memory, not accuracy"))
+
+
+SWAP_SETTLE = 30   # series lot: the swapped injector is judged again this many injections after the swap
+register(Scenario("series-lot", BenchTargets(lh_um=0.15, nu_pct=None), series_lot=True, swap_at=80, rate_hz=10.0,
+                  seconds=20.0, window_s=200e-6, settle=60, ok_within_um=0.3,
+                  description="4 series parts of one lot (±10 %, one amplifier chain), warming up while the rail "
+                              "pressure wanders 28-300 N, injector 1's part swapped at injection 80; default "
+                              "configuration (learning on: the four calibrations queue for one background process, "
+                              "so targets apply from injection 60); N_u not scored (a learned model's N_u carries its "
+                              "calibration's uncertainty)"))
 
 
 def get(name: str, **overrides) -> Scenario:

@@ -70,6 +70,7 @@ class Life:
     wear_um: float
     seed: int
     _plants: list[Plant] = field(default_factory=list, repr=False)
+    _preload: float | None = field(default=None, repr=False)
 
     def part_at(self, k: int) -> int:
         """Which part is mounted at injection ``k`` (0, or 1 after the swap)."""
@@ -81,25 +82,33 @@ class Life:
         lh = self.lh_um[self.part_at(k)] + self.wear_um * k / max(n - 1, 1)
         return nu, lh
 
-    def injections(self, n: int, rng: np.random.Generator | None = None,
-                   interval_s: float = 1.0) -> Iterator[tuple[Injection, Measurement, dict]]:
-        """The first ``n`` injections: (what the estimator gets, the plant's measurement, the truth)."""
-        rng = rng if rng is not None else np.random.default_rng(self.seed)
+    def measure(self, k: int, n: int, rng: np.random.Generator) -> tuple[Measurement, dict]:
+        """Injection ``k`` of a life of ``n``: the plant's measurement and the truth. Injections are
+        measured in order (the rail pressure walks from one to the next)."""
         if not self._plants:
             cfg = PlantConfig(window_s=self.window_s, chain=self.chain)
             self._plants = [Plant(cfg, p.params) for p in self.parts]
         lo, hi = PRELOAD_RANGE_N
-        f = float(rng.uniform(lo, hi))
+        if self._preload is None:
+            self._preload = float(rng.uniform(lo, hi))
+        f = self._preload + float(rng.uniform(-PRELOAD_STEP, PRELOAD_STEP)) * (hi - lo)
+        f = 2 * hi - f if f > hi else (2 * lo - f if f < lo else f)   # reflected at idle and full load
+        self._preload = f
+        nu, lh = self.truth(k, n, f)
+        p = self.part_at(k)
+        m = self._plants[p].measure(nu, lh * 1e-6, f, rng)
+        return m, {"k": k, "part": p, "nu_true": nu, "lh_true_um": lh, "beyond": self.beyond[p], "f_open_n": f}
+
+    def injections(self, n: int, rng: np.random.Generator | None = None,
+                   interval_s: float = 1.0) -> Iterator[tuple[Injection, Measurement, dict]]:
+        """The first ``n`` injections: (what the estimator gets, the plant's measurement, the truth)."""
+        rng = rng if rng is not None else np.random.default_rng(self.seed)
+        self._preload = None
         for k in range(n):
-            f += float(rng.uniform(-PRELOAD_STEP, PRELOAD_STEP)) * (hi - lo)
-            f = 2 * hi - f if f > hi else (2 * lo - f if f < lo else f)   # reflected at idle and full load
-            nu, lh = self.truth(k, n, f)
-            p = self.part_at(k)
-            m = self._plants[p].measure(nu, lh * 1e-6, f, rng)
-            inj = Injection(m.current_a, m.voltage_v, m.dt_s, f, self.position % 8, k % 256, float("nan"),
+            m, truth = self.measure(k, n, rng)
+            inj = Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n, self.position % 8, k % 256, float("nan"),
                             k * interval_s)
-            yield inj, m, {"k": k, "part": p, "nu_true": nu, "lh_true_um": lh, "beyond": self.beyond[p],
-                           "f_open_n": f}
+            yield inj, m, truth
 
 
 def _draw_part(rng: np.random.Generator, spec: LotSpec, beyond: bool) -> series_part.SeriesPart:

@@ -75,6 +75,8 @@ class Learner:
         self.status: dict[int, CalibrationStatus] = {}
         self._windows: dict[int, CalibrationWindow] = {}
         self._relearning: dict[int, bool] = {}     # a calibration running for an injector that has its own model
+        self._refine: dict[int, CalibrationWindow] = {}   # a monitored model's refinement window
+        self._refining: set[int] = set()           # a refinement calibration running
         self._changed: set[int] = set()
 
     # ---- what the tracker calls -----------------------------------------------------------
@@ -125,13 +127,35 @@ class Learner:
             window.add(inj, nu)
         elif evidence == 0.0:
             self._windows.pop(iid, None)
+            if state == Learning.MONITORING and not st.refined and c.refine_window:
+                if self._refined(iid, st, inj, nu, served):
+                    return
         if evidence >= c.monitor_limit:
+            self._refine.pop(iid, None)
             self._set(iid, replace(st, state=Learning.RELEARNING, evidence=evidence, served=served,
                                    message=f"the model in use stopped explaining this injector (monitor "
                                            f"{evidence:.1f} >= {c.monitor_limit:g})"))
             self._add(iid, None, nu, Learning.RELEARNING)
             return
         self._set(iid, replace(st, state=state, evidence=evidence, served=served), quiet=state == st.state)
+
+    def _refined(self, iid: int, st: CalibrationStatus, inj: Injection, nu: float, served: int) -> bool:
+        """Collect the refinement window of a monitored model; submit it once ready (True: submitted).
+        A window of ten injections measures a stiffness to about 1 %; the refinement's larger window
+        sharpens the model and its tolerance diagnostics, and is adopted if it explains held-out
+        injections better than the model in use."""
+        c = replace(self.config, window=self.config.refine_window)
+        window = self._refine.setdefault(iid, CalibrationWindow(c.window))
+        window.add(inj, nu)
+        if not window.ready(c):
+            return False
+        del self._refine[iid]
+        self._set(iid, replace(st, state=Learning.CALIBRATING, served=served, evidence=0.0,
+                               message="refining the model over a larger window"))
+        self._refining.add(iid)
+        self.calibrator.submit(iid, window, self.base, c, self._current(iid))
+        self.collect()
+        return True
 
     def _add(self, iid: int, inj: Injection | None, nu: float, state: Learning) -> None:
         """Add ``inj`` to the injector's window (None: only check it); submit the window once it is ready."""
@@ -158,6 +182,10 @@ class Learner:
         own = self._current(iid) is not None
         calibrations = before.calibrations + 1
         new = replace(out.status, calibrations=calibrations, source=before.source)
+        if iid in self._refining:
+            self._refining.discard(iid)
+            self._finish_refinement(out, before, new)
+            return
         if out.params is not None:
             self._adopt(iid, out.params, out.prepared)
             self._set(iid, replace(new, state=Learning.ADOPTED, source="learned", evidence=0.0, served=0,
@@ -167,18 +195,34 @@ class Learner:
             # an adequate calibration that explains the held-out injections no better than the model
             # in use: that model still serves (a passing disturbance, or a relearn of a good model)
             self._set(iid, replace(new, state=Learning.MONITORING if own else Learning.IDLE, evidence=0.0,
-                                   batch=0, preload_span=0.0))
+                                   batch=0, preload_span=0.0, refined=before.refined))
             return
         refusals = before.refusals + 1
         wait = self.config.retry_after * min(2 ** (refusals - 1), MAX_BACKOFF)
         self._set(iid, replace(new, state=Learning.REFUSED, refusals=refusals, retry_in=wait, batch=0,
                                preload_span=0.0, evidence=0.0))
 
+    def _finish_refinement(self, out: CalibrationOutcome, before: CalibrationStatus, new: CalibrationStatus) -> None:
+        """A refinement never takes a working model away: adopted if better, else the model in use
+        stays; its tolerance diagnostics replace the first calibration's where it explained its batch."""
+        iid = out.injector_id
+        if out.params is not None and self._current(iid) is not None:
+            self._adopt(iid, out.params, out.prepared)
+            self._set(iid, replace(new, state=Learning.ADOPTED, source="learned", evidence=0.0, served=0,
+                                   refusals=0, retry_in=0, batch=0, preload_span=0.0, refined=True))
+            return
+        adequate = math.isfinite(out.status.held_out_chi2)
+        self._set(iid, replace(before, state=Learning.MONITORING if self._current(iid) is not None else Learning.IDLE,
+                               calibrations=new.calibrations, refined=True, evidence=0.0,
+                               out_of_tolerance=new.out_of_tolerance if adequate else before.out_of_tolerance,
+                               message="refinement: " + out.status.message))
+
     # ---- commands, seeds and persistence -----------------------------------------------------
     def forget(self, iid: int) -> None:
         """Forget the injector's learning (its own model goes back to the tables: ``reset``)."""
         self._windows.pop(iid, None)
         self._relearning.pop(iid, None)
+        self._refine.pop(iid, None)
         if iid in self.status:
             self._set(iid, CalibrationStatus(calibrations=self.status[iid].calibrations))
 
@@ -218,6 +262,7 @@ class Learner:
     def carry(self, old: Learner) -> None:
         """Go on where ``old`` stands (a reloaded configuration): statuses, windows, running calibrations."""
         self.status, self._windows, self._relearning = old.status, old._windows, old._relearning
+        self._refine, self._refining = old._refine, old._refining
         self._changed |= old._changed
 
     def take_changes(self) -> list[tuple[int, CalibrationStatus]]:

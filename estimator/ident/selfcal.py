@@ -30,7 +30,7 @@ import numpy as np
 
 from estimator.ident.adequacy import noise_level_v
 from estimator.ident.config import IdentConfig
-from estimator.ident.electrical import WINDOW_S, calibrate_electrical, measured_voltage, out_of_tolerance
+from estimator.ident.electrical import WINDOW_S, calibrate_electrical, confirmed_out_of_tolerance, measured_voltage
 from estimator.ident.idle_stroke import identify
 from estimator.ident.status import CALIBRATION_STATES, Learning
 from estimator.ident.measurement import Injection
@@ -57,12 +57,17 @@ class SelfCalConfig:
     monitor_limit: float = 4.0     # ... whose reaching this starts re-learning (8 mismatched injections in a row)
     confirm: int = 5               # injections an adopted model serves before it is monitoring
     retry_after: int = 12          # injections after a refused calibration before the next window (doubling, x8 at most)
+    refine_window: int = 24        # once monitoring: one more calibration over this many injections (0: none)
 
     def __post_init__(self) -> None:
         if not (isinstance(self.window, int) and isinstance(self.held_out, int) and 1 <= self.held_out
                 and self.window >= self.held_out + 3):
             raise ValueError(f"self-calibration window {self.window!r} must hold held_out {self.held_out!r} "
                              "injections and at least three more")
+        if not (isinstance(self.refine_window, int) and not isinstance(self.refine_window, bool)
+                and (self.refine_window == 0 or self.refine_window >= self.held_out + 3)):
+            raise ValueError(f"self-calibration refine_window {self.refine_window!r} must be 0 or hold held_out "
+                             f"{self.held_out!r} injections and at least three more")
         for name in ("confirm", "retry_after"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
@@ -84,7 +89,8 @@ class CalibrationStatus:
     part's tolerance; ``evidence`` the monitor's cumulative sum (re-learning at the configured limit);
     ``served`` the injections the model in use has served since its adoption; ``refusals`` the
     calibrations refused in a row and ``retry_in`` the injections left before the next window;
-    ``source`` where the model in use comes from (``tables``, ``learned`` or ``seeded``).
+    ``source`` where the model in use comes from (``tables``, ``learned`` or ``seeded``);
+    ``refined`` whether the model in use has had its refinement over a larger window.
     """
 
     state: str = Learning.IDLE
@@ -101,6 +107,7 @@ class CalibrationStatus:
     refusals: int = 0
     retry_in: int = 0
     source: str = "tables"
+    refined: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (NaN as None)."""
@@ -111,7 +118,7 @@ class CalibrationStatus:
                 "held_out_chi2": num(self.held_out_chi2), "message": self.message,
                 "calibrations": self.calibrations, "out_of_tolerance": list(self.out_of_tolerance),
                 "evidence": round(self.evidence, 3), "served": self.served, "refusals": self.refusals,
-                "retry_in": self.retry_in, "source": self.source}
+                "retry_in": self.retry_in, "source": self.source, "refined": self.refined}
 
     @classmethod
     def from_dict(cls, d: Any) -> CalibrationStatus:
@@ -141,7 +148,10 @@ class CalibrationStatus:
             raise ValueError(f"source = {source!r} must be tables, learned or seeded")
         if not (isinstance(oot, list) and len(oot) <= 64 and all(isinstance(n, str) and len(n) < 64 for n in oot)):
             raise ValueError("out_of_tolerance must be a list of parameter names")
-        st.message, st.source, st.out_of_tolerance = msg, source, tuple(oot)
+        refined = d.get("refined", False)
+        if not isinstance(refined, bool):
+            raise ValueError("refined must be true or false")
+        st.message, st.source, st.out_of_tolerance, st.refined = msg, source, tuple(oot), refined
         return st
 
 
@@ -191,12 +201,12 @@ def _calibrate(window: CalibrationWindow, base: InjectorParameters, config: Self
         res = calibrate_electrical(batch, base, tolerance=config.tolerance)
     except ValueError as exc:
         return CalibrationStatus(Learning.REFUSED, len(batch), message=str(exc)), None
-    status = CalibrationStatus(Learning.REFUSED, len(batch), res.rms_before_v, res.rms_after_v,
-                               out_of_tolerance=tuple(out_of_tolerance(res, config.part_tolerance,
-                                                                       config.tolerance_sigmas)))
+    status = CalibrationStatus(Learning.REFUSED, len(batch), res.rms_before_v, res.rms_after_v)
     if not res.adequate:
         status.message = "the calibrated model does not explain the batch"
         return status, None
+    status.out_of_tolerance = tuple(confirmed_out_of_tolerance(batch, base, res, config.part_tolerance,
+                                                               config.tolerance_sigmas, config.tolerance))
     dt = held[0].dt_s
     old, new = FastSimulator(current if current is not None else base, dt), FastSimulator(res.params, dt)
     chi2 = 0.0

@@ -113,6 +113,7 @@ class Processor:
         self.counters = counters
         self.commands = commands
         self.rlog = RateLimitedLog(log)
+        self._logged: dict[int, str] = {}   # the learning state last logged per injector (progress is not logged)
         status = codec.messages[EstimatorStatus]
         # rolling counters: each wraps at its signal's width (32 or 16 bits)
         self._masks = {name: (1 << status.get_signal_by_name(EstimatorStatus.SIGNALS[name]).length) - 1
@@ -198,8 +199,10 @@ class Processor:
                           h.injector_id, h.counter, res.reason)
         changes = tuple(self.tracker.take_calibration_changes()) if self.tracker.calibrator is not None else ()
         for iid, st in changes:
-            if st.state in (Learning.ADOPTED, Learning.REFUSED, Learning.RELEARNING):
+            if st.state != self._logged.get(iid) and st.state in (Learning.ADOPTED, Learning.REFUSED,
+                                                                  Learning.RELEARNING):
                 log.info("injector %d: learning %s (%s)", iid, st.state, st.message)
+            self._logged[iid] = st.state
             if st.state == Learning.ADOPTED and st.out_of_tolerance:
                 log.warning("injector %d: out_of_tolerance: %s beyond the part's tolerance", iid,
                             ", ".join(st.out_of_tolerance))
