@@ -271,6 +271,15 @@ def cmd_selfcal(args: argparse.Namespace) -> int:
 
     if not 1 <= args.injectors <= 100:
         raise EstimatorError(f"--injectors {args.injectors}: must be within 1..100")
+    if args.refusals:
+        from sim_bench import refusal_bench
+
+        if not 1 <= args.refusals <= 1000:
+            raise EstimatorError(f"--refusals {args.refusals}: must be within 1..1000")
+        ref = refusal_bench.run(args.refusals)
+        print(refusal_bench.format_report(ref))
+        _write_json(args.json_out or DEFAULT_OUT / "selfcal-refusals.json", ref)
+        return 0 if ref["passed"] else 1
     if args.online:
         rep = selfcal_bench.run_online(args.injectors, args.seed)
         print(selfcal_bench.format_online(rep))
@@ -304,8 +313,18 @@ def cmd_lot(args: argparse.Namespace) -> int:
     """A seeded synthetic production lot (CSV traces with serial numbers, and truth.csv)."""
     from sim_bench.lot import make_lot
 
+    series = None
+    if args.series:
+        from sim_bench.series_life import LotSpec
+
+        if not (0.0 < args.spread <= 0.3 and 0.0 <= args.beyond <= 1.0):
+            raise EstimatorError(f"--spread {args.spread} must be in (0, 0.3] and --beyond {args.beyond} in [0, 1]")
+        swapped = tuple(range(0, args.injectors, max(1, round(1 / args.swap_share)))) if args.swap_share > 0 else ()
+        series = LotSpec(spread=args.spread, beyond_fraction=args.beyond,
+                         swap_at=args.swap_at if swapped else None, swapped=swapped)
     try:
-        truth = make_lot(args.out, args.injectors, args.injections, args.seed, drive=_drive(args), captures=args.captures)
+        truth = make_lot(args.out, args.injectors, args.injections, args.seed, drive=_drive(args), captures=args.captures,
+                         series=series)
     except ValueError as exc:
         raise EstimatorError(str(exc)) from None
     what = f"captures ({args.injectors * args.injections} injections)" if args.captures else \
@@ -412,6 +431,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="plain: the series part alone; chain: behind an amplifier chain the calibration is not "
                         "told about; mismatch: the chain plus hysteresis, which no parameter set explains (default all)")
     s.add_argument("--seed", type=int, default=11, help="seed of the first injector (default 11)")
+    s.add_argument("--refusals", type=int, default=0, metavar="N",
+                   help="the acceptance sweep instead: N good seeded series parts through the offline and online "
+                   "calibrations (false refusals, false out_of_tolerance), hysteresis parts (refused) and parts "
+                   "beyond tolerance (flagged); about 3 s a part")
     s.add_argument("--online", action="store_true",
                    help="instead: each injector through the tracker with self-calibration on and the daemon's "
                         "background calibrator, an injection every 0.25 s, and an exact injector (no harm)")
@@ -422,6 +445,13 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("lot", help="a seeded synthetic production lot (traces with serial numbers + truth)")
     s.add_argument("--injectors", type=int, default=100, help="injectors in the lot (default 100)")
     s.add_argument("--injections", type=int, default=1, help="traces per injector (1 s apart)")
+    s.add_argument("--series", action="store_true", help="series parts: every structural parameter within --spread "
+                   "of Tables 1-2, one amplifier chain, a warm-up, the rail pressure wandering 28-300 N, wear, "
+                   "--beyond of the parts beyond tolerance, --swap-share of them swapped at --swap-at (200 µs sent)")
+    s.add_argument("--spread", type=float, default=0.10, help="--series: relative spread of the structure (default 0.10)")
+    s.add_argument("--beyond", type=float, default=0.0, help="--series: share of parts beyond tolerance (default 0)")
+    s.add_argument("--swap-share", type=float, default=0.0, help="--series: share of injectors whose part is swapped")
+    s.add_argument("--swap-at", type=int, default=40, help="--series: the injection at which they are (default 40)")
     s.add_argument("--captures", action="store_true",
                    help="one BLF capture per injector (captures/SERIAL.blf) instead of CSV traces")
     _add_drive_argument(s, "standard")

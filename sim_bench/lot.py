@@ -25,7 +25,8 @@ from estimator.service.bus import to_message
 from estimator.service.config import DaemonConfig
 from estimator.io.traces import write_trace
 from estimator.model.parameters import NOMINAL_PRELOAD_N
-from sim_bench.plant import Plant, PlantConfig
+from sim_bench.plant import Measurement, Plant, PlantConfig
+from sim_bench.series_life import LotSpec, draw_lot
 
 NU_MEAN, NU_SD = 17.5, 0.3
 LH_MEAN, LH_SD = 3.5, 0.6
@@ -35,12 +36,16 @@ CAPTURE_SLOTS = DaemonConfig.max_injectors   # injector ids on the bus the daemo
 
 
 def make_lot(out: Path, injectors: int, injections: int = 1, seed: int = 11, window_s: float = 100e-6,
-             drive: Drive | None = None, captures: bool = False) -> Path:
+             drive: Drive | None = None, captures: bool = False, series: LotSpec | None = None) -> Path:
     """Write the lot's traces into ``out`` (one file per injection; with ``captures`` one BLF capture per
     injector) and ``truth.csv``; returns the truth path. Every injector is driven with ``drive``
-    (default the standard drive). The truth and the measurements do not depend on ``captures``."""
+    (default the standard drive). The truth and the measurements do not depend on ``captures``.
+    ``series``: the injectors are series parts of that lot (:mod:`sim_bench.series_life`: their own
+    structure, one amplifier chain, warm-up, rail-pressure walk, wear, swaps, parts beyond tolerance)."""
     if not (1 <= injectors <= 100_000 and 1 <= injections <= 1000):
         raise ValueError(f"--injectors {injectors} must be 1..100000 and --injections {injections} 1..1000")
+    if series is not None:
+        return _series_lot(out, injectors, injections, seed, series, captures)
     rng = np.random.default_rng(seed)
     folder = out / ("captures" if captures else "traces")
     folder.mkdir(parents=True, exist_ok=True)
@@ -77,6 +82,48 @@ def make_lot(out: Path, injectors: int, injections: int = 1, seed: int = 11, win
                                     {"serial": serial, "time_s": float(k), "counter": k,
                                      "preload_force_n": round(f_open, 4), "true_nu_n_per_v": round(nu, 6),
                                      "true_lh_um": round(lh, 6)})
+            finally:
+                if writer is not None:
+                    writer.stop()
+    return truth_path
+
+
+def _write_injection(folder: Path, serial: str, slot: int, k: int, m: Measurement, writer: can.Listener | None,
+                     codec: Codec | None, truth: dict) -> None:
+    """One injection: into the injector's capture (``writer``), else as a CSV trace with its truth."""
+    if writer is not None and codec is not None:
+        t_bus = 1000.0 + k                          # s; then a frame every 0.2 ms
+        for fr in injection_frames(codec, slot, k % 256, m.dt_s, m.current_a, m.voltage_v, preload_force_n=m.f_open_n):
+            t_bus += CAPTURE_FRAME_DT_S
+            writer.on_message_received(to_message(fr, timestamp=t_bus))
+        return
+    t_s = np.arange(m.current_a.size) * m.dt_s
+    write_trace(folder / f"{serial}_{k:03d}.csv", {"t_s": t_s, "current_A": m.current_a, "voltage_V": m.voltage_v},
+                {"serial": serial, "time_s": float(k), "counter": k, "preload_force_n": round(m.f_open_n, 4),
+                 "true_nu_n_per_v": round(truth["nu_true"], 6), "true_lh_um": round(truth["lh_true_um"], 6)})
+
+
+def _series_lot(out: Path, injectors: int, injections: int, seed: int, spec: LotSpec, captures: bool) -> Path:
+    """:func:`make_lot` of series parts: truth.csv names each part, whether it is beyond tolerance and
+    where it was swapped."""
+    folder = out / ("captures" if captures else "traces")
+    folder.mkdir(parents=True, exist_ok=True)
+    codec = Codec() if captures else None
+    truth_path = out / "truth.csv"
+    rng = np.random.default_rng(seed + 1)
+    with open(truth_path, "w", newline="") as tf:
+        w = csv.writer(tf)
+        w.writerow(["serial", "nu_n_per_v", "lh_um", "bad", "mismatch", "beyond_tolerance", "swap_at", "part"])
+        for life in draw_lot(injectors, seed, spec):
+            serial = f"INJ-{life.position:05d}"
+            nu0, lh0 = life.truth(0, injections, 0.0)
+            w.writerow([serial, f"{nu0:.4f}", f"{lh0:.4f}", 0, 0, int(life.beyond[-1]),
+                        life.swap_at if life.swap_at is not None else "", life.parts[-1].describe()])
+            writer = can.Logger(str(folder / f"{serial}.blf")) if captures else None
+            try:
+                for k in range(injections):
+                    m, truth = life.measure(k, injections, rng)
+                    _write_injection(folder, serial, life.position % CAPTURE_SLOTS, k, m, writer, codec, truth)
             finally:
                 if writer is not None:
                     writer.stop()

@@ -157,7 +157,10 @@ def summarise(rows: list[dict]) -> list[dict]:
                     "nu_n_per_v": last.get("nu_n_per_v"), "lh_um": last.get("lh_um"),
                     "sigma_lh_um": last.get("sigma_lh_um"), "t_open_us": last.get("t_open_us"),
                     "raw_lh_um_median": float(np.median([r["raw_lh_um"] for r in ok if r.get("raw_lh_um") is not None]))
-                    if ok else None})
+                    if ok else None,
+                    "learning": rs[-1].get("learning"), "last_status": rs[-1].get("status"),
+                    "out_of_tolerance": next((r["out_of_tolerance"] for r in reversed(rs) if r.get("out_of_tolerance")),
+                                             "")})
     for name in ("lh_um", "nu_n_per_v"):
         vals = np.array([s[name] for s in out if s[name] is not None], dtype=float)
         if vals.size < 5:
@@ -205,20 +208,28 @@ def format_report(res: FleetResult) -> str:
              f"worker(s)"]
     if res.missing:
         lines.append(f"matched nothing: {', '.join(res.missing)}")
-    lines.append(f"  {'injector':<40} {'id':>2} {'n':>5} {'N_u [N/V]':>10} {'L_h [µm]':>9} {'σ(L_h)':>7} {'mism':>5}  flag")
+    lines.append(f"  {'injector':<40} {'id':>2} {'n':>5} {'N_u [N/V]':>10} {'L_h [µm]':>9} {'σ(L_h)':>7} {'mism':>5} "
+                 f"{'learning':<11} flag")
     for s in res.summary:
         nu = f"{s['nu_n_per_v']:.4f}" if s["nu_n_per_v"] is not None else "-"
         lh = f"{s['lh_um']:.3f}" if s["lh_um"] is not None else "-"
         sg = f"{s['sigma_lh_um']:.3f}" if s["sigma_lh_um"] is not None else "-"
         lines.append(f"  {str(s['injector'])[-40:]:<40} {s['injector_id'] if s['injector_id'] is not None else '-':>2} "
-                     f"{s['injections']:>5} {nu:>10} {lh:>9} {sg:>7} {s.get('model_mismatch', 0):>5}  {s['outlier']}")
+                     f"{s['injections']:>5} {nu:>10} {lh:>9} {sg:>7} {s.get('model_mismatch', 0):>5} "
+                     f"{s.get('learning') or '-':<11} {s['outlier']}"
+                     + (f" out_of_tolerance: {s['out_of_tolerance']}" if s.get("out_of_tolerance") else ""))
     if est:
         lh = np.array([s["lh_um"] for s in est])
         nu = np.array([s["nu_n_per_v"] for s in est])
         lines.append(f"  lot: L_h mean {lh.mean():.3f} µm, std {lh.std():.3f} µm; N_u mean {nu.mean():.4f} N/V, "
                      f"std {nu.std():.4f} N/V; flagged {sum(bool(s['outlier']) for s in res.summary)}; "
-                     f"model mismatch on {sum(bool(s.get('model_mismatch')) for s in res.summary)} injector(s) "
-                     "(their model cannot explain their samples: calibrate them)")
+                     f"model mismatch at the last injection of {sum(s.get('last_status') == 'model_mismatch' for s in res.summary)} "
+                     f"injector(s) (their model cannot explain their samples: see their learning state), at some "
+                     f"injection of {sum(bool(s.get('model_mismatch')) for s in res.summary)}")
+    reject = [s for s in res.summary if s.get("out_of_tolerance")]
+    if reject:
+        lines.append(f"  out of tolerance (parts to reject): {len(reject)}: "
+                     + "; ".join(f"{s['injector']} ({s['out_of_tolerance']})" for s in reject[:50]))
     for r in [r for r in res.rows if r.get("status") == "error"][:20]:
         lines.append(f"  error: {r['source']}: {r['reason']}")
     return "\n".join(lines)

@@ -178,3 +178,25 @@ def test_fleet_bench_scores_a_lot_of_captures(tmp_path):
         assert list(got.lh_um) == [w["lh_um"] for w in want] and list(got.status) == [w["status"] for w in want]
         assert (got.evaluations.iloc[1:] < 40).all()                                    # warm (cold: 48-131)
     assert "a BLF capture of 3 injections each" in fleet_bench.format_report(rep)
+
+
+@pytest.mark.slow
+def test_a_series_lot_is_learned_on_the_cluster_and_its_part_beyond_tolerance_reported(tmp_path):
+    """sim_bench lot --series: three series parts (one beyond tolerance) through the fleet with its
+    default configuration: every injector learns its own model (rows and summary carry the learning
+    state), the part beyond tolerance is in the lot report's reject line, the others are not."""
+    from sim_bench.series_life import LotSpec
+
+    truth = make_lot(tmp_path / "lot", 3, 24, seed=21, series=LotSpec(beyond_fraction=0.34))
+    rows = list(csv.DictReader(open(truth)))
+    beyond = [r["serial"] for r in rows if r["beyond_tolerance"] == "1"]
+    assert len(beyond) == 1
+    out = tmp_path / "res.csv"
+    res = run_fleet([str(tmp_path / "lot" / "traces")], out, workers=1)
+    assert {s["learning"] for s in res.summary} <= {"adopted", "monitoring", "calibrating"}
+    report = out.with_name("res-report.txt").read_text()
+    line = next(x for x in report.splitlines() if "out of tolerance" in x)
+    assert beyond[0] in line and all(r["serial"] not in line for r in rows if r["serial"] not in beyond)
+    for s in res.summary:
+        true_lh = float(next(r["lh_um"] for r in rows if r["serial"] == s["injector"]))
+        assert abs(s["lh_um"] - true_lh) < 0.2

@@ -269,3 +269,35 @@ def test_noise_gain_and_current_noise():
     t = np.arange(400)
     ripple = 4.3 + 0.3 * np.abs((t % 16) - 8) / 8                      # an 8 µs triangle, as the bench amplifier's
     assert current_noise_a(ripple + 0.01 * rng.standard_normal(t.size)) == pytest.approx(0.01, rel=0.3)   # the corners: 0.0125
+
+
+def _write_life(tmp_path, life, n, prefix):
+    paths = []
+    for inj, _m, truth in life.injections(n):
+        t = np.arange(inj.current_a.size) * inj.dt_s
+        paths.append(tmp_path / f"{prefix}{truth['k']}.csv")
+        write_trace(paths[-1], {"t_s": t, "current_A": inj.current_a, "voltage_V": inj.voltage_v},
+                    {"preload_force_n": inj.f_open_n})
+    return paths
+
+
+@pytest.mark.slow
+def test_cli_refuses_a_batch_without_writing_a_file_and_flags_a_part_beyond_tolerance(tmp_path):
+    """A hysteresis part: exit 1, 'refused' on stderr, no parameter file. A part with a mounting
+    stiffness 15-20 % off: its file is written and the JSON names the parameter out_of_tolerance."""
+    from sim_bench.refusal_bench import _life
+
+    run = [sys.executable, "-m", "estimator", "calibrate", "--electrical"]
+    hyst = _write_life(tmp_path, _life(2000, hysteresis=True), 16, "h")
+    r = subprocess.run([*run, *map(str, hyst), "--out", str(tmp_path / "h.toml")], capture_output=True, text=True,
+                       timeout=300, cwd=REPO)
+    assert r.returncode == 1 and "refused" in r.stderr and not (tmp_path / "h.toml").exists()
+    life = _life(4001, beyond=True)
+    beyond = _write_life(tmp_path, life, 24, "b")
+    r = subprocess.run([*run, *map(str, beyond), "--out", str(tmp_path / "b.toml"), "--json", str(tmp_path / "b.json")],
+                       capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "b.json").read_text())
+    worst = max(life.parts[0].factors, key=lambda n: abs(life.parts[0].factors[n] - 1))
+    assert doc["out_of_tolerance"] == [worst] and "out_of_tolerance:" in r.stdout
+    assert (tmp_path / "b.toml").exists()

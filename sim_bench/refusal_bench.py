@@ -1,0 +1,121 @@
+"""The acceptance tests of a calibration, measured: false refusals, false tolerance flags, detection.
+
+``python -m sim_bench selfcal --refusals N`` draws ``N`` seeded good series parts (every structural
+parameter within ±10 % of Tables 1-2; every other one behind the typical amplifier chain; a warm-up,
+a wandering rail pressure and wear within each batch: :mod:`sim_bench.series_life`), and for each
+
+- the offline calibration (``calibrate --electrical`` on the first 30 injections): refused or not,
+  and the parameters it reports ``out_of_tolerance``;
+- the online calibration (the learning window of 12 injections, two held out): adopted or refused,
+  and its flags;
+
+then a few parts that must be refused (the hysteresis/series-resistance plant) and a few beyond
+tolerance (one mounting stiffness 15-20 % off) that must be flagged. Targets: false refusals and
+false flags at most 1 % of the good parts, every hysteresis part refused, and the parts beyond
+tolerance flagged by the online refinement's window (24) at least as often as they are not.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+from typing import Any
+
+from estimator.ident.electrical import calibrate_electrical, confirmed_out_of_tolerance
+from estimator.ident.selfcal import CalibrationWindow, SelfCalConfig, self_calibrate
+from estimator.model.chain import NO_CHAIN
+from estimator.model.parameters import load_nominal
+from sim_bench import series_part
+from sim_bench.plant import Plant, PlantConfig
+from sim_bench.series_life import Life, LotSpec, draw_lot
+
+OFFLINE_BATCH = 30
+FALSE_SHARE = 0.01
+HYSTERESIS_PARTS, BEYOND_PARTS = 4, 6
+SEED_GOOD, SEED_HYSTERESIS, SEED_BEYOND = 3000, 2000, 4000
+
+
+def _life(seed: int, beyond: bool = False, hysteresis: bool = False) -> Life:
+    chain = series_part.TYPICAL_CHAIN if seed % 2 else NO_CHAIN
+    life = draw_lot(1, seed, LotSpec(chain=chain, beyond_fraction=1.0 if beyond else 0.0))[0]
+    if hysteresis:
+        life._plants = [Plant(PlantConfig(window_s=life.window_s, chain=chain, mismatch=True), p.params)
+                        for p in life.parts]
+    return life
+
+
+def _online(life: Life, config: SelfCalConfig) -> dict[str, Any]:
+    window = CalibrationWindow(config.window)
+    for inj, _m, truth in life.injections(200):
+        window.add(inj, truth["nu_true"])
+        if window.ready(config):
+            break
+    t0 = time.perf_counter()
+    status, params = self_calibrate(window, load_nominal(), config)
+    return {"adopted": params is not None, "message": status.message, "flagged": list(status.out_of_tolerance),
+            "seconds": time.perf_counter() - t0}
+
+
+def _offline(life: Life) -> dict[str, Any]:
+    injections = [inj for inj, _m, _t in life.injections(OFFLINE_BATCH)]
+    t0 = time.perf_counter()
+    res = calibrate_electrical(injections)
+    flagged = confirmed_out_of_tolerance(injections, None, res, 0.10) if res.adequate else []
+    return {"refused": not res.adequate, "misfit_z": res.misfit_z, "flagged": flagged,
+            "seconds": time.perf_counter() - t0}
+
+
+def part_row(kind: str, seed: int, online_only: bool = False) -> dict[str, Any]:
+    """One seeded part of ``kind`` (good, hysteresis, beyond) through the calibrations."""
+    life = _life(seed, beyond=kind == "beyond", hysteresis=kind == "hysteresis")
+    cfg = SelfCalConfig()
+    row: dict[str, Any] = {"kind": kind, "seed": seed, "chain": bool(seed % 2), "part": life.parts[0].describe(),
+                           "online": _online(life, cfg)}
+    if kind == "beyond":
+        row["refined"] = _online(life, replace(cfg, window=cfg.refine_window))
+    if not online_only:
+        row["offline"] = _offline(life)
+    return row
+
+
+def run(parts: int = 100) -> dict[str, Any]:
+    """The sweep; a JSON-ready report with the verdict."""
+    rows = [part_row("good", SEED_GOOD + i) for i in range(parts)]
+    rows += [part_row("hysteresis", SEED_HYSTERESIS + i, online_only=True) for i in range(HYSTERESIS_PARTS)]
+    rows += [part_row("beyond", SEED_BEYOND + i, online_only=True) for i in range(BEYOND_PARTS)]
+    good = [r for r in rows if r["kind"] == "good"]
+    hyst = [r for r in rows if r["kind"] == "hysteresis"]
+    beyond = [r for r in rows if r["kind"] == "beyond"]
+    s = {"good": len(good),
+         "offline_refused": sum(r["offline"]["refused"] for r in good),
+         "online_refused": sum(not r["online"]["adopted"] for r in good),
+         "offline_false_flags": sum(bool(r["offline"]["flagged"]) for r in good),
+         "online_false_flags": sum(bool(r["online"]["flagged"]) for r in good),
+         "hysteresis": len(hyst), "hysteresis_refused": sum(not r["online"]["adopted"] for r in hyst),
+         "beyond": len(beyond), "beyond_flagged_online": sum(bool(r["online"]["flagged"]) for r in beyond),
+         "beyond_flagged_refined": sum(bool(r["refined"]["flagged"]) for r in beyond)}
+    limit = FALSE_SHARE * len(good)
+    fails = [f"{k.replace('_', ' ')} {s[k]} of {len(good)} (> {FALSE_SHARE:.0%})"
+             for k in ("offline_refused", "online_refused", "offline_false_flags", "online_false_flags") if s[k] > limit]
+    if s["hysteresis_refused"] < s["hysteresis"]:
+        fails.append(f"{s['hysteresis'] - s['hysteresis_refused']} hysteresis part(s) adopted")
+    if 2 * s["beyond_flagged_refined"] < s["beyond"]:
+        fails.append(f"only {s['beyond_flagged_refined']} of {s['beyond']} parts beyond tolerance flagged")
+    s["failures"], s["passed"] = fails, not fails
+    return {"benchmark": "selfcal-refusals", "parts": parts, "summary": s, "rows": rows, "passed": not fails}
+
+
+def format_report(rep: dict[str, Any]) -> str:
+    """The verdict in a few lines."""
+    s = rep["summary"]
+    g = s["good"]
+    return "\n".join([
+        f"calibration acceptance - {g} good series parts (±10 %, half behind a chain, wandering preload, warm-up, "
+        f"wear), {s['hysteresis']} hysteresis parts, {s['beyond']} beyond tolerance (a stiffness 15-20 % off); "
+        f"targets: false refusals and false flags <= {FALSE_SHARE:.0%}, hysteresis refused, beyond flagged",
+        f"  false refusals: offline (30 injections) {s['offline_refused']}/{g}, online (window 12) {s['online_refused']}/{g}",
+        f"  false out_of_tolerance: offline {s['offline_false_flags']}/{g}, online {s['online_false_flags']}/{g}",
+        f"  hysteresis parts refused online: {s['hysteresis_refused']}/{s['hysteresis']}",
+        f"  beyond tolerance flagged: first window {s['beyond_flagged_online']}/{s['beyond']}, refinement "
+        f"{s['beyond_flagged_refined']}/{s['beyond']}",
+        "  " + ("PASS" if s["passed"] else "FAIL: " + "; ".join(s["failures"]))])
