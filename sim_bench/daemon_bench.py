@@ -9,6 +9,7 @@ LatencyP99) and from outside (feeder's trailer send -> EstimateState received, w
 from __future__ import annotations
 
 import math
+from typing import Any
 import threading
 import time
 from collections.abc import Callable
@@ -173,7 +174,11 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
             else:
                 _feed(b, codec, pool, rate, 3.0, w)
                 time.sleep(0.5)
-            for phase, r in (("nominal", rate), ("overload", rate * overload_factor)):
+            phases = [("nominal", rate)] + ([("adopted", rate)] if self_calibration else []) + \
+                [("overload", rate * overload_factor)]
+            for phase, r in phases:
+                if phase == "adopted":   # until every injector has adopted its model and had its refinement
+                    report["learned_after_s"] = _feed_until_learned(b, codec, pool, rate, w, LEARN_TIMEOUT_S)
                 w.latency.clear()
                 e0 = w.estimates
                 t_phase = time.monotonic()
@@ -224,6 +229,26 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
     return report
 
 
+LEARN_TIMEOUT_S = 90.0
+LEARNED = ("monitoring", "adopted")
+
+
+def _feed_until_learned(bus: Any, codec: Codec, pool: list, rate: float, w: _Watcher, timeout: float) -> float:
+    """Feed at ``rate`` until every injector's ModelCalibration shows its model adopted after two
+    calibrations (the first window and the refinement), or ``timeout`` s; the seconds it took."""
+    injectors = {i for i, _ in pool}
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        last: dict[int, Any] = {}
+        for _, c in list(w.calibrations):
+            last[c.injector_id] = c
+        if all(i in last and codec.calibration_state(last[i].state) in LEARNED and last[i].calibrations >= 2
+               for i in injectors):
+            break
+        _feed(bus, codec, pool, rate, 1.0, w)
+    return time.monotonic() - t0
+
+
 def latency_histogram(rep: dict, path: Path) -> str | None:
     """A PNG of the external latencies of each phase (log counts); the path, or None without matplotlib."""
     from estimator.errors import EstimatorError
@@ -234,7 +259,7 @@ def latency_histogram(rep: dict, path: Path) -> str | None:
     except EstimatorError:
         return None
     fig, ax = plt.subplots(figsize=(7, 3.5))
-    for phase in ("nominal", "overload"):
+    for phase in ("nominal", "adopted", "overload"):
         lat = np.array(rep.get(phase, {}).get("external_latency_ms", []))
         if lat.size:
             bins = np.logspace(np.log10(max(lat.min(), 0.1)), np.log10(max(lat.max(), 1.0)) + 0.01, 60)
@@ -255,7 +280,8 @@ def format_report(ing: dict, rep: dict) -> str:
              f"daemon on {rep['bus']}:",
              f"{'phase':<9} {'offered/s':>9} {'estimated':>9} {'ext p50':>8} {'ext p99':>8} {'daemon p99':>10} "
              f"{'dropped':>8} {'rejected':>8} {'RSS MB':>7} {'alive':>5}"]
-    for phase in ("nominal", "overload"):
+    shown = [p for p in ("nominal", "adopted", "overload") if p in rep]
+    for phase in shown:
         p = rep[phase]
         lines.append(f"{phase:<9} {p['offered_per_s']:>9.0f} {p['estimated']:>9} {p['external_latency_p50_ms']:>7.2f} "
                      f"{p['external_latency_p99_ms']:>7.2f} {p['daemon_latency_p99_ms']:>9.2f} "
@@ -263,9 +289,11 @@ def format_report(ing: dict, rep: dict) -> str:
                      f"{str(p['daemon_alive']):>5}")
     lines.append("daemon p99 by stage (heartbeat, ms): " + "; ".join(
         f"{phase} " + " ".join(f"{k} {rep[phase]['daemon_stage_p99_ms'][k]:.2f}" for k in STAGES)
-        for phase in ("nominal", "overload")))
+        for phase in shown))
     if rep.get("self_calibration"):
-        for phase in ("nominal", "overload"):
+        lines.append(f"learning: every injector adopted its model and its refinement {rep.get('learned_after_s', 0):.1f} s "
+                     "after the nominal phase (the adopted phase starts then)")
+        for phase in shown:
             st = rep[phase]["calibration_states"]
             lines.append(f"self-calibration during {phase}: {st.count('calibrating')} calibration(s) started, "
                          f"{st.count('adopted')} adopted, {st.count('refused')} refused; injectors with their own "
