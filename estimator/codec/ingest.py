@@ -26,12 +26,13 @@ def _reject(self: Any, reason: RejectReason | str) -> None:   # self: a Counters
 
 #: Everything the EstimatorStatus heartbeat reports (its rolling counters, ``records.HEARTBEAT_COUNTERS``,
 #: under the same names), plus finer detail for logs and JSON: frames_unknown, frames_total,
-#: commands_applied, worker_errors (unexpected exceptions in the worker, a bug; logged rate-limited)
-#: and the rejections per reason.
+#: commands_applied, worker_errors (unexpected exceptions in the worker, a bug; logged rate-limited),
+#: stale (estimates the daemon published as ``stale``: later than ``stale_after_ms``) and the
+#: rejections per reason.
 Counters = make_dataclass(
     "Counters",
     [(name, int, 0) for name in HEARTBEAT_COUNTERS]
-    + [(name, int, 0) for name in ("frames_unknown", "frames_total", "commands_applied", "worker_errors")]
+    + [(name, int, 0) for name in ("frames_unknown", "frames_total", "commands_applied", "worker_errors", "stale")]
     + [("reasons", dict, field(default_factory=dict))],
     namespace={"reject": _reject, "__module__": __name__},
 )

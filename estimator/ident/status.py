@@ -24,6 +24,8 @@ class Status(str, Enum):
     MODEL_MISMATCH = "model_mismatch"  # estimated, but the model cannot explain this injector's samples: the
                                        # estimate is biased by an unknown amount; sigma is widened to cover it
                                        # (calibrate the injector's own model)
+    STALE = "stale"                  # the daemon published it later than stale_after_ms after the injection's
+                                     # last frame (a backed-up queue): never ok, whatever the estimate
 
     def __str__(self) -> str:
         return self.value
@@ -51,5 +53,5 @@ CALIBRATION_STATES = tuple(s.value for s in Learning)
 
 #: statuses whose published (N_u, L_h) is an estimate of this injection (not the previous one held)
 ESTIMATED = frozenset({Status.OK, Status.AT_BOUND, Status.NOT_CONVERGED, Status.UNCERTAIN, Status.UNCONFIRMED,
-                       Status.MODEL_MISMATCH})
+                       Status.MODEL_MISMATCH, Status.STALE})
 ESTIMATED_WORDS = frozenset(s.value for s in ESTIMATED)   # the same, as the words of JSON and CSV rows

@@ -255,10 +255,11 @@ def physical_problem(st: TrackerState, config: TrackerConfig, box: Box,
     if st.initialized:
         x, p = np.asarray(st.x, dtype=float), np.asarray(st.p, dtype=float)
         points.append(("x", x[:2]))
-        if abs(x[kalman.RATE]) > 1.01 * config.max_rate_n_per_v_s:
-            return f"drift rate {x[kalman.RATE]:.4g} N/V/s is beyond the bound {config.max_rate_n_per_v_s} N/V/s"
-        if abs(x[kalman.SLOPE] - config.slope_n_per_v_degc) > 10 * config.slope_sigma:
-            return f"temperature slope {x[kalman.SLOPE]:.4g} N/V/degC is beyond ten prior sigma"
+        rate_max, slope_lo, slope_hi = state_bounds(config)
+        if abs(x[kalman.RATE]) > rate_max * (1 + 1e-9):
+            return f"drift rate {x[kalman.RATE]:.4g} N/V/s is beyond the bound {rate_max} N/V/s"
+        if not slope_lo - 1e-12 <= x[kalman.SLOPE] <= slope_hi + 1e-12:
+            return f"temperature slope {x[kalman.SLOPE]:.4g} N/V/degC is beyond {SLOPE_SDS:g} prior sigma"
         if np.any(np.diag(p) > 1.01 * np.asarray(noise.max_var)):
             return "p has variances beyond the filter's caps"
     if st.pending is not None:
@@ -491,7 +492,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
             st.rejected += 1
         st.doubts = 0
         x, p = kalman.update(x_pred, p_pred, z, r)
-        _store(st, x, p, now, temp)
+        _store(st, x, p, now, temp, config)
         return _accepted(st, raw, r, sim, inj, config, "", outliers)
 
     if not st.robust and (raw.robust or (math.isfinite(raw.model_error_stat) and
@@ -563,7 +564,24 @@ def _held(st: TrackerState, now: float | None, temp: float | None, config: Track
                           _delta_temperature(st.temperature_c, temp), noise)
 
 
-def _store(st: TrackerState, x: np.ndarray, p: np.ndarray, now: float | None, temp: float | None) -> None:
+SLOPE_SDS = 10.0   # the temperature slope is held within this many prior sigmas of the prior slope
+
+
+def state_bounds(config: TrackerConfig) -> tuple[float, float, float]:
+    """The bounds of the filter's drift rate (|rate| at most, N/V/s) and temperature slope (low, high,
+    N/V/degC): what :func:`_store` holds the filter to and what a restored state is checked against
+    (one fact, so that a state the estimator wrote always loads)."""
+    return (config.max_rate_n_per_v_s, config.slope_n_per_v_degc - SLOPE_SDS * config.slope_sigma,
+            config.slope_n_per_v_degc + SLOPE_SDS * config.slope_sigma)
+
+
+def _store(st: TrackerState, x: np.ndarray, p: np.ndarray, now: float | None, temp: float | None,
+           config: TrackerConfig) -> None:
+    """Keep the filter's state (the drift rate and temperature slope held within :func:`state_bounds`)."""
+    rate_max, slope_lo, slope_hi = state_bounds(config)
+    x = np.array(x, dtype=float)
+    x[kalman.RATE] = min(max(x[kalman.RATE], -rate_max), rate_max)
+    x[kalman.SLOPE] = min(max(x[kalman.SLOPE], slope_lo), slope_hi)
     st.x, st.p = x.tolist(), p.tolist()
     if now is not None:
         st.time_s = now
@@ -580,7 +598,7 @@ def _restart(st: TrackerState, z: np.ndarray, r: np.ndarray, now: float | None, 
         x[kalman.SLOPE], p[kalman.SLOPE, kalman.SLOPE] = st.x[kalman.SLOPE], st.p[kalman.SLOPE][kalman.SLOPE]
     st.pending, st.doubts = None, 0
     st.time_s = st.temperature_c = None
-    _store(st, x, p, now, temp)
+    _store(st, x, p, now, temp, config)
 
 
 def _confirm_jump(st: TrackerState, z: np.ndarray, r: np.ndarray, now: float | None, temp: float | None,
@@ -599,7 +617,7 @@ def _confirm_jump(st: TrackerState, z: np.ndarray, r: np.ndarray, now: float | N
         xc, pc, _, ok = kalman.gated_update(xc, pc, z, r, config.gate_chi2)
         if ok:
             st.pending, st.doubts = None, 0
-            _store(st, xc, pc, now if now is not None else pend.time_s, temp)
+            _store(st, xc, pc, now if now is not None else pend.time_s, temp, config)
             return candidate
     return None
 

@@ -114,6 +114,7 @@ class DaemonConfig:
     queue_frames: int = 8192            # bounded input queue, drop-oldest when full
     assembly_timeout_ms: float = 50.0   # header without trailer -> rejected, judged by bus timestamps
     silent_bus_s: float = 1.0           # wall-clock guard: no frame at all for this long -> pending injections time out
+    stale_after_ms: float = 100.0       # an estimate published later than this after its last frame is "stale", never ok
     status_period_s: float = 0.1        # EstimatorStatus heartbeat (10 Hz)
     persist_period_s: float = 5.0       # state written at least this often (and at shutdown)
     max_injectors: int = 8
@@ -325,6 +326,7 @@ _RULES: dict[str, Callable[[Any], str | None]] = {
     "queue_frames": _whole(16, 1_000_000),
     "assembly_timeout_ms": _number(1.0, 10_000.0),
     "silent_bus_s": _number(0.05, 3600.0),
+    "stale_after_ms": _number(1.0, 3_600_000.0),
     "status_period_s": _number(0.01, 60.0),
     "persist_period_s": _number(0.05, 86_400.0),
     "max_injectors": _whole(1, 8),

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import os
 import signal
 import threading
 import time
@@ -34,7 +35,7 @@ from estimator.service.latency import Stats
 from estimator.service.ratelimit import RateLimitedLog
 from estimator.service.sdnotify import SdNotify
 from estimator.service.calibration_worker import BackgroundCalibrator
-from estimator.service.state_store import keep_rejected, load_calibrations, load_learning, load_states, save_states
+from estimator.service.state_store import keep_rejected, load_all, lock_state_dir, save_states
 
 log = logging.getLogger(__name__)
 STATE_FILE = "estimator-state.json"
@@ -86,6 +87,7 @@ class QueueListener(can.Listener):
 
 
 # keys a SIGHUP cannot change (they shape the bus connection and the memory already allocated)
+RELOAD_MIN_S = 0.5   # the worker applies a reloaded configuration at most this often
 RESTART_KEYS = ("bus", "bitrate", "data_bitrate", "fd", "bus_options", "dbc", "state_dir", "queue_frames",
                 "max_injectors")
 
@@ -114,6 +116,7 @@ class Daemon:
         self._listener: QueueListener | None = None
         self.state_path = cfg.state_dir / STATE_FILE if cfg.state_dir else None
         self._dirty = False
+        self._lock_fd: int | None = None   # the state directory's lock, held until the process ends
 
     @property
     def tracker(self) -> Tracker:
@@ -125,16 +128,13 @@ class Daemon:
         """Load persisted per-injector state (a bad file is reported and ignored)."""
         if self.state_path is None:
             return
-        states, problem = load_states(self.state_path)
-        problems = ([problem] if problem else []) + self.tracker.restore(states)
-        calibrations, problem = load_calibrations(self.state_path)
-        problems += [problem] if problem else []
-        learning, problem = load_learning(self.state_path)
-        problems += ([problem] if problem else []) + self.tracker.restore_calibrations(calibrations, learning)
+        states, calibrations, learning, problems = load_all(self.state_path)
+        problems += self.tracker.restore(states) + self.tracker.restore_calibrations(calibrations, learning)
         if problems:
             kept = keep_rejected(self.state_path)
-            log.warning("state file %s: dropped (starting those injectors cold; original kept as %s): %s",
-                        self.state_path, kept, "; ".join(problems))
+            log.warning("state file %s: dropped (starting those injectors cold; %s): %s", self.state_path,
+                        f"the original kept as {kept.name}" if kept else "the original could not be kept",
+                        "; ".join(problems))
         if self.tracker.states:
             log.info("restored the state of %d injector(s) from %s", len(self.tracker.states), self.state_path)
 
@@ -180,8 +180,11 @@ class Daemon:
         assert self._listener is not None
         lst = self._listener
         next_persist = time.monotonic() + self.cfg.persist_period_s
+        next_reload = 0.0
         while not self.stop.is_set():
-            if self._pending_cfg is not None:
+            if self._pending_cfg is not None and time.monotonic() >= next_reload:
+                # a burst of SIGHUPs is coalesced: the newest configuration, at most every RELOAD_MIN_S
+                next_reload = time.monotonic() + RELOAD_MIN_S
                 new, self._pending_cfg = self._pending_cfg, None
                 try:
                     self._apply(new)
@@ -201,6 +204,12 @@ class Daemon:
                     assembled = t_prev - mono
                     for pub in self.processor.handle(events):
                         t_est = time.monotonic()
+                        if t_est - arrived > self.cfg.stale_after_ms * 1e-3:   # behind: never published as ok
+                            pub = pub.stale(t_est - arrived)
+                            self.ingest.counters.stale += 1
+                            self.rlog.log(logging.WARNING, "stale", "injector %d counter %d published %.0f ms after "
+                                          "its last frame (stale)", pub.injector_id, pub.counter,
+                                          (t_est - arrived) * 1e3)
                         self.send(pub.frames[:1])
                         t_sent = time.monotonic()
                         self.stats.add(mono, t_sent - arrived, (mono - arrived, assembled, t_est - t_prev,
@@ -256,9 +265,15 @@ class Daemon:
         self._pending_cfg = new
 
     def _apply(self, new: DaemonConfig) -> None:
-        """Worker thread: persist, then switch to ``new`` (restart-only keys keep their running values)."""
-        self.persist()
+        """Worker thread: persist, then switch to ``new`` (restart-only keys keep their running values).
+        A configuration equal to the running one changes nothing (a burst of SIGHUPs costs no rebuild)."""
         new = replace(new, **{k: getattr(self.cfg, k) for k in RESTART_KEYS})
+        if new == self.cfg:
+            log.info("configuration reloaded: unchanged")
+            self.notify.notify(f"READY=1\nSTATUS=running on {self.bus_name} (configuration unchanged)")
+            return
+        if self._dirty:
+            self.persist()
         same_pool = all(getattr(new, k) == getattr(self.cfg, k) for k in ("params", "max_sample_periods",
                                                                           "sample_periods_ns"))
         # the simulators' tables stay when nothing they depend on changed
@@ -305,9 +320,36 @@ class Daemon:
         self.tracker.warm_up()
 
     def run(self) -> int:
-        """Run until stopped; returns the exit code."""
-        self.restore()
-        self.warm_up()
+        """Run until stopped; returns the exit code. One estimator per state directory: a second one
+        raises :class:`~estimator.service.state_store.StateDirectoryBusy` before touching anything.
+        A stop requested while starting is honoured before the bus is opened."""
+        try:
+            if self.cfg.state_dir is not None and self._lock_fd is None:
+                self._lock_fd = lock_state_dir(self.cfg.state_dir)
+            self.restore()
+            if not self.stop.is_set():
+                self.warm_up()
+            if self.stop.is_set():
+                self._release()
+                return 0
+        except BaseException:
+            self._release()
+            raise
+        try:
+            return self._serve()
+        finally:
+            self._release()
+
+    def _release(self) -> None:
+        """Give the state directory and the calibration process up (the end of a run)."""
+        if self.calibrator is not None:
+            self.calibrator.close()
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
+
+    def _serve(self) -> int:
+        """The bus, the worker and the heartbeat until stopped."""
         spec = resolve(self.cfg.bus_spec())
         self.bus_name = str(spec)
         with open_bus(spec) as bus:
@@ -345,8 +387,6 @@ class Daemon:
                 worker.join(timeout=1.0)
                 beat.join(timeout=1.0)
                 self.persist()
-                if self.calibrator is not None:
-                    self.calibrator.close()
                 log.info("estimator stopped: %s", self.summary())
         return 0
 
@@ -364,5 +404,6 @@ class Daemon:
         return (f"accepted {c.accepted}, rejected crc {c.rejected_crc} missing {c.rejected_missing} timeout "
                 f"{c.rejected_timeout} invalid {c.rejected_invalid} outlier {c.rejected_outlier}, frames dropped "
                 f"{c.frames_dropped} malformed {c.frames_malformed}, bus errors {c.bus_errors}, commands applied "
-                f"{c.commands_applied} refused {c.commands_refused} unknown {c.commands_unknown}, worker errors "
+                f"{c.commands_applied} refused {c.commands_refused} unknown {c.commands_unknown}, stale {c.stale}, "
+                f"worker errors "
                 f"{c.worker_errors}")

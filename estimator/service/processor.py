@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 from estimator.codec.assembler import Completed, RejectReason, Rejected
@@ -87,6 +87,12 @@ class Published:
         (≈ 0.2 ms an injection)."""
         return output_frames(self.codec, self.injector_id, self.counter, self.result) + [
             calibration_frame(self.codec, i, st) for i, st in self.calibrations]
+
+    def stale(self, age_s: float) -> Published:
+        """This injection published as ``stale`` (it is ``age_s`` s after its last frame: the estimator is
+        behind); the estimate is the same, only its status and reason say it is late."""
+        reason = f"published {age_s * 1e3:.0f} ms after the injection's last frame (estimator behind)"
+        return replace(self, result=replace(self.result, status=Status.STALE, reason=reason))
 
     def to_row(self, time_s: float) -> dict:
         """One table row (replay ``--csv``, fleet): see :func:`result_row`."""

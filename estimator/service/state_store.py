@@ -7,10 +7,12 @@ its learning stands (``learning``: the lifecycle state, the refusals and the dia
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import json
 import logging
 import os
-import shutil
+import stat
 import tempfile
 import time
 from pathlib import Path
@@ -26,6 +28,40 @@ log = logging.getLogger(__name__)
 FORMAT = "piezo-injector-estimator-state"
 VERSION = 1
 MAX_BYTES = 1 << 20   # 8 injectors take about 10 kB; anything this large is not ours
+REJECTED_KEPT = 3     # generations of rejected state files kept (<name>.rejected, .rejected.1, ...)
+LOCK_FILE = "estimator.lock"
+
+
+class StateDirectoryBusy(EstimatorError):
+    """Another estimator holds the state directory."""
+
+
+def lock_state_dir(state_dir: Path) -> int:
+    """Hold the state directory for this process (an advisory ``flock`` on ``estimator.lock`` in it,
+    released when the process ends); the lock's file descriptor. StateDirectoryBusy names the holder's
+    pid when another estimator has it; EstimatorError when the lock file cannot be opened (a link or
+    not a regular file is refused)."""
+    state_dir.mkdir(parents=True, exist_ok=True)
+    path = state_dir / LOCK_FILE
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o600)
+    except OSError as exc:
+        raise EstimatorError(f"state directory {state_dir}: cannot open its lock file {path.name} ({exc})") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise EstimatorError(f"state directory {state_dir}: {path.name} is not a regular file")
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        holder = os.read(fd, 32).decode("ascii", "replace").strip() or "unknown"
+        os.close(fd)
+        if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise StateDirectoryBusy(f"state directory {state_dir} is in use by another estimator "
+                                     f"(pid {holder}); one estimator per state directory") from None
+        raise EstimatorError(f"state directory {state_dir}: cannot lock it ({exc})") from None
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    return fd
 
 
 def save_states(path: Path, states: dict[int, TrackerState],
@@ -69,6 +105,10 @@ def load_states(path: Path) -> tuple[dict[int, TrackerState], str | None]:
     doc, problem = _read(path)
     if doc is None:
         return {}, problem
+    return _states_of(doc, path)
+
+
+def _states_of(doc: dict, path: Path) -> tuple[dict[int, TrackerState], str | None]:
     states: dict[int, TrackerState] = {}
     problems = []
     entries = doc.get("injectors") or {}
@@ -88,6 +128,10 @@ def load_calibrations(path: Path) -> tuple[dict[int, InjectorParameters], str | 
     doc, problem = _read(path)
     if doc is None:
         return {}, problem
+    return _calibrations_of(doc, path)
+
+
+def _calibrations_of(doc: dict, path: Path) -> tuple[dict[int, InjectorParameters], str | None]:
     entries = doc.get("calibrations") or {}
     if not isinstance(entries, dict):
         return {}, f"state file {path}: 'calibrations' is not an object; ignoring them"
@@ -107,6 +151,10 @@ def load_learning(path: Path) -> tuple[dict[int, CalibrationStatus], str | None]
     doc, problem = _read(path)
     if doc is None:
         return {}, problem
+    return _learning_of(doc, path)
+
+
+def _learning_of(doc: dict, path: Path) -> tuple[dict[int, CalibrationStatus], str | None]:
     entries = doc.get("learning") or {}
     if not isinstance(entries, dict):
         return {}, f"state file {path}: 'learning' is not an object; ignoring it"
@@ -120,6 +168,17 @@ def load_learning(path: Path) -> tuple[dict[int, CalibrationStatus], str | None]
     return out, ("; ".join(problems) if problems else None)
 
 
+def load_all(path: Path) -> tuple[dict[int, TrackerState], dict[int, InjectorParameters],
+                                  dict[int, CalibrationStatus], list[str]]:
+    """States, own parameter sets and learning statuses from one read of ``path``, and the problems
+    (one line each: the file's, or each bad entry's)."""
+    doc, problem = _read(path)
+    if doc is None:
+        return {}, {}, {}, [problem] if problem else []
+    (states, p1), (cals, p2), (learning, p3) = _states_of(doc, path), _calibrations_of(doc, path), _learning_of(doc, path)
+    return states, cals, learning, [p for p in (p1, p2, p3) if p]
+
+
 def _injector(key: str) -> int:
     inj = int(key)
     if not 0 <= inj <= 7:
@@ -127,27 +186,63 @@ def _injector(key: str) -> int:
     return inj
 
 
+def read_regular(path: Path, max_bytes: int = MAX_BYTES) -> bytes:
+    """The bytes of ``path`` as a careful daemon reads a file it does not trust: a link is not followed,
+    a FIFO or device is not waited on (opened non-blocking, then refused as not a regular file), and
+    at most ``max_bytes`` are read. FileNotFoundError if absent; OSError naming the refusal else."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise OSError(errno.ELOOP, "a symbolic link (not followed)") from None
+        raise
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise OSError(errno.EINVAL, "not a regular file")
+        if st.st_size > max_bytes:
+            raise OSError(errno.EFBIG, f"larger than {max_bytes} bytes")
+        chunks, left = [], max_bytes + 1
+        while left > 0:
+            b = os.read(fd, min(left, 1 << 16))
+            if not b:
+                break
+            chunks.append(b)
+            left -= len(b)
+        data = b"".join(chunks)
+        if len(data) > max_bytes:
+            raise OSError(errno.EFBIG, f"larger than {max_bytes} bytes")
+        return data
+    finally:
+        os.close(fd)
+
+
 def _read(path: Path) -> tuple[dict | None, str | None]:
     """The state document, or None and why (None, None: no file)."""
-    if not path.exists():
-        return None, None
     try:
-        if path.stat().st_size > MAX_BYTES:
-            return None, f"state file {path} is larger than {MAX_BYTES} bytes; ignoring it"
-        doc = json.loads(path.read_bytes().decode("utf-8"))
+        doc = json.loads(read_regular(path).decode("utf-8"))
+    except FileNotFoundError:
+        return None, None
     except (OSError, ValueError, RecursionError) as exc:
-        return None, f"state file {path} unreadable ({exc}); starting without it"
+        return None, f"state file {path} unusable ({exc}); starting without it"
     if not isinstance(doc, dict) or doc.get("format") != FORMAT or doc.get("version") != VERSION:
         return None, f"state file {path} is not a {FORMAT} v{VERSION} file; ignoring it"
     return doc, None
 
 
 def keep_rejected(path: Path) -> Path | None:
-    """Copy a state file that was (partly) rejected to ``<name>.rejected`` before it is overwritten,
-    so nothing is lost for a post-mortem. Returns the copy's path (None if it could not be made)."""
-    dest = path.with_name(path.name + ".rejected")
+    """Keep a state file that was (partly) rejected as ``<name>.rejected`` for a post-mortem, by
+    renaming it (never copying: a huge or special file costs nothing, and a rename within the directory
+    writes nowhere else); earlier ones move to ``.rejected.1`` ... and the oldest beyond
+    :data:`REJECTED_KEPT` goes. Returns the kept path (None if nothing could be kept)."""
+    base = path.with_name(path.name + ".rejected")
+    names = [base] + [base.with_name(f"{base.name}.{k}") for k in range(1, REJECTED_KEPT)]
     try:
-        shutil.copyfile(path, dest)
-    except OSError:
+        for older, newer in zip(reversed(names[1:]), reversed(names[:-1])):
+            if os.path.lexists(newer):
+                os.replace(newer, older)
+        os.replace(path, base)
+    except OSError as exc:
+        log.warning("state file %s: could not keep it as %s (%s)", path, base.name, exc)
         return None
-    return dest
+    return base

@@ -121,3 +121,41 @@ def test_reset_command_and_bad_frames_do_not_stop_it(running):
     # would cost fewer simulations and report a smaller sigma, the two injections' information)
     assert (q.evaluations, q.sigma_lh_um, q.cost_uvs) == (q0.evaluations, q0.sigma_lh_um, q0.cost_uvs)
     assert q.evaluations >= COLD_MIN_EVALUATIONS
+
+
+def test_an_estimate_published_late_is_stale_never_ok(tmp_path):
+    """A worker stalled for 0.3 s on one injection (stale_after_ms = 100): that injection's estimate goes
+    out as stale, is counted, and the next one, on time, is ok again."""
+    channel = f"test-{uuid.uuid4().hex[:8]}"
+    d = Daemon(DaemonConfig(bus=f"virtual:{channel}", stale_after_ms=100.0))
+    tracker = d.processor.tracker
+    real_update = tracker.update
+    stalled = {"n": 0}
+
+    def slow_update(inj):
+        res = real_update(inj)
+        if inj.counter == 3:
+            stalled["n"] += 1
+            time.sleep(0.3)        # the worker is behind: the publication comes 300 ms after the trailer
+        return res
+    tracker.update = slow_update
+    t = threading.Thread(target=d.run, daemon=True)
+    t.start()
+    bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    codec = Codec()
+    try:
+        assert collect(bus, codec, lambda g: any(isinstance(r, EstimatorStatus) for r in g), timeout=60.0)
+        states = []
+        for k in range(6):
+            inj, _ = measured(17.4, 3.6, 3000 + k, window_s=100e-6)
+            for fr in injection_frames(codec, 2, k, inj.dt_s, inj.current_a, inj.voltage_v, 28.0, 40.0):
+                bus.send(to_message(fr))
+            got = collect(bus, codec, lambda g: any(isinstance(r, EstimateState) for r in g), timeout=30.0)
+            states += [r for r in got if isinstance(r, EstimateState)]
+        words = {r.counter: codec.status_of(r.status).value for r in states}
+        assert stalled["n"] == 1 and words[3] == "stale" and words[5] == "ok", words
+        assert d.ingest.counters.stale == 1
+    finally:
+        d.stop.set()
+        t.join(timeout=5)
+        bus.shutdown()
