@@ -224,7 +224,7 @@ def _read(path: Path) -> tuple[dict | None, str | None]:
     except FileNotFoundError:
         return None, None
     except (OSError, ValueError, RecursionError) as exc:
-        return None, f"state file {path} unusable ({exc}); starting without it"
+        return None, f"state file {path} unreadable ({exc}); starting without it"
     if not isinstance(doc, dict) or doc.get("format") != FORMAT or doc.get("version") != VERSION:
         return None, f"state file {path} is not a {FORMAT} v{VERSION} file; ignoring it"
     return doc, None
