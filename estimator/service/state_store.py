@@ -17,7 +17,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from typing import Any
+from collections.abc import Callable
+from typing import Any, TypeVar
 
 from estimator.errors import EstimatorError
 from estimator.ident.selfcal import CalibrationStatus
@@ -25,6 +26,7 @@ from estimator.ident.tracker import TrackerState
 from estimator.model.parameters import InjectorParameters
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 FORMAT = "piezo-injector-estimator-state"
 VERSION = 1
 MAX_BYTES = 1 << 20   # 8 injectors take about 10 kB; anything this large is not ours
@@ -108,18 +110,26 @@ def load_states(path: Path) -> tuple[dict[int, TrackerState], str | None]:
     return _states_of(doc, path)
 
 
-def _states_of(doc: dict, path: Path) -> tuple[dict[int, TrackerState], str | None]:
-    states: dict[int, TrackerState] = {}
-    problems = []
-    entries = doc.get("injectors") or {}
+def _entries_of(doc: dict, path: Path, key: str, parse: Callable[[Any], T], what: str,
+                errors: tuple[type[BaseException], ...] = (ValueError, TypeError, RecursionError)
+                ) -> tuple[dict[int, T], str | None]:
+    """The per-injector entries under ``key`` of a state document, each parsed by ``parse``; a bad
+    entry is skipped and named (``what`` and its injector) in the problem line."""
+    entries = doc.get(key) or {}
     if not isinstance(entries, dict):
-        return {}, f"state file {path}: 'injectors' is not an object; starting without it"
-    for key, value in entries.items():
+        return {}, f"state file {path}: '{key}' is not an object; ignoring it"
+    out: dict[int, T] = {}
+    problems = []
+    for k, value in entries.items():
         try:
-            states[_injector(key)] = TrackerState.from_dict(value)
-        except (ValueError, TypeError, RecursionError) as exc:
-            problems.append(f"injector {key}: {exc}")
-    return states, ("; ".join(problems) if problems else None)
+            out[_injector(k)] = parse(value)
+        except errors as exc:
+            problems.append(f"{what}injector {k}: {exc}")
+    return out, ("; ".join(problems) if problems else None)
+
+
+def _states_of(doc: dict, path: Path) -> tuple[dict[int, TrackerState], str | None]:
+    return _entries_of(doc, path, "injectors", TrackerState.from_dict, "")
 
 
 def load_calibrations(path: Path) -> tuple[dict[int, InjectorParameters], str | None]:
@@ -132,17 +142,8 @@ def load_calibrations(path: Path) -> tuple[dict[int, InjectorParameters], str | 
 
 
 def _calibrations_of(doc: dict, path: Path) -> tuple[dict[int, InjectorParameters], str | None]:
-    entries = doc.get("calibrations") or {}
-    if not isinstance(entries, dict):
-        return {}, f"state file {path}: 'calibrations' is not an object; ignoring them"
-    out: dict[int, InjectorParameters] = {}
-    problems = []
-    for key, value in entries.items():
-        try:
-            out[_injector(key)] = InjectorParameters.from_mapping(value)
-        except (ValueError, TypeError, RecursionError, EstimatorError) as exc:
-            problems.append(f"calibration of injector {key}: {exc}")
-    return out, ("; ".join(problems) if problems else None)
+    return _entries_of(doc, path, "calibrations", InjectorParameters.from_mapping, "calibration of ",
+                       (ValueError, TypeError, RecursionError, EstimatorError))
 
 
 def load_learning(path: Path) -> tuple[dict[int, CalibrationStatus], str | None]:
@@ -155,17 +156,7 @@ def load_learning(path: Path) -> tuple[dict[int, CalibrationStatus], str | None]
 
 
 def _learning_of(doc: dict, path: Path) -> tuple[dict[int, CalibrationStatus], str | None]:
-    entries = doc.get("learning") or {}
-    if not isinstance(entries, dict):
-        return {}, f"state file {path}: 'learning' is not an object; ignoring it"
-    out: dict[int, CalibrationStatus] = {}
-    problems = []
-    for key, value in entries.items():
-        try:
-            out[_injector(key)] = CalibrationStatus.from_dict(value)
-        except (ValueError, TypeError, RecursionError) as exc:
-            problems.append(f"learning of injector {key}: {exc}")
-    return out, ("; ".join(problems) if problems else None)
+    return _entries_of(doc, path, "learning", CalibrationStatus.from_dict, "learning of ")
 
 
 def load_all(path: Path) -> tuple[dict[int, TrackerState], dict[int, InjectorParameters],
