@@ -255,6 +255,7 @@ def state_dir_hazards(bus_spec: str, out: Path) -> dict:
 
 def run_all(out: Path, bus: str | None = None) -> dict:
     """Every fault on one bus (a loopback hub unless ``bus`` or vcan0)."""
+    out = out.resolve()   # the daemons run in another working directory
     out.mkdir(parents=True, exist_ok=True)
     spec, hub = resolve_bus(bus, out)
     try:
