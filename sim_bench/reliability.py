@@ -16,6 +16,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -197,6 +198,77 @@ def commands(bus_spec: str, out: Path) -> dict:
                 "refused": hb.commands_refused, "unknown": hb.commands_unknown, "daemon_exit": d.stop()}
 
 
+FLOOD_S, FLOOD_PERIODS_NS = 5.0, (7900, 8000, 8100, 8200, 8300, 8400)
+LEGIT_HZ, FLOOD_P99_MS = 25.0, 20.0
+FLOOD_PER_S = 350.0   # the stranger's injections per second (three frames each)
+
+
+def period_flood(bus_spec: str, out: Path, seconds: float = FLOOD_S) -> dict:
+    """A stranger's cheap injections (header, one block of 15 samples, trailer) on the unused ids 1-7,
+    rotating among six sample periods near 8 µs, 350 a second for ``seconds``, while
+    injector 0 sends its injections at 25 Hz (500 ns): the legitimate injector's latency (its trailer
+    sent -> its EstimateState received), its losses, the attacker's injections counted, memory."""
+    codec = Codec()
+    legit = _injections(8, 9)
+    rng = np.random.default_rng(5)
+    short = [(rng.normal(0.0, 1.0, 15), rng.normal(0.0, 1.0, 15)) for _ in range(8)]
+    with watched_daemon(bus_spec, out / "period-flood-daemon.log") as (d, mon):
+        rss0 = rss_mb(d.pid)
+        hb0 = _hb(mon)
+        sent: dict[int, float] = {}
+        stop = threading.Event()
+
+        def attack() -> None:
+            with open_bus(bus_spec) as bus:
+                k = 0
+                t_attack = time.monotonic()
+                while not stop.is_set():
+                    time.sleep(max(0.0, t_attack + k / FLOOD_PER_S - time.monotonic()))
+                    cur, volt = short[k % len(short)]
+                    period = FLOOD_PERIODS_NS[k % len(FLOOD_PERIODS_NS)] * 1e-9
+                    for fr in injection_frames(codec, 1 + k % 7, k % 256, period, cur, volt):
+                        bus.send(to_message(fr))
+                    k += 1
+                attacks.append(k)
+        attacks: list[int] = []
+        th = threading.Thread(target=attack, daemon=True)
+        rss = [rss0]
+        with open_bus(bus_spec) as bus:
+            th.start()
+            t0 = time.monotonic()
+            n = 0
+            while time.monotonic() - t0 < seconds:
+                inj = legit[n % len(legit)]
+                frames = injection_frames(codec, 0, n % 256, inj.dt_s, inj.current_a, inj.voltage_v)
+                for fr in frames:
+                    bus.send(to_message(fr))
+                sent[n % 256] = time.monotonic()
+                n += 1
+                rss.append(rss_mb(d.pid))
+                time.sleep(max(0.0, t0 + n / LEGIT_HZ - time.monotonic()))
+            stop.set()
+            th.join(timeout=10)
+        mon.wait_for(lambda m: sum(1 for _, r in m.records if isinstance(r, EstimateState) and r.injector_id == 0) >= n,
+                     60, d.alive)
+        t1 = time.monotonic()
+        mon.wait_for(lambda m: sum(t > t1 for t, _ in m.heartbeats) >= 2, 30, d.alive)
+        got = {}
+        for t, r in list(mon.records):
+            if isinstance(r, EstimateState) and r.injector_id == 0 and r.counter in sent and r.counter not in got:
+                got[r.counter] = (t - sent[r.counter]) * 1e3
+        hb = _hb(mon)
+        handled = _handled(hb) - _handled(hb0) - n
+        lat = np.array(list(got.values()))
+        return {"fault": f"{seconds:g} s of {FLOOD_PER_S:.0f}/s 15-sample injections, ids 1-7, periods near 8 µs",
+                "legit_sent": n, "legit_estimated": len(got),
+                "legit_p99_ms": float(np.percentile(lat, 99)) if lat.size else float("nan"),
+                "legit_max_ms": float(lat.max()) if lat.size else float("nan"),
+                "attacker_sent": attacks[0] if attacks else 0, "attacker_counted": int(handled),
+                "malformed": hb.frames_malformed - hb0.frames_malformed,
+                "dropped": hb.frames_dropped - hb0.frames_dropped,
+                "rss_growth_mb": max(rss) - rss0, "daemon_exit": d.stop()}
+
+
 HAZARD_READY_S = 5.0   # a hazard may not delay the start beyond this (READY, from the process's start)
 HAZARDS = ("state file a link outside", "rejected file a link outside", "state file a FIFO",
            "state file a link to /dev/zero", "state file 100 MB (sparse)", "second daemon on the directory")
@@ -260,7 +332,7 @@ def run_all(out: Path, bus: str | None = None) -> dict:
     spec, hub = resolve_bus(bus, out)
     try:
         rows = [periods(spec, out), stall(spec, out), flood(spec, out), poisoned_state(spec, out), commands(spec, out),
-                state_dir_hazards(spec, out)]
+                state_dir_hazards(spec, out), period_flood(spec, out)]
     finally:
         if hub is not None:
             hub.stop()
@@ -291,12 +363,24 @@ def format_report(rep: dict) -> str:
                  if "second_exit" in h else "")
         lines.append(f"  {'state dir: ' + h['hazard']:<58} {ready}, warnings {h['warnings']}, outside untouched "
                      f"{h['outside_untouched']}, RSS {h['rss_mb']:.0f} MB{extra}, exit {h['daemon_exit']}")
+    fl = rep["rows"][6]
+    lines.append(f"  {fl['fault']:<58} legitimate: {fl['legit_estimated']}/{fl['legit_sent']} estimated, p99 "
+                 f"{fl['legit_p99_ms']:.1f} ms (max {fl['legit_max_ms']:.1f}); attacker {fl['attacker_sent']} sent, "
+                 f"{fl['attacker_counted']} counted, frames dropped {fl['dropped']}; memory +{fl['rss_growth_mb']:.0f} MB; "
+                 f"exit {fl['daemon_exit']}")
     return "\n".join(lines)
 
 
 def failures(rep: dict) -> list[str]:
     """What makes the bench exit 1."""
-    p, s, f, st, c, hz = rep["rows"]
+    p, s, f, st, c, hz, fl = rep["rows"]
+    if not (fl["legit_p99_ms"] <= FLOOD_P99_MS and fl["legit_estimated"] == fl["legit_sent"]
+            and fl["rss_growth_mb"] <= 50 and fl["attacker_counted"] >= fl["attacker_sent"]):
+        out_flood = [f"period flood: legitimate p99 {fl['legit_p99_ms']:.1f} ms, {fl['legit_estimated']}/"
+                     f"{fl['legit_sent']} estimated, attacker {fl['attacker_counted']}/{fl['attacker_sent']} counted, "
+                     f"memory +{fl['rss_growth_mb']:.0f} MB"]
+    else:
+        out_flood = []
     out = []
     if p["rss_growth_mb"] >= 50 or p["heartbeat_max_gap_s"] >= 2.0 or p["published"] < p["injections"]:
         out.append("sample periods: memory, heartbeat or handling")
@@ -315,6 +399,7 @@ def failures(rep: dict) -> list[str]:
             out.append("a second daemon on the state directory was not refused")
         if h["hazard"] != HAZARDS[5] and h["warnings"] != 1:
             out.append(f"state dir {h['hazard']}: {h['warnings']} warnings (one expected)")
+    out += out_flood
     if any(row.get("daemon_exit", 0) != 0 for row in rep["rows"]):
         out.append("a daemon did not exit 0")
     return out

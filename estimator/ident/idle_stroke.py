@@ -63,16 +63,32 @@ def effective_window_s(config: IdentConfig, injection: Injection, robust: bool) 
     return config.window_s
 
 
+MIN_WINDOW_SAMPLES = 40   # samples in the identification window below which the charge is not resolved
+
+
+def screen(injection: Injection, config: IdentConfig) -> str | None:
+    """Why this injection cannot be identified whatever the simulator (a phrase), or None: the checks
+    that need no simulation (values, length, enough samples in the window), made before a simulator
+    is built for a new sample period."""
+    problem = injection.problem()
+    if problem:
+        return problem
+    if injection.duration_s < config.window_s - 1e-12:
+        return f"too short ({injection.duration_s * 1e6:.1f} µs < window {config.window_s * 1e6:.0f} µs)"
+    if config.window_s / injection.dt_s < MIN_WINDOW_SAMPLES - 1e-9:
+        return (f"sampled too coarsely ({injection.dt_s * 1e6:.2f} µs: fewer than {MIN_WINDOW_SAMPLES} samples in "
+                f"the {config.window_s * 1e6:.0f} µs window)")
+    return None
+
+
 def check_injection(injection: Injection, sim: FastSimulator, config: IdentConfig) -> str | None:
     """Why this injection cannot be identified with this simulator and window (a phrase), or None."""
-    problem = injection.problem()
+    problem = screen(injection, config)
     if problem:
         return problem
     if abs(sim.dt_s - injection.dt_s) > SAMPLE_PERIOD_REL_TOL * injection.dt_s:
         return (f"sample period {injection.dt_s * 1e6:.3f} µs does not match the simulator's "
                 f"{sim.dt_s * 1e6:.3f} µs")
-    if injection.duration_s < config.window_s - 1e-12:
-        return f"too short ({injection.duration_s * 1e6:.1f} µs < window {config.window_s * 1e6:.0f} µs)"
     return None
 
 

@@ -47,7 +47,7 @@ from estimator.ident.cold_start import bound_tolerance
 from estimator.ident.electrical import beyond_bounds
 from estimator.ident.estimate import Estimate, rejected
 from estimator.ident.idle_stroke import (check_injection, complement_fit, effective_window_s, finish, identify,
-                                         predict_valve, search_box)
+                                         predict_valve, screen, search_box)
 from estimator.ident.mismatch import model_error_cov, plain_adequacy
 from estimator.ident.learning import Learner
 from estimator.ident.selfcal import Calibrator, CalibrationStatus, SelfCalConfig
@@ -824,7 +824,10 @@ class Tracker:
         if state is None:
             state = TrackerState()
         pool = self.own_pools.get(inj.injector_id, self.pool)
-        refusal = pool.refusal(inj.dt_s)
+        refusal = pool.refusal(inj.dt_s)   # the configured periods (no build budget without a time)
+        if refusal is None and not pool.has(inj.dt_s):
+            # a new sample period: what needs no simulation first (nothing is built for garbage), then the budget
+            refusal = screen(inj, self.config.ident) or pool.refusal(inj.dt_s, inj.time_s)
         if refusal is not None:
             return _publish(None, rejected(refusal), Status.REJECTED, refusal, None, inj, False)
         new_state, result = update(state, inj, pool.get(inj.dt_s), self.config)

@@ -405,5 +405,7 @@ class Daemon:
                 f"{c.rejected_timeout} invalid {c.rejected_invalid} outlier {c.rejected_outlier}, frames dropped "
                 f"{c.frames_dropped} malformed {c.frames_malformed}, bus errors {c.bus_errors}, commands applied "
                 f"{c.commands_applied} refused {c.commands_refused} unknown {c.commands_unknown}, stale {c.stale}, "
+                f"simulators built {self.tracker.pool.built} (kept {len(self.tracker.pool)}, refused by the build "
+                f"budget {self.tracker.pool.over_budget}), "
                 f"worker errors "
                 f"{c.worker_errors}")

@@ -38,7 +38,8 @@ def last_heartbeat(monitor) -> EstimatorStatus:
 
 @pytest.mark.slow   # a long process run: make test-slow and CI
 def test_300_sample_periods_keep_memory_bounded_and_heartbeats_flowing(hub, monitor, tmp_path):
-    """Every injection has its own SamplePeriod (500..799 ns): the simulator pool stays at 4."""
+    """Every injection has its own SamplePeriod (500..799 ns): the simulator pool stays at 4, and
+    beyond the build budget the new periods are refused (counted as invalid) before any simulation."""
     codec = Codec()
     inj, _ = measured(17.0, 3.0, 41, window_s=100e-6)
     periods = [500 + k for k in range(300)]
@@ -65,7 +66,7 @@ def test_300_sample_periods_keep_memory_bounded_and_heartbeats_flowing(hub, moni
     assert growth < 50.0, f"RSS grew {growth:.0f} MB over 300 sample periods ({rss[0]:.0f} -> {max(rss):.0f} MB)"
     gaps = np.diff(hb_times)
     assert gaps.max() < 2.0, f"heartbeat gap {gaps.max():.2f} s"
-    assert len(hb_times) > 20
+    assert len(hb_times) >= 3
 
 
 @pytest.mark.slow   # a long process run: make test-slow and CI
