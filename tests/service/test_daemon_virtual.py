@@ -124,21 +124,23 @@ def test_reset_command_and_bad_frames_do_not_stop_it(running):
 
 
 def test_an_estimate_published_late_is_stale_never_ok(tmp_path):
-    """A worker stalled for 0.3 s on one injection (stale_after_ms = 100): that injection's estimate goes
-    out as stale, is counted, and the next one, on time, is ok again."""
+    """The worker held on one injection until the heartbeat (every 0.1 s, its own thread) has ticked
+    three times after that injection's trailer went out (stale_after_ms = 100): that injection's
+    estimate goes out as stale, is counted, and the next one, on time, is ok again."""
     channel = f"test-{uuid.uuid4().hex[:8]}"
-    d = Daemon(DaemonConfig(bus=f"virtual:{channel}", stale_after_ms=100.0))
+    d = Daemon(DaemonConfig(bus=f"virtual:{channel}", stale_after_ms=100.0, status_period_s=0.1))
     tracker = d.processor.tracker
     real_update = tracker.update
+    release = threading.Event()
     stalled = {"n": 0}
 
-    def slow_update(inj):
+    def held_update(inj):
         res = real_update(inj)
         if inj.counter == 3:
             stalled["n"] += 1
-            time.sleep(0.3)        # the worker is behind: the publication comes 300 ms after the trailer
+            release.wait(30.0)     # the worker is behind until the test has seen time pass on the bus
         return res
-    tracker.update = slow_update
+    tracker.update = held_update
     t = threading.Thread(target=d.run, daemon=True)
     t.start()
     bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
@@ -150,12 +152,18 @@ def test_an_estimate_published_late_is_stale_never_ok(tmp_path):
             inj, _ = measured(17.4, 3.6, 3000 + k, window_s=100e-6)
             for fr in injection_frames(codec, 2, k, inj.dt_s, inj.current_a, inj.voltage_v, 28.0, 40.0):
                 bus.send(to_message(fr))
+            if k == 3:   # three heartbeats after the trailer: at least 0.2 s of the worker held
+                beats = collect(bus, codec, lambda g: sum(isinstance(r, EstimatorStatus) for r in g) >= 3,
+                                timeout=30.0)
+                states += [r for r in beats if isinstance(r, EstimateState)]
+                release.set()
             got = collect(bus, codec, lambda g: any(isinstance(r, EstimateState) for r in g), timeout=30.0)
             states += [r for r in got if isinstance(r, EstimateState)]
         words = {r.counter: codec.status_of(r.status).value for r in states}
         assert stalled["n"] == 1 and words[3] == "stale" and words[5] == "ok", words
         assert d.ingest.counters.stale == 1
     finally:
+        release.set()
         d.stop.set()
         t.join(timeout=5)
         bus.shutdown()
