@@ -74,9 +74,9 @@ class Learner:
         self._current = current
         self.status: dict[int, CalibrationStatus] = {}
         self._windows: dict[int, CalibrationWindow] = {}
-        self._relearning: dict[int, bool] = {}     # a calibration running for an injector that has its own model
         self._refine: dict[int, CalibrationWindow] = {}   # a monitored model's refinement window
-        self._refining: set[int] = set()           # a refinement calibration running
+        self._running: dict[int, Learning] = {}    # what a running calibration is for: LEARNING, RELEARNING or
+                                                   # MONITORING (a refinement); an outcome without one is dropped
         self._changed: set[int] = set()
 
     # ---- what the tracker calls -----------------------------------------------------------
@@ -152,7 +152,7 @@ class Learner:
         del self._refine[iid]
         self._set(iid, replace(st, state=Learning.CALIBRATING, served=served, evidence=0.0,
                                message="refining the model over a larger window"))
-        self._refining.add(iid)
+        self._running[iid] = Learning.MONITORING
         self.calibrator.submit(iid, window, self.base, c, self._current(iid))
         self.collect()
         return True
@@ -169,21 +169,22 @@ class Learner:
         if not window.ready(c):
             return
         del self._windows[iid]
-        relearning = state == Learning.RELEARNING
         self._set(iid, replace(self.status[iid], state=Learning.CALIBRATING))
-        self._relearning[iid] = relearning
+        self._running[iid] = state
         self.calibrator.submit(iid, window, self.base, c, self._current(iid))
         self.collect()
 
     def _finish(self, out: CalibrationOutcome) -> None:
         iid = out.injector_id
+        purpose = self._running.pop(iid, None)
+        if purpose is None:   # the injector was reset while it ran: its outcome is not this injector's now
+            return
         before = self.status.get(iid, CalibrationStatus())
-        relearning = self._relearning.pop(iid, False)
+        relearning = purpose == Learning.RELEARNING
         own = self._current(iid) is not None
         calibrations = before.calibrations + 1
         new = replace(out.status, calibrations=calibrations, source=before.source)
-        if iid in self._refining:
-            self._refining.discard(iid)
+        if purpose == Learning.MONITORING:
             self._finish_refinement(out, before, new)
             return
         if out.params is not None:
@@ -221,7 +222,7 @@ class Learner:
     def forget(self, iid: int) -> None:
         """Forget the injector's learning (its own model goes back to the tables: ``reset``)."""
         self._windows.pop(iid, None)
-        self._relearning.pop(iid, None)
+        self._running.pop(iid, None)
         self._refine.pop(iid, None)
         if iid in self.status:
             self._set(iid, CalibrationStatus(calibrations=self.status[iid].calibrations))
@@ -261,8 +262,7 @@ class Learner:
 
     def carry(self, old: Learner) -> None:
         """Go on where ``old`` stands (a reloaded configuration): statuses, windows, running calibrations."""
-        self.status, self._windows, self._relearning = old.status, old._windows, old._relearning
-        self._refine, self._refining = old._refine, old._refining
+        self.status, self._windows, self._refine, self._running = old.status, old._windows, old._refine, old._running
         self._changed |= old._changed
 
     def take_changes(self) -> list[tuple[int, CalibrationStatus]]:

@@ -168,3 +168,42 @@ def test_an_injectors_own_parameter_file_seeds_it_and_it_is_monitored(tmp_path):
     assert tracker.calibration[3].state == Learning.MONITORING and tracker.calibration[3].source == "seeded"
     with pytest.raises(Exception, match="injector_params"):
         DaemonConfig.from_mapping({"injector_params": {"9": str(path)}})
+
+
+class _Held:
+    """A calibrator whose outcomes come back only when the test releases them (adopting ``params``)."""
+
+    prepare = None
+
+    def __init__(self, params) -> None:
+        self.params, self.queued, self.released = params, [], False
+
+    def submit(self, injector_id, window, base, config, current=None) -> None:
+        self.queued.append(CalibrationOutcome(injector_id, CalibrationStatus(Learning.ADOPTED, message="held"),
+                                              self.params))
+
+    def poll(self):
+        if not self.released:
+            return []
+        done, self.queued = self.queued, []
+        return done
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_calibration_that_comes_back_after_a_reset_is_not_adopted():
+    """reset forgets everything about the injector, the calibration running for it included: its
+    outcome, arriving later, is dropped instead of adopted."""
+    life = _life(seed=32)
+    cal = _Held(life.parts[0].params)
+    tracker = Tracker(self_calibration=SelfCalConfig(), calibrator=cal)
+    injections = [inj for inj, _m, _t in life.injections(24)]
+    k = 0
+    while tracker.calibration.get(0) is None or tracker.calibration[0].state != Learning.CALIBRATING:
+        tracker.update(injections[k])
+        k += 1
+    tracker.reset(0)
+    cal.released = True
+    tracker.update(injections[k])
+    assert 0 not in tracker.own_pools and tracker.calibration[0].state in (Learning.IDLE, Learning.LEARNING)
