@@ -26,6 +26,7 @@ from estimator.service.bus import BusSetupError, check_socketcan
 from sim_bench import scenarios
 from sim_bench.hub import Hub
 from sim_bench.procs import BusMonitor, DaemonProcess, rss_mb, spawn, stop_process
+from sim_bench.table import verdict
 
 SETTLE = scenarios.SETTLE
 
@@ -220,13 +221,13 @@ def format_score(s: dict) -> str:
         rows.append(("daemon memory [MB] / exit code / stop time", f"{s['daemon_rss_mb']:.0f} / "
                      f"{s['daemon_exit']} / {s['daemon_stop_s']:.2f} s"))
     t = s["targets"]
-    verdict = "PASS" if not s["failures"] else "FAIL: " + "; ".join(s["failures"])
+    outcome = verdict(s)
     lines = [f"bench {s['scenario']} - targets: |L_h error| <= {t['lh_um']} µm, |N_u error| <= {t['nu_pct']} % "
              f"after {settle} injections per injector" + (f"; ok only within {t['ok_within_um']} µm"
                                                             if t.get("ok_within_um") is not None else "")]
     w = max(len(a) for a, _ in rows)
     lines += [f"  {a:<{w}}  {b}" for a, b in rows]
-    lines.append(f"  {verdict}")
+    lines.append(f"  {outcome}")
     return "\n".join(lines)
 
 

@@ -26,7 +26,7 @@ from estimator.ident.config import TrackerConfig
 from estimator.ident.selfcal import SelfCalConfig
 from estimator.ident.tracker import Tracker
 from sim_bench.series_life import LotSpec, draw_lot
-from sim_bench.table import Column, keyed, render
+from sim_bench.table import Column, keyed, render, verdict
 
 POSITIONS, INJECTIONS, SWAP_AT, SWAPPED = 12, 80, 40, (9,)
 BEYOND_FRACTION = 2 / 12
@@ -125,9 +125,8 @@ def format_report(rep: dict[str, Any]) -> str:
              f"injection {rep['swap_at']}), {rep['injections']} injections each, default settings (learning on); "
              f"targets: filtered L_h within {LH_UM} µm from injection {FROM} (swapped: {SWAP_SETTLE} after the swap), "
              f"never ok while > {OK_UM} µm off, parts beyond tolerance flagged (BEYOND: the part mounted at the end)")
-    table = render(COLUMNS, rep["rows"], lambda r: "PASS" if not r["failures"] else "FAIL: " + "; ".join(r["failures"]))
-    verdict = (f"lot: max |dL_h| within tolerance {s['max_lh_err_within_um']:.3f} µm, ok while far {s['ok_far']}, "
-               f"flagged {s['flagged_beyond']}/{s['beyond']} beyond tolerance, {s['false_flags']} of "
-               f"{s['within']} within tolerance flagged: "
-               + ("PASS" if s["passed"] else "FAIL"))
-    return "\n".join([title, table, verdict])
+    table = render(COLUMNS, rep["rows"], verdict)
+    lot = (f"lot: max |dL_h| within tolerance {s['max_lh_err_within_um']:.3f} µm, ok while far {s['ok_far']}, "
+           f"flagged {s['flagged_beyond']}/{s['beyond']} beyond tolerance, {s['false_flags']} of "
+           f"{s['within']} within tolerance flagged: " + ("PASS" if s["passed"] else "FAIL"))
+    return "\n".join([title, table, lot])

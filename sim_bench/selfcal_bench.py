@@ -40,7 +40,7 @@ from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import NOMINAL_PRELOAD_N, InjectorParameters, load_nominal
 from sim_bench import series_part
 from sim_bench.plant import Plant, PlantConfig
-from sim_bench.table import Column, keyed, render
+from sim_bench.table import Column, keyed, render, verdict
 
 VARIANTS = ("plain", "chain", "mismatch")
 INJECTIONS, CALIBRATE_FIRST = 60, 30
@@ -186,7 +186,7 @@ def format_report(rep: dict) -> str:
     """Per injector a row, then per variant the summary and its verdict."""
     title = (f"self-calibration - {rep['injectors']} series injectors (±10 %) per variant, {INJECTIONS} injections "
              f"at 28-300 N, calibrated on the first {CALIBRATE_FIRST}, judged on the last {INJECTIONS - CALIBRATE_FIRST}")
-    per_row = render(ROW_COLUMNS, rep["rows"], lambda r: "PASS" if not r["failures"] else "FAIL: " + "; ".join(r["failures"]))
+    per_row = render(ROW_COLUMNS, rep["rows"], verdict)
     summary = render(SUMMARY_COLUMNS, rep["summary"],
                      lambda s: "PASS" if s["passed"] else "FAIL: " + "; ".join(s["failures"][:3]))
     return "\n".join([title, per_row, "", summary])
@@ -292,7 +292,7 @@ def format_online(rep: dict) -> str:
              f"{rep['pace_s']:g} s, calibrations in the background process; targets: filtered L_h within "
              f"{ONLINE_LH_UM} µm from injection {ONLINE_FROM}, never ok while > {ONLINE_OK_UM} µm off, "
              f"exact injector unharmed ({NO_HARM_SIGMA} sigma)")
-    table = render(ONLINE_COLUMNS, rep["rows"], lambda r: "PASS" if not r["failures"] else "FAIL: " + "; ".join(r["failures"]))
+    table = render(ONLINE_COLUMNS, rep["rows"], verdict)
     speed = (f"warm update while a calibration ran: median {s['median_during_ms']:.3f} ms, p99 {s['p99_during_ms']:.3f} ms "
              f"({s['updates_during_calibration']} updates); otherwise median {s['median_ms']:.3f} ms, "
              f"p99 {s['p99_ms']:.3f} ms ({s['updates']} updates, cold starts included)")

@@ -40,3 +40,8 @@ def plant(s: dict) -> str:
     if s.get("plant"):
         return s["plant"]
     return "mismatch" if s["mismatch"] else "matched"
+
+
+def verdict(row: dict) -> str:
+    """A row's verdict: PASS, or FAIL with its ``failures``."""
+    return "PASS" if not row["failures"] else "FAIL: " + "; ".join(row["failures"])

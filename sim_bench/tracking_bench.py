@@ -32,7 +32,7 @@ from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench import series_part
 from sim_bench.plant import Plant, PlantConfig
 from sim_bench.scenarios import Registry, Truth
-from sim_bench.table import Column, keyed, plant, render
+from sim_bench.table import Column, keyed, plant, render, verdict
 
 F_OPEN_N = NOMINAL_PRELOAD_N
 GLITCH_CURRENT_GAIN = 1.2     # a current-sensor gain error of 20 % that the CRC cannot see
@@ -307,4 +307,4 @@ TRACKING_COLUMNS = [
 def format_tracking(reports: list[dict]) -> str:
     """One line per report: raw and filtered errors side by side, then the verdict."""
     return render(TRACKING_COLUMNS, [rep["summary"] for rep in reports],
-                  lambda s: "PASS" if s["passed"] else "FAIL: " + "; ".join(s["failures"]))
+                  verdict)
