@@ -112,8 +112,10 @@ def nan0(x: float) -> float:
 class InjectorNode:
     """Sends the scenario's injections on a bus (anything with ``send(Frame)``)."""
 
-    def __init__(self, send, scenario: Scenario, seed: int = 0, codec: Codec | None = None) -> None:
+    def __init__(self, send, scenario: Scenario, seed: int = 0, codec: Codec | None = None,
+                 clock=time.monotonic) -> None:
         self.send = send
+        self.clock = clock                  # monotonic seconds; a test may pass its own
         self.scenario = scenario
         self.codec = codec or Codec()
         self.source = InjectionSource(scenario, seed)
@@ -142,7 +144,7 @@ class InjectorNode:
         self.source.plant.warm_up()
         period = 1.0 / (sc.rate_hz * sc.injectors)
         duration = seconds if seconds is not None else sc.seconds
-        t0 = time.monotonic() + 0.05
+        t0 = self.clock() + 0.05
         next_stall = sc.faults.stall_every_s or math.inf
         k = 0
         last_warn = -math.inf
@@ -155,7 +157,7 @@ class InjectorNode:
                 stop.wait(sc.faults.stall_s)           # the bus stalls: nothing is sent
                 self.stats.faults["stall"] += 1
                 next_stall += sc.faults.stall_every_s
-            now = time.monotonic()
+            now = self.clock()
             if due > now:
                 if stop.wait(due - now):
                     break
