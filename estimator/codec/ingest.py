@@ -27,12 +27,14 @@ def _reject(self: Any, reason: RejectReason | str) -> None:   # self: a Counters
 #: Everything the EstimatorStatus heartbeat reports (its rolling counters, ``records.HEARTBEAT_COUNTERS``,
 #: under the same names), plus finer detail for logs and JSON: frames_unknown, frames_total,
 #: commands_applied, worker_errors (unexpected exceptions in the worker, a bug; logged rate-limited),
-#: stale (estimates the daemon published as ``stale``: later than ``stale_after_ms``) and the
+#: stale (estimates the daemon published as ``stale``: later than ``stale_after_ms``), injections_shed
+#: (complete injections the daemon's worker dropped unestimated, overloaded by their injector) and the
 #: rejections per reason.
 Counters = make_dataclass(
     "Counters",
     [(name, int, 0) for name in HEARTBEAT_COUNTERS]
-    + [(name, int, 0) for name in ("frames_unknown", "frames_total", "commands_applied", "worker_errors", "stale")]
+    + [(name, int, 0) for name in ("frames_unknown", "frames_total", "commands_applied", "worker_errors", "stale",
+                                            "injections_shed")]
     + [("reasons", dict, field(default_factory=dict))],
     namespace={"reject": _reject, "__module__": __name__},
 )

@@ -211,6 +211,29 @@ class EstimatorStatus(Record):
         "estimation_p99_ms": "EstimationP99", "send_p99_ms": "SendP99"}
 
 
+@dataclass(frozen=True)
+class EstimatorHealth(Record):
+    """Health counters sent with each heartbeat: the worker's overload defences and what they cost.
+    Counter fields are rolling (they wrap at 32 bits); ``pending_injections`` and ``injectors`` are gauges."""
+
+    commands_applied: int = 0
+    stale: int = 0
+    injections_shed: int = 0
+    simulators_built: int = 0
+    simulators_evicted: int = 0
+    builds_refused: int = 0
+    worker_errors: int = 0
+    pending_injections: int = 0
+    injectors: int = 0
+    MESSAGE: ClassVar[str] = "EstimatorHealth"
+    OUTPUT: ClassVar[bool] = True
+    SIGNALS: ClassVar[dict[str, str]] = {
+        "commands_applied": "CommandsApplied", "stale": "EstimatesStale", "injections_shed": "InjectionsShed",
+        "simulators_built": "SimulatorsBuilt", "simulators_evicted": "SimulatorsEvicted",
+        "builds_refused": "BuildsRefused", "worker_errors": "WorkerErrors",
+        "pending_injections": "PendingInjections", "injectors": "InjectorsTracked"}
+
+
 #: the heartbeat's rolling counters, in DBC order: the one list of them (``ingest.Counters`` is built from it)
 HEARTBEAT_COUNTERS: tuple[str, ...] = tuple(f.name for f in fields(EstimatorStatus) if f.metadata.get("counter"))
 
@@ -264,7 +287,8 @@ class SampleBlock(Record):
 
 #: every message of the contract, by record class
 REGISTRY: tuple[type[Record], ...] = (InjectionHeader, SampleBlock, InjectionTrailer, EstimateState, EstimateQuality,
-                                      ValvePrediction, ModelCalibration, EstimatorStatus, EstimatorCommand, SimTruth)
+                                      ValvePrediction, ModelCalibration, EstimatorStatus, EstimatorHealth, EstimatorCommand,
+                                      SimTruth)
 
 
 def contract_of(registry: tuple[type[Record], ...]) -> dict[str, MessageSpec]:

@@ -20,17 +20,19 @@ import os
 import signal
 import threading
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from collections.abc import Callable
 
 import can
 
+from estimator.codec.assembler import Completed
 from estimator.codec.frame import Frame
 from estimator.errors import EstimatorError
 from estimator.service.bus import open_bus, resolve, to_frame, to_message
 from estimator.ident.tracker import Tracker
 from estimator.pipeline import build_pipeline, build_pool, build_tracker
 from estimator.service.config import ConfigError, DaemonConfig
+from estimator.service.fair_queue import FairQueue
 from estimator.service.latency import Stats
 from estimator.service.ratelimit import RateLimitedLog
 from estimator.service.sdnotify import SdNotify
@@ -88,8 +90,25 @@ class QueueListener(can.Listener):
 
 # keys a SIGHUP cannot change (they shape the bus connection and the memory already allocated)
 RELOAD_MIN_S = 0.5   # the worker applies a reloaded configuration at most this often
+INGEST_BATCH = 256   # frames the worker assembles between two identifications (≈ 1.3 ms at most)
+ESTABLISHED_AFTER = 10   # injections accepted since its last reset: the worker serves such an injector first
 RESTART_KEYS = ("bus", "bitrate", "data_bitrate", "fd", "bus_options", "dbc", "state_dir", "queue_frames",
                 "max_injectors")
+
+
+@dataclass(frozen=True)
+class _Reload:
+    """A reloaded configuration and what the main thread built for it, ready to swap in."""
+
+    cfg: DaemonConfig
+    tracker: Tracker
+    same_pool: bool                     # the simulators' parameters stayed: the injectors' own models carry over
+    calibrator: BackgroundCalibrator | None
+
+
+@dataclass(frozen=True)
+class _Pending:
+    reload: _Reload | None              # None: the configuration file did not change anything
 
 
 class Daemon:
@@ -105,7 +124,9 @@ class Daemon:
         self.reload_requested = threading.Event()
         self._send_lock = threading.Lock()
         self._wake = threading.Event()      # main loop: a signal arrived
-        self._pending_cfg: DaemonConfig | None = None
+        self._pending_cfg: _Pending | None = None   # a reload prepared by the main thread, for the worker
+        self._reload_lock = threading.Lock()
+        self._notices: collections.deque[str] = collections.deque(maxlen=64)   # worker -> main thread -> systemd
         self.bus_name = str(cfg.bus or "python-can configuration")
         self.notify = SdNotify()
         self.stats = Stats()
@@ -117,6 +138,8 @@ class Daemon:
         self.state_path = cfg.state_dir / STATE_FILE if cfg.state_dir else None
         self._dirty = False
         self._lock_fd: int | None = None   # the state directory's lock, held until the process ends
+        # complete injections waiting for the worker, estimated by fair share between injectors
+        self.waiting: FairQueue[tuple[Completed, float, float]] = FairQueue()
 
     @property
     def tracker(self) -> Tracker:
@@ -185,40 +208,19 @@ class Daemon:
             if self._pending_cfg is not None and time.monotonic() >= next_reload:
                 # a burst of SIGHUPs is coalesced: the newest configuration, at most every RELOAD_MIN_S
                 next_reload = time.monotonic() + RELOAD_MIN_S
-                new, self._pending_cfg = self._pending_cfg, None
-                try:
-                    self._apply(new)
-                except (EstimatorError, OSError) as exc:   # e.g. the parameter file went away since SIGHUP
-                    log.error("SIGHUP: configuration not applied, running configuration kept: %s", exc)
-                    self.notify.notify(f"READY=1\nSTATUS=reload failed: {exc}")
+                with self._reload_lock:
+                    pending, self._pending_cfg = self._pending_cfg, None
+                if pending is not None:
+                    self._apply(pending.reload)
                 next_persist = time.monotonic()
-            item = lst.get(timeout=0.01)
-            mono = time.monotonic()
-            self.progress = mono
+            self.progress = time.monotonic()
             try:
-                if item is not None:
-                    frame, arrived = item
-                    now = self.clock.on_frame(frame.timestamp, arrived)   # bus time, as in a replay
-                    events = self.ingest.feed(frame, now)
-                    t_prev = time.monotonic()
-                    assembled = t_prev - mono
-                    for pub in self.processor.handle(events):
-                        t_est = time.monotonic()
-                        if t_est - arrived > self.cfg.stale_after_ms * 1e-3:   # behind: never published as ok
-                            pub = pub.stale(t_est - arrived)
-                            self.ingest.counters.stale += 1
-                            self.rlog.log(logging.WARNING, "stale", "injector %d counter %d published %.0f ms after "
-                                          "its last frame (stale)", pub.injector_id, pub.counter,
-                                          (t_est - arrived) * 1e3)
-                        self.send(pub.frames[:1])
-                        t_sent = time.monotonic()
-                        self.stats.add(mono, t_sent - arrived, (mono - arrived, assembled, t_est - t_prev,
-                                                                t_sent - t_est))
-                        assembled, t_prev = 0.0, t_sent     # a second injection of the same frame: later stages only
-                        self.send(pub.frames[1:])
-                        self._dirty = True
-                else:
-                    t_idle = self.clock.idle(mono)     # the silent-bus guard (wall clock)
+                ingested = self._ingest_frames(lst, wait=not self.waiting)
+                taken = self.waiting.take()
+                if taken is not None:
+                    self._estimate(*taken)
+                elif not ingested:
+                    t_idle = self.clock.idle(time.monotonic())     # the silent-bus guard (wall clock)
                     if t_idle is not None:
                         self.processor.handle(self.ingest.poll(t_idle))
                 self.ingest.counters.frames_dropped = lst.dropped
@@ -231,8 +233,61 @@ class Daemon:
                 self.ingest.counters.worker_errors += 1
                 self.rlog.log(logging.ERROR, "worker", "worker error (continuing)", exc_info=True)
 
+    def _ingest_frames(self, lst: QueueListener, wait: bool) -> int:
+        """Decode and assemble the frames that have arrived (at most ``INGEST_BATCH``; waiting up to
+        10 ms for the first only when ``wait``): complete injections join :attr:`waiting`, everything
+        else (rejections, commands) is handled at once. Returns the number of frames taken."""
+        n = 0
+        while n < INGEST_BATCH:
+            item = lst.get(timeout=0.01 if wait and n == 0 else 0.0)
+            if item is None:
+                break
+            n += 1
+            frame, arrived = item
+            t0 = time.monotonic()
+            now = self.clock.on_frame(frame.timestamp, arrived)   # bus time, as in a replay
+            events = self.ingest.feed(frame, now)
+            assembled = time.monotonic() - t0
+            rest = []
+            for e in events:
+                if isinstance(e, Completed):
+                    iid = e.header.injector_id
+                    st = self.tracker.states.get(iid)
+                    known = st is not None and st.accepted >= ESTABLISHED_AFTER
+                    shed = self.waiting.put(iid, (e, arrived, assembled), known)
+                    if shed is not None:
+                        self.ingest.counters.injections_shed += 1
+                        self.rlog.log(logging.WARNING, "shed", "injector %d counter %d shed unestimated: the worker "
+                                      "is behind and this injector used more than its share of it",
+                                      shed[0].header.injector_id, shed[0].header.counter)
+                else:
+                    rest.append(e)
+            if rest:
+                self.processor.handle(rest)
+        return n
+
+    def _estimate(self, injector: int, waiting: tuple[Completed, float, float]) -> None:
+        """Estimate one complete injection, publish it (``stale`` when it is later than
+        ``stale_after_ms`` after its last frame) and book the worker time to its injector."""
+        e, arrived, assembled = waiting
+        t_prev = time.monotonic()
+        queued = t_prev - arrived - assembled   # the input queue and the wait for the worker's turn
+        for pub in self.processor.handle([e]):
+            t_est = time.monotonic()
+            if t_est - arrived > self.cfg.stale_after_ms * 1e-3:   # behind: never published as ok
+                pub = pub.stale(t_est - arrived)
+                self.ingest.counters.stale += 1
+                self.rlog.log(logging.WARNING, "stale", "injector %d counter %d published %.0f ms after its last "
+                              "frame (stale)", pub.injector_id, pub.counter, (t_est - arrived) * 1e3)
+            self.send(pub.frames[:1])
+            t_sent = time.monotonic()
+            self.stats.add(t_prev, t_sent - arrived, (queued, assembled, t_est - t_prev, t_sent - t_est))
+            self.send(pub.frames[1:])
+            self._dirty = True
+        self.waiting.charge(injector, time.monotonic() - t_prev)
+
     def _heartbeat(self) -> None:
-        """EstimatorStatus every ``status_period_s``, from its own thread: a long identification (a
+        """EstimatorStatus and EstimatorHealth every ``status_period_s``, from its own thread: a long identification (a
         cold start on a loaded machine, a new sample period) does not silence it. The worker's own
         liveness is what the systemd watchdog checks."""
         assert self._listener is not None
@@ -240,7 +295,8 @@ class Daemon:
             try:
                 total, stages = self.stats.p99s_ms()
                 self.send([self.processor.status_frame(len(self._listener.queue), total,
-                                                       time.monotonic() - self.started, stages)])
+                                                       time.monotonic() - self.started, stages),
+                           self.processor.health_frame(len(self.waiting))])
             except Exception:   # never let the heartbeat die with a traceback per tick
                 self.rlog.log(logging.ERROR, "heartbeat", "heartbeat error (continuing)", exc_info=True)
             self.stop.wait(self.cfg.status_period_s)
@@ -262,34 +318,53 @@ class Daemon:
         fixed = [k for k in RESTART_KEYS if getattr(new, k) != getattr(self.cfg, k)]
         if fixed:
             log.warning("SIGHUP: %s changed; that takes effect at the next restart", ", ".join(fixed))
-        self._pending_cfg = new
+        try:
+            prepared = self._prepare(new)
+        except (EstimatorError, OSError) as exc:   # e.g. a parameter file that went away
+            log.error("SIGHUP: configuration not applied, running configuration kept: %s", exc)
+            self.notify.notify(f"READY=1\nSTATUS=reload failed: {exc}")
+            return
+        with self._reload_lock:
+            superseded, self._pending_cfg = self._pending_cfg, _Pending(prepared)
+        gone = superseded.reload.calibrator if superseded is not None and superseded.reload is not None else None
+        if gone is not None and gone is not self.calibrator and (prepared is None or gone is not prepared.calibrator):
+            gone.close()   # a calibration process started for a reload that never took effect
 
-    def _apply(self, new: DaemonConfig) -> None:
-        """Worker thread: persist, then switch to ``new`` (restart-only keys keep their running values).
-        A configuration equal to the running one changes nothing (a burst of SIGHUPs costs no rebuild)."""
+    def _prepare(self, new: DaemonConfig) -> _Reload | None:
+        """Main thread: everything a reload needs built off the real-time path (the tracker on the
+        running or a new simulator pool, a calibration process when learning is turned on); None when
+        ``new`` equals the running configuration (a burst of SIGHUPs costs no rebuild)."""
         new = replace(new, **{k: getattr(self.cfg, k) for k in RESTART_KEYS})
         if new == self.cfg:
-            log.info("configuration reloaded: unchanged")
-            self.notify.notify(f"READY=1\nSTATUS=running on {self.bus_name} (configuration unchanged)")
-            return
-        if self._dirty:
-            self.persist()
+            return None
         same_pool = all(getattr(new, k) == getattr(self.cfg, k) for k in ("params", "max_sample_periods",
                                                                           "sample_periods_ns"))
-        # the simulators' tables stay when nothing they depend on changed
-        if new.self_calibration is not None and self.calibrator is None:
-            self.calibrator = BackgroundCalibrator()
-        elif new.self_calibration is None and self.calibrator is not None:
-            self.calibrator.close()
-            self.calibrator = None
+        calibrator = self.calibrator
+        if new.self_calibration is not None and calibrator is None:
+            calibrator = BackgroundCalibrator()
+        tracker = build_tracker(new, self.tracker.pool if same_pool else build_pool(new),
+                                calibrator if new.self_calibration is not None else None, self.codec)
+        return _Reload(new, tracker, same_pool, calibrator if new.self_calibration is not None else None)
+
+    def _apply(self, reload: _Reload | None) -> None:
+        """Worker thread: persist, then swap the prepared tracker in (the injectors' states, and their own
+        models when the simulators' parameters stayed, carried over). Costs the worker about 1 ms."""
+        if reload is None:
+            log.info("configuration reloaded: unchanged")
+            self._tell(f"READY=1\nSTATUS=running on {self.bus_name} (configuration unchanged)")
+            return
+        new, tracker = reload.cfg, reload.tracker
+        if self._dirty:
+            self.persist()
         old = self.tracker
-        tracker = build_tracker(new, old.pool if same_pool else build_pool(new),
-                                self.calibrator if new.self_calibration is not None else None)
         tracker.states = old.states
-        if same_pool:   # the injectors' own models are calibrations of these parameters
+        if reload.same_pool:   # the injectors' own models are calibrations of these parameters
             tracker.own_pools = old.own_pools
             if tracker.learning is not None and old.learning is not None:
                 tracker.learning.carry(old.learning)
+        if self.calibrator is not None and reload.calibrator is not self.calibrator:
+            self.calibrator.close()    # learning turned off: the calibration process ends
+        self.calibrator = reload.calibrator
         self.processor.tracker = tracker
         self.processor.commands = new.commands
         self.ingest.assembler.timeout_s = new.assembly_timeout_ms * 1e-3
@@ -298,7 +373,13 @@ class Daemon:
         self.cfg = new
         log.info("configuration reloaded (commands %s, window %.0f µs, log level %s)", new.commands,
                  new.ident.window_s * 1e6, new.log_level)
-        self.notify.notify(f"READY=1\nSTATUS=running on {self.bus_name} (configuration reloaded)")
+        self._tell(f"READY=1\nSTATUS=running on {self.bus_name} (configuration reloaded)")
+
+    def _tell(self, state: str) -> None:
+        """Worker thread: have the main thread send ``state`` to systemd (a notification may wait up to
+        0.5 s for room in a slow receiver's queue: never on the real-time path)."""
+        self._notices.append(state)
+        self._wake.set()
 
     # ---- lifecycle --------------------------------------------------------------------------
     def install_signal_handlers(self) -> None:
@@ -370,6 +451,8 @@ class Daemon:
                 while not self.stop.is_set():
                     self._wake.wait(ping or 0.5)
                     self._wake.clear()
+                    while self._notices:
+                        self.notify.notify(self._notices.popleft())
                     if self.reload_requested.is_set() and not self.stop.is_set():
                         self.reload_requested.clear()
                         self.request_reload()

@@ -14,7 +14,8 @@ from functools import cached_property
 from estimator.codec.assembler import Completed, RejectReason, Rejected
 from estimator.codec.ingest import Counters, Event, Malformed
 from estimator.codec.records import (HEARTBEAT_COUNTERS, Codec, Command, EstimateQuality, EstimateState,
-                                     EstimatorCommand, EstimatorStatus, ModelCalibration, ValvePrediction)
+                                     EstimatorCommand, EstimatorHealth, EstimatorStatus, ModelCalibration,
+                                     ValvePrediction)
 from estimator.errors import ParameterError
 from estimator.ident.measurement import Injection
 from estimator.ident.selfcal import CalibrationStatus
@@ -223,3 +224,17 @@ class Processor:
         stages = {f"{k}_p99_ms": v for k, v in (stage_p99_ms or {}).items()}
         return self.codec.encode(EstimatorStatus(**counts, queue_depth=queue_depth, latency_p99_ms=latency_p99_ms,
                                                  uptime_s=int(uptime_s), **stages))
+
+    def health_frame(self, pending_injections: int):
+        """The EstimatorHealth frame: commands applied, stale estimates, shed injections, the simulators
+        built, evicted and refused by the build budget (the shared pool's and the injectors' own), worker
+        errors; ``pending_injections``: complete injections waiting for the worker."""
+        c = self.counters
+        pools = [self.tracker.pool, *list(self.tracker.own_pools.values())]   # list(): one atomic copy
+        built = sum(p.built for p in pools)
+        wrap = 0xFFFFFFFF
+        return self.codec.encode(EstimatorHealth(
+            commands_applied=c.commands_applied & wrap, stale=c.stale & wrap, injections_shed=c.injections_shed & wrap,
+            simulators_built=built & wrap, simulators_evicted=(built - sum(len(p) for p in pools)) & wrap,
+            builds_refused=sum(p.over_budget for p in pools) & wrap, worker_errors=c.worker_errors & wrap,
+            pending_injections=min(pending_injections, 0xFFFF), injectors=min(len(self.tracker.states), 255)))

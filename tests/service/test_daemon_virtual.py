@@ -11,7 +11,7 @@ import pytest
 
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import (Codec, Command, EstimateQuality, EstimateState, EstimatorCommand,
-                                     EstimatorStatus, ValvePrediction)
+                                     EstimatorHealth, EstimatorStatus, ValvePrediction)
 from estimator.ident.tracker import Tracker
 from estimator.service.bus import to_frame, to_message
 from estimator.service.config import DaemonConfig
@@ -162,6 +162,8 @@ def test_an_estimate_published_late_is_stale_never_ok(tmp_path):
         words = {r.counter: codec.status_of(r.status).value for r in states}
         assert stalled["n"] == 1 and words[3] == "stale" and words[5] == "ok", words
         assert d.ingest.counters.stale == 1
+        health = collect(bus, codec, lambda g: any(isinstance(r, EstimatorHealth) for r in g), timeout=30.0)
+        assert [r for r in health if isinstance(r, EstimatorHealth)][-1].stale == 1
     finally:
         release.set()
         d.stop.set()
