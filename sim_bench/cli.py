@@ -257,7 +257,11 @@ def cmd_reliability(args: argparse.Namespace) -> int:
     """The daemon under faults (sample periods, stalls, floods, poisoned state, commands); exit 1 on a loss."""
     from sim_bench import reliability
 
-    rep = reliability.run_all(args.out, args.bus)
+    try:
+        rep = reliability.run_all(args.out, args.bus, tuple(args.only or ()))
+    except ValueError as exc:
+        print(f"sim_bench reliability: {exc}", file=sys.stderr)
+        return 2
     rep["failures"] = reliability.failures(rep)
     print(reliability.format_report(rep))
     print("PASS" if not rep["failures"] else "FAIL: " + "; ".join(rep["failures"]))
@@ -463,6 +467,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--bus", default=None, help="default: socketcan:vcan0 if it exists, else a loopback hub")
     s.add_argument("--out", type=Path, default=DEFAULT_OUT / "reliability", help="directory for the daemon's files (default bench-results/reliability)")
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "reliability.json", help="JSON report (default bench-results/reliability.json)")
+    s.add_argument("--only", action="append", metavar="ROW",
+                   help="run only this fault (repeatable): periods, stall, flood, poisoned-state, commands, state-dir, "
+                   "period-flood, full-flood, sighup-burst, command-flood")
     s.set_defaults(func=cmd_reliability)
 
     s = sub.add_parser("hub", help="serve a loopback CAN hub (python-can-remote) on 127.0.0.1")

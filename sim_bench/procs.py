@@ -22,6 +22,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 from collections.abc import Callable, Iterator
@@ -29,7 +30,7 @@ from collections.abc import Callable, Iterator
 import can
 
 from estimator.codec.records import Codec, EstimatorStatus, Record
-from estimator.service.bus import open_bus, to_frame
+from estimator.service.bus import open_bus, resolve, to_frame
 from estimator.service.replay import open_writer
 
 REPO = Path(__file__).resolve().parents[1]
@@ -114,9 +115,15 @@ class BusMonitor(threading.Thread):
     """
 
     def __init__(self, bus_spec: str, codec: Codec | None = None, capture: Path | None = None,
-                 keep: int = 200_000) -> None:
+                 keep: int = 200_000, only: tuple[int, ...] = ()) -> None:
         super().__init__(daemon=True, name="bus-monitor")
-        self.bus = open_bus(bus_spec)
+        # ``only``: receive just these identifiers, filtered where the bus can (the loopback hub filters
+        # for its client): a monitor that only watches the estimator's output need not keep up with a flood
+        spec = resolve(bus_spec)
+        if only:
+            spec = replace(spec, options={**spec.options, "can_filters": [{"can_id": i, "can_mask": 0x7FF}
+                                                                          for i in only]})
+        self.bus = open_bus(spec)
         self.codec = codec or Codec()
         self.writer = open_writer(capture) if capture else None   # format by suffix (.log: candump -L)
         self.records: collections.deque[tuple[float, Record]] = collections.deque(maxlen=keep)
@@ -243,11 +250,12 @@ class DaemonProcess:
 
 
 @contextlib.contextmanager
-def watched_daemon(bus_spec: str, log_path: Path, capture: Path | None = None,
+def watched_daemon(bus_spec: str, log_path: Path, capture: Path | None = None, only: tuple[int, ...] = (),
                    **kw: Any) -> Iterator[tuple[DaemonProcess, BusMonitor]]:
-    """A bus monitor (writing ``capture`` if given) and a started, ready daemon (``kw``: state_dir,
-    config, extra); on exit the daemon is stopped and collected, then the monitor closed."""
-    mon = BusMonitor(bus_spec, capture=capture)
+    """A bus monitor (writing ``capture`` if given; ``only`` these identifiers if given) and a started,
+    ready daemon (``kw``: state_dir, config, extra); on exit the daemon is stopped and collected, then
+    the monitor closed."""
+    mon = BusMonitor(bus_spec, capture=capture, only=only)
     mon.start()
     try:
         d = DaemonProcess(bus_spec, log_path, **kw).start()
