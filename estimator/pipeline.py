@@ -7,6 +7,7 @@ here, so that they estimate alike.
 
 from __future__ import annotations
 
+from estimator.ident.drive_correction import DriveCompensator
 from estimator.codec.bus_clock import BusClock
 from estimator.codec.ingest import Ingest
 from estimator.codec.records import Codec, InjectionHeader, load_database
@@ -53,5 +54,7 @@ def build_pipeline(cfg: DaemonConfig, pool: SimulatorPool | None = None, codec: 
     between its inputs (the simulator tables and the DBC parse cost ≈ 35 ms each)."""
     codec = codec or build_codec(cfg)
     ingest = Ingest(codec, cfg.assembly_timeout_ms * 1e-3, cfg.max_injectors)
-    processor = Processor(codec, build_tracker(cfg, pool, calibrator, codec), ingest.counters, cfg.commands)
+    compensator = DriveCompensator(cfg.drive_correction) if cfg.drive_correction is not None else None
+    processor = Processor(codec, build_tracker(cfg, pool, calibrator, codec), ingest.counters, cfg.commands,
+                          compensator)
     return codec, ingest, processor, BusClock(cfg.silent_bus_s)

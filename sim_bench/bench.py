@@ -25,7 +25,7 @@ from estimator.codec.records import (Codec, EstimateQuality, EstimateState, Esti
 from estimator.service.bus import BusSetupError, check_socketcan
 from sim_bench import scenarios
 from sim_bench.hub import Hub
-from sim_bench.procs import BusMonitor, DaemonProcess, rss_mb, spawn, stop_process
+from sim_bench.procs import BusMonitor, DaemonProcess, check_stop, rss_mb, spawn, stop_process
 from sim_bench.table import verdict
 
 SETTLE = scenarios.SETTLE
@@ -263,6 +263,7 @@ def run_bench(scenario_name: str, bus: str | None, seconds: float | None, out_di
         t0 = time.monotonic()
         peak_rss = 0.0
         while node.poll() is None:
+            check_stop()                 # a stop signal that landed while the node was starting
             try:
                 node.wait(timeout=0.5)   # the progress line ticks while the node runs
             except subprocess.TimeoutExpired:

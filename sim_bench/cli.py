@@ -210,11 +210,48 @@ def cmd_node(args: argparse.Namespace) -> int:
             except can.CanError as exc:
                 raise OSError(str(exc)) from None
         node = InjectorNode(send, sc, args.seed)
-        log.info("node: scenario %s, %d injectors at %.1f Hz on %s", sc.name, sc.injectors, sc.rate_hz, spec)
+        notifier = None
+        if args.apply_corrections:   # drive each injector with the estimator's DriveCorrection, as an amplifier would
+            from estimator.codec.records import Codec, DriveCorrection
+            from estimator.service.bus import to_frame
+
+            codec = Codec()
+            wanted = codec.messages[DriveCorrection].frame_id
+
+            def on_message(msg: can.Message) -> None:
+                if msg.arbitration_id == wanted and not msg.is_error_frame:
+                    try:
+                        rec = codec.decode(to_frame(msg))
+                    except EstimatorError:
+                        return
+                    if isinstance(rec, DriveCorrection):
+                        node.take_correction(rec)
+            notifier = can.Notifier(bus, [on_message], timeout=0.05)
+        log.info("node: scenario %s, %d injectors at %.1f Hz on %s%s", sc.name, sc.injectors, sc.rate_hz, spec,
+                 ", applying the estimator's drive corrections" if notifier else "")
         SdNotify().notify(f"READY=1\nSTATUS=simulating {sc.injectors} injector(s), scenario {sc.name}, on {spec}")
-        node.run(stop, seconds=None if args.count else sc.seconds, count=args.count)
+        try:
+            node.run(stop, seconds=None if args.count else sc.seconds, count=args.count)
+        finally:
+            if notifier is not None:
+                notifier.stop(timeout=0.5)
     print(node.summary_json(), flush=True)
     return 0
+
+
+def cmd_compensation(args: argparse.Namespace) -> int:
+    """A lot of series injectors, open loop and closed loop with the drive corrections; exit 1 on a miss."""
+    from sim_bench import compensation
+
+    if not (2 <= args.injectors <= 8) or args.injections < compensation.SETTLED + 20:
+        raise EstimatorError(f"--injectors must be 2..8 and --injections at least {compensation.SETTLED + 20}")
+    rep = compensation.run(args.seed, args.injectors, args.injections)
+    print(compensation.format_report(rep))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    compensation.figure(rep, args.out)
+    print(f"figure: {args.out}")
+    _write_json(args.json_out, rep)
+    return 1 if rep["failures"] else 0
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
@@ -390,7 +427,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--count", type=int, default=None, help="stop after this many injections per injector")
     _add_drive_argument(s, "the scenario's")
     s.add_argument("--seed", type=int, default=0, help="seed of the random draws (default 0)")
+    s.add_argument("--apply-corrections", action="store_true", help="drive each injector with the estimator's last "
+                   "DriveCorrection (0x204) for it, as an amplifier would: the HIL bench in closed loop")
     s.set_defaults(func=cmd_node)
+
+    s = sub.add_parser("compensation", help="drive compensation: a lot of series injectors open and closed loop")
+    s.add_argument("--seed", type=int, default=1, help="seed of the lot (default 1)")
+    s.add_argument("--injectors", type=int, default=8, help="injectors in the lot (default 8)")
+    s.add_argument("--injections", type=int, default=150, help="injections per injector (default 150)")
+    s.add_argument("--out", type=Path, default=DEFAULT_OUT / "compensation.png", help="figure (default bench-results/compensation.png)")
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "compensation.json", help="JSON report (default bench-results/compensation.json)")
+    s.set_defaults(func=cmd_compensation)
 
     s = sub.add_parser("bench", help="end-to-end bench: daemon + node on a real bus, scored")
     s.add_argument("--scenario", default="nominal", choices=(*scenarios.SCENARIOS, "all"), help="scenario, or all of them (default nominal)")

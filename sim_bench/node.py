@@ -20,7 +20,9 @@ import numpy as np
 
 from estimator.codec.frame import Frame
 from estimator.codec.injection_frames import injection_frames
-from estimator.codec.records import Codec, SimTruth
+from estimator.codec.records import Codec, DriveCorrection, SimTruth
+from estimator.ident.drive_correction import Correction
+from estimator.model.drive import STANDARD_AMPLITUDE_A, StandardDrive
 from sim_bench.plant import Measurement, Plant, PlantConfig
 from sim_bench.scenarios import Scenario
 
@@ -52,6 +54,11 @@ class InjectionSource:
         self.rng = np.random.default_rng(seed)
         self.plant = Plant(PlantConfig(drive=scenario.drive, mismatch=scenario.mismatch, window_s=scenario.window_s))
         self._pool: dict[int, list[tuple[Measurement, float]]] = {}
+        # drive corrections the estimator published (``--apply-corrections``), applied as an amplifier
+        # would: the standard drive's plateau current scaled, its start of charging offset
+        self.corrections: dict[int, Correction] = {}
+        self.offset_us: dict[int, float] = {}     # the offset applied to each injector's last injection
+        self.applied = 0                          # injections driven with a correction
         self.lives = []
         if scenario.series_lot:
             from sim_bench.series_life import LotSpec, draw_lot
@@ -70,11 +77,28 @@ class InjectionSource:
             return pool[n % sc.pool]
         return self._fresh(injector, n, t)
 
+    def _scale_for(self, injector: int):
+        """The plateau current scale at a preload force (N) from the injector's correction, recording
+        the offset applied; None without a valid correction (the standard drive)."""
+        corr = self.corrections.get(injector)
+        self.offset_us[injector] = 0.0
+        if corr is None or not corr.valid:
+            return None
+
+        def scale_for(f_open_n: float) -> float:
+            scale, offset = corr.at(f_open_n)
+            self.offset_us[injector] = offset
+            self.applied += 1
+            return scale
+        return scale_for
+
     def _fresh(self, injector: int, n: int, t: float) -> tuple[Measurement, float]:
+        scale_for = self._scale_for(injector)
         if self.lives:   # a series part of the lot: its own structure, warm-up and rail pressure
-            return self.lives[injector].measure(n, self._life_length, self.rng)[0], float("nan")
+            return self.lives[injector].measure(n, self._life_length, self.rng, scale_for)[0], float("nan")
         tr = self.scenario.truth(injector, n, t, self.rng)
-        return self.plant.measure(tr.nu_n_per_v, tr.lh_um * 1e-6, tr.f_open_n, self.rng), tr.temperature_c
+        drive = StandardDrive(scale_for(tr.f_open_n) * STANDARD_AMPLITUDE_A) if scale_for is not None else None
+        return self.plant.measure(tr.nu_n_per_v, tr.lh_um * 1e-6, tr.f_open_n, self.rng, drive), tr.temperature_c
 
 
 def apply_faults(frames: list[Frame], sc: Scenario, rng: np.random.Generator, stats: NodeStats) -> list[Frame]:
@@ -123,6 +147,16 @@ class InjectorNode:
         self.stats = NodeStats()
         self.counters = [0] * scenario.injectors
 
+    def take_correction(self, rec: DriveCorrection) -> None:
+        """A DriveCorrection from the bus: the injector's next injections are driven with it (the
+        SimTruth opening instant then counts from the standard drive's start of charging)."""
+        if self.scenario.pool:
+            return   # pooled measurements are replayed, not simulated again: nothing to correct
+        self.source.corrections[rec.injector_id] = Correction(
+            rec.scale, rec.offset_us, rec.stroke_um, rec.opening_us, rec.sigma_stroke_um, rec.sigma_opening_us,
+            scale_per_kn=rec.scale_per_kn, offset_per_kn_us=rec.offset_per_kn_us, preload_n=rec.preload_n,
+            valid=rec.state in (1, 2), held=rec.state == 2, at_limit=bool(rec.at_limit))
+
     def frames_for(self, injector: int, n: int, t: float) -> list[Frame]:
         """All frames of injection n of an injector at time t, faults applied, SimTruth last."""
         sc = self.scenario
@@ -134,7 +168,7 @@ class InjectorNode:
                                   m.f_open_n, temp)
         frames = apply_faults(frames, sc, self.fault_rng, self.stats)
         truth = SimTruth(injector, cnt, m.nu_n_per_v, m.lh_m * 1e6, nan0(m.t_contact_s * 1e6),
-                         nan0(m.t_open_s * 1e6), nan0(m.stroke_m * 1e6), temp, m.f_open_n)
+                         nan0(m.t_open_s * 1e6 + self.source.offset_us.get(injector, 0.0)), nan0(m.stroke_m * 1e6), temp, m.f_open_n)
         frames.append(self.codec.encode(truth))
         return frames
 
@@ -185,4 +219,5 @@ class InjectorNode:
 
     def summary_json(self) -> str:
         """One JSON line with the node's statistics."""
-        return json.dumps({"node": self.stats.to_dict(), "scenario": self.scenario.name})
+        return json.dumps({"node": {**self.stats.to_dict(), "corrections_applied": self.source.applied},
+                           "scenario": self.scenario.name})

@@ -13,7 +13,7 @@ sum of play operators), sized so that the best-adapted model is off by about ±2
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from estimator._compiled import njit
@@ -125,9 +125,11 @@ class Plant:
         """One throw-away simulation: loads the compiled kernels before real-time work starts."""
         self.measure(17.0, 3e-6, NOMINAL_PRELOAD_N, np.random.default_rng(0))
 
-    def measure(self, nu_n_per_v: float, lh_m: float, f_open_n: float, rng: np.random.Generator) -> Measurement:
-        """One injection with truth, driven by the configured drive plus the amplifier's ripple."""
-        cfg = self.cfg
+    def measure(self, nu_n_per_v: float, lh_m: float, f_open_n: float, rng: np.random.Generator,
+                drive: Drive | None = None) -> Measurement:
+        """One injection with truth, driven by the configured drive (or ``drive``: a corrected one) plus
+        the amplifier's ripple."""
+        cfg = self.cfg if drive is None else replace(self.cfg, drive=drive)
         m = cfg.oversample
         # simulate long enough for the plateau stroke and the whole window: the window's current, then
         # held (zero current)

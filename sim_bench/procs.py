@@ -292,9 +292,21 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
+STOP_REQUESTED = threading.Event()   # a stop signal arrived (see :func:`check_stop`)
+
+
+def check_stop() -> None:
+    """Raise the stop a signal asked for, in a loop that waits for a run to end: the signal's own
+    exception can land where Python ignores exceptions (an at-fork handler while a child process
+    starts) and be lost. Call it only where the run is going on, never while unwinding."""
+    if STOP_REQUESTED.is_set():
+        raise KeyboardInterrupt("stop requested")
+
+
 def install_stop_signals() -> None:
     """SIGTERM and SIGHUP unwind the main thread like Ctrl-C, so every ``finally`` stops its children."""
     def raise_interrupt(signum: int, _frame: object) -> None:
+        STOP_REQUESTED.set()
         raise KeyboardInterrupt(f"signal {signum}")
     for sig in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, raise_interrupt)

@@ -15,13 +15,14 @@ end-to-end ``series-lot`` bench run.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from estimator.ident.measurement import Injection
 from estimator.model.chain import MeasurementChain
+from estimator.model.drive import STANDARD_AMPLITUDE_A, StandardDrive
 from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench import series_part
 from sim_bench.plant import Measurement, Plant, PlantConfig
@@ -82,22 +83,39 @@ class Life:
         lh = self.lh_um[self.part_at(k)] + self.wear_um * k / max(n - 1, 1)
         return nu, lh
 
-    def measure(self, k: int, n: int, rng: np.random.Generator) -> tuple[Measurement, dict]:
+    def measure(self, k: int, n: int, rng: np.random.Generator, scale_for: Callable[[float], float] | None = None,
+                preload_n: float | None = None) -> tuple[Measurement, dict]:
         """Injection ``k`` of a life of ``n``: the plant's measurement and the truth. Injections are
-        measured in order (the rail pressure walks from one to the next)."""
+        measured in order (the rail pressure walks from one to the next). ``scale_for``: the plateau
+        current scale of the standard drive at this injection's preload force (a corrected drive;
+        None: the standard drive). ``preload_n``: this preload force (N) instead of the next step of
+        the walk (a caller that drew the walk ahead, :meth:`preload_walk`)."""
         if not self._plants:
             cfg = PlantConfig(window_s=self.window_s, chain=self.chain)
             self._plants = [Plant(cfg, p.params) for p in self.parts]
+        f = self._walk(rng) if preload_n is None else preload_n
+        nu, lh = self.truth(k, n, f)
+        p = self.part_at(k)
+        scale = scale_for(f) if scale_for is not None else 1.0
+        drive = StandardDrive(scale * STANDARD_AMPLITUDE_A) if scale_for is not None else None
+        m = self._plants[p].measure(nu, lh * 1e-6, f, rng, drive)
+        return m, {"k": k, "part": p, "nu_true": nu, "lh_true_um": lh, "beyond": self.beyond[p], "f_open_n": f,
+                   "scale": scale}
+
+    def _walk(self, rng: np.random.Generator) -> float:
+        """The rail pressure's next step (N): a bounded random walk, reflected at idle and full load."""
         lo, hi = PRELOAD_RANGE_N
         if self._preload is None:
             self._preload = float(rng.uniform(lo, hi))
         f = self._preload + float(rng.uniform(-PRELOAD_STEP, PRELOAD_STEP)) * (hi - lo)
-        f = 2 * hi - f if f > hi else (2 * lo - f if f < lo else f)   # reflected at idle and full load
+        f = 2 * hi - f if f > hi else (2 * lo - f if f < lo else f)
         self._preload = f
-        nu, lh = self.truth(k, n, f)
-        p = self.part_at(k)
-        m = self._plants[p].measure(nu, lh * 1e-6, f, rng)
-        return m, {"k": k, "part": p, "nu_true": nu, "lh_true_um": lh, "beyond": self.beyond[p], "f_open_n": f}
+        return f
+
+    def preload_walk(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """The preload forces (N) of ``n`` injections, drawn ahead (an ECU knows its next rail pressure)."""
+        self._preload = None
+        return np.array([self._walk(rng) for _ in range(n)])
 
     def injections(self, n: int, rng: np.random.Generator | None = None,
                    interval_s: float = 1.0) -> Iterator[tuple[Injection, Measurement, dict]]:

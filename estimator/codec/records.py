@@ -177,6 +177,33 @@ class ModelCalibration(Record):
 
 
 @dataclass(frozen=True)
+class DriveCorrection(Record):
+    """One injector's drive correction after an injection (``state``: 0 none, 1 valid, 2 held; see
+    :class:`estimator.ident.drive_correction.Correction`)."""
+
+    injector_id: int
+    counter: int
+    scale: float
+    offset_us: float
+    stroke_um: float
+    sigma_stroke_um: float
+    opening_us: float
+    sigma_opening_us: float
+    scale_per_kn: float
+    offset_per_kn_us: float
+    preload_n: float
+    state: int
+    at_limit: int
+    MESSAGE: ClassVar[str] = "DriveCorrection"
+    OUTPUT: ClassVar[bool] = True
+    SIGNALS: ClassVar[dict[str, str]] = {
+        "injector_id": "InjectorId", "counter": "InjectionCounter", "scale": "Scale", "offset_us": "Offset",
+        "stroke_um": "Stroke", "sigma_stroke_um": "SigmaStroke", "opening_us": "Opening",
+        "sigma_opening_us": "SigmaOpening", "scale_per_kn": "ScalePerKn", "offset_per_kn_us": "OffsetPerKn",
+        "preload_n": "Preload", "state": "State", "at_limit": "AtLimit"}
+
+
+@dataclass(frozen=True)
 class EstimatorStatus(Record):
     """The heartbeat. Fields made with :func:`counter` are the rolling counters (:data:`HEARTBEAT_COUNTERS`),
     which ``ingest.Counters`` keeps under the same names; the others are gauges."""
@@ -287,7 +314,8 @@ class SampleBlock(Record):
 
 #: every message of the contract, by record class
 REGISTRY: tuple[type[Record], ...] = (InjectionHeader, SampleBlock, InjectionTrailer, EstimateState, EstimateQuality,
-                                      ValvePrediction, ModelCalibration, EstimatorStatus, EstimatorHealth, EstimatorCommand,
+                                      ValvePrediction, ModelCalibration, DriveCorrection, EstimatorStatus, EstimatorHealth,
+                                      EstimatorCommand,
                                       SimTruth)
 
 

@@ -837,6 +837,16 @@ class Tracker:
                                   result.status, result.raw.status)
         return result
 
+    def model_simulator(self, injector_id: int, dt_s: float) -> FastSimulator | None:
+        """The simulator ``injector_id`` is estimated with at the sample period ``dt_s`` (s): its own
+        model's once learned or seeded, else the configured one's; None if none is built for it."""
+        pool = self.own_pools.get(injector_id, self.pool)
+        return pool.get(dt_s) if pool.has(dt_s) else None
+
+    def nominal_simulator(self, dt_s: float) -> FastSimulator | None:
+        """The configured parameters' simulator at ``dt_s`` (s), None if none is built for it."""
+        return self.pool.get(dt_s) if self.pool.has(dt_s) else None
+
     def _model_of(self, injector_id: int) -> InjectorParameters | None:
         """The injector's own parameter set, None while it is estimated with the configured one."""
         pool = self.own_pools.get(injector_id)

@@ -3,7 +3,9 @@
 The TOML file's tables are the tree: ``[estimator]`` holds the daemon's keys (checked in
 :meth:`DaemonConfig.__post_init__`), ``[estimator.ident]`` builds :class:`IdentConfig`,
 ``[estimator.tracker]`` :class:`TrackerConfig` (around that IdentConfig) and
-``[estimator.self_calibration]`` :class:`SelfCalConfig` (with ``mode = "off" | "on"``). Sources, later
+``[estimator.self_calibration]`` :class:`SelfCalConfig` (with ``mode = "off" | "on"``) and
+``[estimator.drive_correction]`` :class:`~estimator.ident.drive_correction.DriveTarget` (the same
+``mode``). Sources, later
 ones winning: the defaults, the file, CLI flags, ``$STATE_DIRECTORY`` (for ``state_dir`` only, as
 systemd's ``StateDirectory=`` sets it). A bad value raises :class:`ConfigError` with one line that
 names the table and the key, before the daemon touches the bus. The flat keys of earlier versions
@@ -31,6 +33,7 @@ from estimator.codec.assembler import MAX_SAMPLE_PERIOD_NS
 from estimator.errors import EstimatorError
 from estimator.choices import Switch
 from estimator.ident.config import IdentConfig, TrackerConfig
+from estimator.ident.drive_correction import DriveTarget
 from estimator.ident.selfcal import SelfCalConfig
 from estimator.service.bus import BusSetupError, BusSpec
 from estimator.service.processor import COMMAND_POLICIES
@@ -124,6 +127,7 @@ class DaemonConfig:
     log_level: str = "INFO"
     tracker: TrackerConfig = field(default_factory=TrackerConfig)   # [estimator.tracker], its ident [estimator.ident]
     self_calibration: SelfCalConfig | None = field(default_factory=SelfCalConfig)   # [estimator.self_calibration]; None: mode = "off"
+    drive_correction: DriveTarget | None = field(default_factory=DriveTarget)   # [estimator.drive_correction]; None: mode = "off"
 
     def __post_init__(self) -> None:
         for name, check in _RULES.items():
@@ -135,6 +139,8 @@ class DaemonConfig:
             raise ConfigError(f"tracker = {_show(self.tracker)}: must be a TrackerConfig")
         if self.self_calibration is not None and not isinstance(self.self_calibration, SelfCalConfig):
             raise ConfigError(f"self_calibration = {_show(self.self_calibration)}: must be a SelfCalConfig or None")
+        if self.drive_correction is not None and not isinstance(self.drive_correction, DriveTarget):
+            raise ConfigError(f"drive_correction = {_show(self.drive_correction)}: must be a DriveTarget or None")
         try:
             self.bus_spec()
         except BusSetupError as exc:
@@ -210,6 +216,13 @@ class DaemonConfig:
                               f"{', '.join(repr(w) for w in Switch.words())}")
         settings = build_section(SelfCalConfig, "self_calibration", calibration)   # checked even when off
         values["self_calibration"] = settings if mode == Switch.ON else None
+        correction = dict(sections["drive_correction"])
+        mode = correction.pop("mode", Switch.ON.value)
+        if mode not in Switch.words():
+            raise ConfigError(f"[estimator.drive_correction] mode = {_show(mode)}: must be one of "
+                              f"{', '.join(repr(w) for w in Switch.words())}")
+        target = build_section(DriveTarget, "drive_correction", correction)
+        values["drive_correction"] = target if mode == Switch.ON else None
         if "state_dir" not in values and os.environ.get("STATE_DIRECTORY"):
             values["state_dir"] = os.environ["STATE_DIRECTORY"].split(":")[0]
         for key in ("state_dir", "dbc", "params"):
@@ -277,6 +290,8 @@ def build_section(cls: Any, section: str, table: dict[str, Any]) -> Any:
         f = known[key]
         default = f.default if f.default is not MISSING else (
             f.default_factory() if f.default_factory is not MISSING else None)
+        if default is None and str(f.type).startswith("float"):   # an optional number (unset: a default rule)
+            default = 0.0
         problem = _kind_problem(value, default)
         if problem:
             raise ConfigError(f"[estimator.{section}] {key} = {_show(value)}: {problem}")
@@ -335,8 +350,8 @@ _RULES: dict[str, Callable[[Any], str | None]] = {
     "commands": _choice(*COMMAND_POLICIES),
     "log_level": _choice(*LOG_LEVELS),
 }
-SECTIONS = ("ident", "tracker", "self_calibration")   # the sub-tables, each a dataclass validating its keys
-assert set(_RULES) | {"tracker", "self_calibration"} == {f.name for f in fields(DaemonConfig)}, \
+SECTIONS = ("ident", "tracker", "self_calibration", "drive_correction")   # the sub-tables, each a dataclass validating its keys
+assert set(_RULES) | {"tracker", "self_calibration", "drive_correction"} == {f.name for f in fields(DaemonConfig)}, \
     "every daemon key needs a rule"
 
 

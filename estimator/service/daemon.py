@@ -29,6 +29,7 @@ from estimator.codec.assembler import Completed
 from estimator.codec.frame import Frame
 from estimator.errors import EstimatorError
 from estimator.service.bus import open_bus, resolve, to_frame, to_message
+from estimator.ident.drive_correction import DriveCompensator
 from estimator.ident.tracker import Tracker
 from estimator.pipeline import build_pipeline, build_pool, build_tracker
 from estimator.service.config import ConfigError, DaemonConfig
@@ -367,6 +368,8 @@ class Daemon:
         self.calibrator = reload.calibrator
         self.processor.tracker = tracker
         self.processor.commands = new.commands
+        if new.drive_correction != self.cfg.drive_correction:   # a new target: corrections start again
+            self.processor.compensator = DriveCompensator(new.drive_correction) if new.drive_correction else None
         self.ingest.assembler.timeout_s = new.assembly_timeout_ms * 1e-3
         self.clock.silent_bus_s = new.silent_bus_s
         logging.getLogger().setLevel(new.log_level_number)

@@ -11,12 +11,16 @@ import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
+import numpy as np
+
 from estimator.codec.assembler import Completed, RejectReason, Rejected
 from estimator.codec.ingest import Counters, Event, Malformed
 from estimator.codec.records import (HEARTBEAT_COUNTERS, Codec, Command, EstimateQuality, EstimateState,
-                                     EstimatorCommand, EstimatorHealth, EstimatorStatus, ModelCalibration,
-                                     ValvePrediction)
+                                     DriveCorrection, EstimatorCommand, EstimatorHealth, EstimatorStatus,
+                                     ModelCalibration, ValvePrediction)
 from estimator.errors import ParameterError
+from estimator.ident.coords import UM_PER_M
+from estimator.ident.drive_correction import Correction, DriveCompensator
 from estimator.ident.measurement import Injection
 from estimator.ident.selfcal import CalibrationStatus
 from estimator.ident.status import Learning, Status
@@ -29,14 +33,15 @@ COMMAND_POLICIES = ("off", "reset-only", "all")   # who may steer the estimator 
 
 ROW_FIELDS = ("time_s", "injector_id", "counter", "status", "nu_n_per_v", "lh_um", "sigma_nu_n_per_v", "sigma_lh_um",
               "raw_nu_n_per_v", "raw_lh_um", "t_contact_us", "t_open_us", "stroke_um", "evaluations", "reason",
-              "learning", "out_of_tolerance")
+              "learning", "out_of_tolerance", "drive_scale", "drive_offset_us", "drive_state")
 
 
 def result_row(res: TrackResult, injector_id: int, counter: int, time_s: float,
-               learning: CalibrationStatus | None = None) -> dict:
+               learning: CalibrationStatus | None = None, correction: Correction | None = None) -> dict:
     """One injection as a flat row (``ROW_FIELDS``): filtered and raw estimate, prediction, status, the
     injector's learning state and the parameters its last calibration found out of tolerance
-    (``;``-separated); units in the names; None where there is no value."""
+    (``;``-separated), the drive correction (scale, offset µs, ``valid``/``held``/``none``); units in
+    the names; None where there is no value."""
     f = res.filtered_dict()
     raw = res.raw.to_dict()
     row = {"time_s": round(time_s, 6) if math.isfinite(time_s) else None, "injector_id": injector_id,
@@ -46,7 +51,29 @@ def result_row(res: TrackResult, injector_id: int, counter: int, time_s: float,
         row[k] = f.get(k)
     row["learning"] = str(learning.state) if learning is not None else None
     row["out_of_tolerance"] = ";".join(learning.out_of_tolerance) if learning is not None else None
+    have = correction is not None and correction.valid
+    row["drive_scale"] = round(correction.scale, 5) if have else None
+    row["drive_offset_us"] = round(correction.offset_us, 3) if have else None
+    row["drive_state"] = correction_state(correction) if correction is not None else None
     return row
+
+
+CORRECTION_STATES = ("none", "valid", "held")   # DriveCorrection.State (the DBC's value table)
+
+
+def correction_state(c: Correction) -> str:
+    """``none`` (no ok estimate yet), ``valid`` (from this injection) or ``held`` (the last valid one)."""
+    return "held" if c.held else ("valid" if c.valid else "none")
+
+
+def correction_frame(codec: Codec, injector_id: int, counter: int, c: Correction):
+    """The DriveCorrection frame of one injector's correction (NaN has no wire form: 0 with State none)."""
+    def v(x: float) -> float:
+        return x if math.isfinite(x) else 0.0
+    return codec.encode(DriveCorrection(injector_id, counter, c.scale, c.offset_us, v(c.stroke_um), v(c.sigma_stroke_um),
+                                        v(c.opening_us), v(c.sigma_opening_us), c.scale_per_kn, c.offset_per_kn_us,
+                                        v(c.preload_n), CORRECTION_STATES.index(correction_state(c)),
+                                        int(c.at_limit)))
 
 
 def output_frames(codec: Codec, injector_id: int, counter: int, res: TrackResult) -> list:
@@ -80,14 +107,17 @@ class Published:
     codec: Codec = field(repr=False, compare=False)
     calibrations: tuple[tuple[int, CalibrationStatus], ...] = ()   # self-calibration changes (injector, status)
     learning: CalibrationStatus | None = None   # where this injector's learning stands (None: learning off)
+    correction: Correction | None = None   # the injector's drive correction (None: drive correction off)
 
     @cached_property
     def frames(self) -> list:
         """The output frames (:func:`output_frames`), encoded when first asked for: the daemon and a
         replay with an output log send them; rows (``replay --csv``, the fleet) do not need them
         (≈ 0.2 ms an injection)."""
-        return output_frames(self.codec, self.injector_id, self.counter, self.result) + [
-            calibration_frame(self.codec, i, st) for i, st in self.calibrations]
+        out = output_frames(self.codec, self.injector_id, self.counter, self.result)
+        if self.correction is not None:
+            out.append(correction_frame(self.codec, self.injector_id, self.counter, self.correction))
+        return out + [calibration_frame(self.codec, i, st) for i, st in self.calibrations]
 
     def stale(self, age_s: float) -> Published:
         """This injection published as ``stale`` (it is ``age_s`` s after its last frame: the estimator is
@@ -97,7 +127,7 @@ class Published:
 
     def to_row(self, time_s: float) -> dict:
         """One table row (replay ``--csv``, fleet): see :func:`result_row`."""
-        return result_row(self.result, self.injector_id, self.counter, time_s, self.learning)
+        return result_row(self.result, self.injector_id, self.counter, time_s, self.learning, self.correction)
 
     def to_dict(self) -> dict:
         """JSON-ready line (replay output)."""
@@ -106,19 +136,23 @@ class Published:
                "reason": self.result.reason, "filtered": f, "raw": self.result.raw.to_dict()}
         if self.calibrations:   # self-calibration changes with this injection (ModelCalibration frames)
             out["self_calibration"] = {str(i): st.to_dict() for i, st in self.calibrations}
+        if self.correction is not None:
+            out["drive_correction"] = {**self.correction.to_dict(), "state": correction_state(self.correction)}
         return out
 
 
 class Processor:
     """Runs the tracker on completed injections and builds the estimator's output frames."""
 
-    def __init__(self, codec: Codec, tracker: Tracker, counters: Counters, commands: str = "reset-only") -> None:
+    def __init__(self, codec: Codec, tracker: Tracker, counters: Counters, commands: str = "reset-only",
+                 compensator: DriveCompensator | None = None) -> None:
         if commands not in COMMAND_POLICIES:
             raise ValueError(f"commands = {commands!r} must be one of {', '.join(COMMAND_POLICIES)}")
         self.codec = codec
         self.tracker = tracker
         self.counters = counters
         self.commands = commands
+        self.compensator = compensator      # per-injector drive corrections (None: off)
         self.rlog = RateLimitedLog(log)
         self._logged: dict[int, str] = {}   # the learning state last logged per injector (progress is not logged)
         status = codec.messages[EstimatorStatus]
@@ -177,6 +211,8 @@ class Processor:
             return
         if c.command in (Command.RESET, Command.RELEARN):
             (self.tracker.reset if c.command == Command.RESET else self.tracker.relearn)(c.injector_id)
+            if self.compensator is not None and c.command == Command.RESET:
+                self.compensator.forget(c.injector_id)
             cnt.commands_applied += 1
             self.rlog.log(logging.INFO, f"command-{name}", "injector %d: %s by command", c.injector_id, name)
             return
@@ -196,6 +232,12 @@ class Processor:
         # time of the injection: the bus timestamp of its last frame (the same live and in replay)
         inj = Injection(e.current_a, e.voltage_v, h.sample_period_ns * 1e-9, h.preload_force_n, h.injector_id,
                         h.counter, h.fuel_temperature_c, e.t_last)
+        return self.estimate(inj)
+
+    def estimate(self, inj: Injection, next_preload_n: float | None = None) -> Published:
+        """One injection through the estimator: counted, logged, its learning and drive correction (for
+        ``next_preload_n``, N, the next injection's preload force when the caller knows it, as an ECU
+        does; else this injection's)."""
         res = self.tracker.update(inj)
         # an "unconfirmed" injection is counted when the next one decides (accepted or outlier)
         self.counters.rejected_outlier += res.outliers
@@ -203,7 +245,7 @@ class Processor:
         if res.status == Status.REJECTED and not res.outliers:
             self.counters.reject(RejectReason.INVALID)
             self.rlog.log(logging.WARNING, "reject-estimator", "injector %d counter %d rejected: %s",
-                          h.injector_id, h.counter, res.reason)
+                          inj.injector_id, inj.counter, res.reason)
         changes = tuple(self.tracker.take_calibration_changes()) if self.tracker.calibrator is not None else ()
         for iid, st in changes:
             if st.state != self._logged.get(iid) and st.state in (Learning.ADOPTED, Learning.REFUSED,
@@ -213,8 +255,27 @@ class Processor:
             if st.state == Learning.ADOPTED and st.out_of_tolerance:
                 log.warning("injector %d: out_of_tolerance: %s beyond the part's tolerance", iid,
                             ", ".join(st.out_of_tolerance))
-        return Published(h.injector_id, h.counter, e.t_last, res, self.codec, changes,
-                         self.tracker.calibration.get(h.injector_id))
+        correction = self._correction(inj, res, next_preload_n) if self.compensator is not None else None
+        return Published(inj.injector_id, inj.counter, inj.time_s, res, self.codec, changes,
+                         self.tracker.calibration.get(inj.injector_id), correction)
+
+    def _correction(self, inj: Injection, res: TrackResult, preload_n: float | None = None) -> Correction:
+        """The injector's drive correction after ``res``: from an ``ok`` estimate with the model the
+        injector is estimated with, at ``preload_n`` (default this injection's preload force); else the
+        last one, held."""
+        assert self.compensator is not None
+        iid = inj.injector_id
+        st = self.tracker.states.get(iid)
+        cov = None
+        if st is not None and res.status == Status.OK:
+            p = np.asarray(st.p, dtype=float)[:2, :2]
+            s_nu, s_lh = res.sigma_nu, res.sigma_lh_m * UM_PER_M    # the published σ (it may cover a bias)
+            rho = float(p[0, 1] / math.sqrt(p[0, 0] * p[1, 1])) if p[0, 0] > 0 and p[1, 1] > 0 else 0.0
+            cov = np.array([[s_nu ** 2, rho * s_nu * s_lh], [rho * s_nu * s_lh, s_lh ** 2]])
+        return self.compensator.update(iid, res.status == Status.OK, self.tracker.model_simulator(iid, inj.dt_s),
+                                       res.nu_n_per_v, res.lh_m * UM_PER_M, cov,
+                                       inj.f_open_n if preload_n is None else preload_n,
+                                       self.tracker.nominal_simulator(inj.dt_s), res.rate_n_per_v_s, inj.time_s)
 
     def status_frame(self, queue_depth: int, latency_p99_ms: float, uptime_s: float,
                      stage_p99_ms: dict[str, float] | None = None):

@@ -52,8 +52,8 @@ def test_output_frames_in_the_format_of_the_suffix(tmp_path, messages, suffix):
     out = tmp_path / f"out{suffix}"
     replayed(cap, tmp_path, "--out", str(out))
     frames = list(can.LogReader(str(out)))
-    assert len(frames) == 4 * 3                       # state, quality, prediction per injection
-    assert {f.arbitration_id for f in frames} == {0x200, 0x201, 0x202}
+    assert len(frames) == 4 * 4                       # state, quality, prediction, drive correction per injection
+    assert {f.arbitration_id for f in frames} == {0x200, 0x201, 0x202, 0x204}
 
 
 def test_csv_table_and_unknown_suffixes(tmp_path, messages):

@@ -92,9 +92,9 @@ def test_output_frames_are_encoded_when_asked_for_and_equal_the_eager_encoding()
     encode = codec.encode
     codec.encode = lambda rec: calls.append(rec) or encode(rec)
     frames = pub.frames
-    assert pub.frames is frames and len(calls) == 3   # encoded once, cached
+    assert pub.frames is frames and len(calls) == 4   # encoded once, cached (with the drive correction)
     codec.encode = encode
-    assert [f.data for f in frames] == [f.data for f in output_frames(codec, 2, 7, pub.result)]
-    from estimator.codec.records import EstimateQuality, EstimateState, ValvePrediction
+    assert [f.data for f in frames[:3]] == [f.data for f in output_frames(codec, 2, 7, pub.result)]
+    from estimator.codec.records import DriveCorrection, EstimateQuality, EstimateState, ValvePrediction
     assert [f.arbitration_id for f in frames] == [codec.frame_id(r) for r in (EstimateState, EstimateQuality,
-                                                                             ValvePrediction)]
+                                                                             ValvePrediction, DriveCorrection)]

@@ -103,3 +103,23 @@ def test_scheduler_keeps_absolute_deadlines(codec):
     assert np.all(np.abs(np.delete(late, 4)) < 1e-9), late
     assert 0.014 < late[4] < 0.016
     assert stats.late == 0 and 0.014 < stats.max_lateness_s < 0.016
+
+
+def test_the_node_drives_an_injector_with_its_published_correction(codec):
+    """``--apply-corrections``: a DriveCorrection from the bus scales the injector's plateau current and
+    moves its start of charging; SimTruth reports the stroke and the opening instant that gives."""
+    from estimator.codec.records import DriveCorrection, SimTruth
+
+    sc = scenarios.get("nominal", injectors=2)
+
+    def truth_of(node, injector):
+        return [codec.decode(f) for f in node.frames_for(injector, 0, 0.0) if codec.decode(f).__class__ is SimTruth][0]
+    plain = truth_of(InjectorNode(lambda f: None, sc, 5, codec), 1)
+    node = InjectorNode(lambda f: None, sc, 5, codec)
+    node.take_correction(DriveCorrection(1, 0, 1.2, -10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 28.0, 1, 0))
+    corrected = truth_of(node, 1)
+    assert node.source.applied == 1
+    assert corrected.stroke_um > plain.stroke_um + 2.0                   # 20 % more charge in the 100 µs window
+    assert corrected.opening_us < plain.opening_us - 10.0               # charged 10 µs earlier, and faster
+    node.take_correction(DriveCorrection(1, 0, 1.2, -10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 28.0, 0, 0))   # state none
+    assert truth_of(node, 1).stroke_um == pytest.approx(plain.stroke_um, abs=0.5) and node.source.applied == 1

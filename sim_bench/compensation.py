@@ -1,0 +1,234 @@
+"""Drive compensation bench: a lot of series injectors driven open loop (the standard drive) and
+closed loop (each injection driven with the injector's last published drive correction), with
+learning on (``python -m sim_bench compensation``).
+
+The lot (:mod:`sim_bench.series_life`): parts within the lot's structural spread, idle strokes
+1-8 µm, a warm-up moving N_u, the rail pressure wandering between idle and full load (28-300 N),
+the lot's amplifier chain. Both runs see the same parts, truths and noise; the closed loop applies
+each correction as an amplifier would at the next injection's preload force
+(:meth:`~estimator.ident.drive_correction.Correction.at`: the correction's own first-order
+sensitivity to the preload force). The truth is the plant's: its plateau stroke and its opening
+instant after the standard drive's start of charging (the correction's offset plus the plant's own).
+
+Reported per injector and across the lot: the spread (max - min) and SD of the true opening instant
+and plateau stroke at each injection, before learning (the first injections) and after (the last
+``SETTLED`` of the life), how many injections after the model's adoption the stroke takes to stay on
+target, overshoot, and whether the predicted σ covers the achieved error.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from estimator.ident.drive_correction import Correction, DriveCompensator
+from estimator.ident.measurement import Injection
+from estimator.ident.status import Learning, Status
+from estimator.service.config import DaemonConfig
+from sim_bench.series_life import LotSpec, draw_lot
+
+INJECTORS = 8
+INJECTIONS = 150           # per injector
+SETTLED = 60               # the last injections of the life, where learning is over
+SETTLE_UM = 0.15           # |stroke - target| within this (half the lot spread target), or within 2σ of the
+                           # predicted stroke, counts as on target
+Z_RMS = (0.5, 1.5)        # RMS(error/σ) of the predicted stroke
+TARGETS: dict[str, float] = {"opening_spread_us": 1.0, "stroke_spread_um": 0.3, "settle_injections": 10}
+
+
+@dataclass
+class Run:
+    """One loop's per-injection record, arrays of shape (injectors, injections)."""
+
+    stroke_um: np.ndarray
+    opening_us: np.ndarray
+    predicted_stroke_um: np.ndarray
+    sigma_stroke_um: np.ndarray
+    predicted_opening_us: np.ndarray
+    sigma_opening_us: np.ndarray
+    applied: np.ndarray           # a valid correction drove this injection
+    adopted_at: list[int | None]  # injection at which each injector's own model was adopted
+
+
+def run_loop(closed: bool, seed: int, injectors: int = INJECTORS, injections: int = INJECTIONS,
+             ecu: bool = True) -> Run:
+    """The lot through ``injections`` injections each, with learning on; ``closed``: drive each
+    injection with the injector's last correction, computed for that injection's preload force
+    (``ecu``: as an ECU that knows its next rail pressure asks for it) or carried there by the
+    correction's own sensitivity (as an amplifier on the bus applies it)."""
+    from estimator.pipeline import build_pipeline
+
+    lives = draw_lot(injectors, seed, LotSpec())
+    _, _, processor, _ = build_pipeline(DaemonConfig())
+    compensator = processor.compensator
+    assert compensator is not None    # on by default
+    shape = (injectors, injections)
+    nan = np.full(shape, np.nan)
+    out = Run(nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy(), np.zeros(shape, bool),
+              [None] * injectors)
+    rngs = [np.random.default_rng(life.seed) for life in lives]
+    walks = [life.preload_walk(injections + 1, np.random.default_rng(life.seed + 1)) for life in lives]
+    last: dict[int, Correction] = {}
+    for k in range(injections):
+        for i, life in enumerate(lives):
+            corr = last.get(i, Correction())
+            use = closed and corr.valid
+            applied: dict[str, float] = {}
+
+            def scale_for(f: float, corr: Correction = corr, applied: dict[str, float] = applied) -> float:
+                scale, offset = corr.at(f, compensator.target)
+                applied.update(scale=scale, offset=offset)
+                return scale
+            m, truth = life.measure(k, injections, rngs[i], scale_for if use else None, walks[i][k])
+            inj = Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n, i, k % 256, float("nan"), float(k))
+            pub = processor.estimate(inj, walks[i][k + 1] if ecu else None)
+            offset = applied.get("offset", 0.0)
+            out.stroke_um[i, k] = m.stroke_m * 1e6
+            out.opening_us[i, k] = offset + m.t_open_s * 1e6
+            out.applied[i, k] = use
+            if use:
+                out.predicted_stroke_um[i, k] = corr.stroke_um
+                out.sigma_stroke_um[i, k] = corr.sigma_stroke_um
+                out.predicted_opening_us[i, k] = corr.opening_us
+                out.sigma_opening_us[i, k] = corr.sigma_opening_us
+            last[i] = pub.correction or Correction()
+            st = processor.tracker.calibration.get(i)
+            if out.adopted_at[i] is None and st is not None and st.state in (Learning.ADOPTED, Learning.MONITORING):
+                out.adopted_at[i] = k
+            if pub.result.status == Status.OK and out.adopted_at[i] is None and st is not None \
+                    and st.state == Learning.IDLE and k > 5:
+                out.adopted_at[i] = k     # the configured model explains it: nothing to learn
+    return out
+
+
+def spread(values: np.ndarray) -> np.ndarray:
+    """Max - min over the lot at each injection (NaN where an injector has no value)."""
+    return np.nanmax(values, axis=0) - np.nanmin(values, axis=0)
+
+
+def summarise(run: Run, target_stroke: float) -> dict:
+    """The lot's figures of one run."""
+    n = run.stroke_um.shape[1]
+    early, late = slice(0, 10), slice(n - SETTLED, n)
+    out = {
+        "stroke_spread_um": {"first10_median": float(np.median(spread(run.stroke_um)[early])),
+                             "settled_median": float(np.median(spread(run.stroke_um)[late])),
+                             "settled_p95": float(np.percentile(spread(run.stroke_um)[late], 95))},
+        "opening_spread_us": {"first10_median": float(np.median(spread(run.opening_us)[early])),
+                              "settled_median": float(np.median(spread(run.opening_us)[late])),
+                              "settled_p95": float(np.percentile(spread(run.opening_us)[late], 95))},
+        "stroke_sd_um_settled": float(np.median(np.std(run.stroke_um[:, late], axis=0))),
+        "opening_sd_us_settled": float(np.median(np.std(run.opening_us[:, late], axis=0))),
+    }
+    per = []
+    for i in range(run.stroke_um.shape[0]):
+        err = run.stroke_um[i] - target_stroke
+        adopted = run.adopted_at[i]
+        settle = None
+        overshoot = 0
+        if adopted is not None:
+            ok = np.abs(err) <= np.maximum(SETTLE_UM, 2 * np.nan_to_num(run.sigma_stroke_um[i]))
+            for k in range(adopted, n):
+                if ok[k:].mean() >= 0.95 and ok[k]:
+                    settle = k - adopted
+                    break
+            if settle is not None:
+                s = run.sigma_stroke_um[i, adopted + settle:]
+                e = err[adopted + settle:]
+                overshoot = int(np.sum(np.abs(e) > 2 * s + SETTLE_UM))
+        z_s = (run.stroke_um[i] - run.predicted_stroke_um[i]) / run.sigma_stroke_um[i]
+        z_s = z_s[late][np.isfinite(z_s[late])]
+        per.append({"injector": i, "adopted_at": adopted, "settle_injections": settle, "overshoots": overshoot,
+                    "stroke_err_um_settled_max": float(np.max(np.abs(err[late]))),
+                    "z_rms_stroke": float(np.sqrt(np.mean(z_s ** 2))) if z_s.size else None})
+    out["injectors"] = per
+    return out
+
+
+def run(seed: int = 1, injectors: int = INJECTORS, injections: int = INJECTIONS) -> dict:
+    """Open and closed loop on the same lot; the report."""
+    from estimator.ident.simulators import SimulatorPool
+
+    target = DriveCompensator().target_at(SimulatorPool().get(0.5e-6))
+    open_run = run_loop(False, seed, injectors, injections)
+    closed_run = run_loop(True, seed, injectors, injections)
+    bus_run = run_loop(True, seed, injectors, injections, ecu=False)
+    rep = {"benchmark": "compensation", "seed": seed, "injectors": injectors, "injections": injections,
+           "target_stroke_um": target[0], "target_opening_us": target[1],
+           "open": summarise(open_run, target[0]), "closed": summarise(closed_run, target[0]),
+           "closed_bus": summarise(bus_run, target[0]),
+           "targets": {**TARGETS, "z_rms": list(Z_RMS)}}
+    rep["series"] = {name: {"stroke_um": r.stroke_um.round(4).tolist(), "opening_us": r.opening_us.round(3).tolist()}
+                     for name, r in (("open", open_run), ("closed", closed_run))}
+    rep["failures"] = failures(rep)
+    return rep
+
+
+def failures(rep: dict) -> list[str]:
+    """What makes the bench exit 1."""
+    c = rep["closed"]
+    out = []
+    if c["opening_spread_us"]["settled_median"] > TARGETS["opening_spread_us"]:
+        out.append(f"opening spread {c['opening_spread_us']['settled_median']:.2f} µs")
+    if c["stroke_spread_um"]["settled_median"] > TARGETS["stroke_spread_um"]:
+        out.append(f"stroke spread {c['stroke_spread_um']['settled_median']:.3f} µm")
+    for p in c["injectors"]:
+        if p["settle_injections"] is None or p["settle_injections"] > TARGETS["settle_injections"]:
+            out.append(f"injector {p['injector']} settled after {p['settle_injections']} injections")
+        if p["overshoots"]:
+            out.append(f"injector {p['injector']}: {p['overshoots']} overshoots beyond 2σ")
+        z = p["z_rms_stroke"]
+        lo, hi = Z_RMS
+        if z is None or not (lo <= z <= hi):
+            out.append(f"injector {p['injector']}: RMS(error/σ) of the stroke {z}")
+    return out
+
+
+def format_report(rep: dict) -> str:
+    """The table."""
+    lines = [f"drive compensation, lot of {rep['injectors']} series injectors (seed {rep['seed']}), "
+             f"{rep['injections']} injections each, learning on; target stroke {rep['target_stroke_um']:.3f} µm, "
+             f"opening {rep['target_opening_us']:.2f} µs",
+             f"{'':<10} {'stroke spread µm (median, p95)':>32} {'opening spread µs':>34}",
+             f"{'loop':<10} {'first 10':>8} {'settled':>10} {'p95':>12} {'first 10':>10} {'settled':>10} {'p95':>12}"]
+    for name in ("open", "closed", "closed_bus"):
+        r = rep[name]
+        s, o = r["stroke_spread_um"], r["opening_spread_us"]
+        lines.append(f"{name:<10} {s['first10_median']:>8.3f} {s['settled_median']:>10.3f} {s['settled_p95']:>12.3f} "
+                     f"{o['first10_median']:>10.2f} {o['settled_median']:>10.2f} {o['settled_p95']:>12.2f}")
+    lines.append("closed: each correction computed for the next injection's preload force (an ECU); closed_bus: "
+                 "carried there by its per-kN sensitivity (an amplifier on the bus)")
+    lines.append("closed loop per injector: adopted at / settled after / overshoots / max |stroke error| settled / "
+                 "RMS(error/σ)")
+    for p in rep["closed"]["injectors"]:
+        z = p["z_rms_stroke"]
+        lines.append(f"  injector {p['injector']}: {p['adopted_at']} / {p['settle_injections']} / {p['overshoots']} / "
+                     f"{p['stroke_err_um_settled_max']:.3f} µm / {'-' if z is None else f'{z:.2f}'}")
+    lines.append("PASS" if not rep["failures"] else "FAIL: " + "; ".join(rep["failures"]))
+    return "\n".join(lines)
+
+
+def figure(rep: dict, path) -> None:
+    """True stroke and opening instant of every injector, open and closed loop, against the target."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 2, figsize=(11, 6.5), sharex=True)
+    for col, name in enumerate(("open", "closed")):
+        s = np.array(rep["series"][name]["stroke_um"])
+        o = np.array(rep["series"][name]["opening_us"])
+        for i in range(s.shape[0]):
+            axes[0, col].plot(s[i], lw=0.8)
+            axes[1, col].plot(o[i], lw=0.8)
+        axes[0, col].axhline(rep["target_stroke_um"], color="k", ls="--", lw=0.8)
+        axes[1, col].axhline(rep["target_opening_us"], color="k", ls="--", lw=0.8)
+        axes[0, col].set_title(f"{name} loop")
+        axes[1, col].set_xlabel("injection")
+    axes[0, 0].set_ylabel("true plateau stroke (µm)")
+    axes[1, 0].set_ylabel("true opening instant (µs)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+

@@ -1,0 +1,128 @@
+"""Drive corrections (estimator.ident.drive_correction): the target reached on the model, held
+without an ok estimate, carried to another preload force, kept within the limits."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from estimator.ident.drive_correction import Correction, DriveCompensator, DriveTarget, respond
+from estimator.ident.simulators import SimulatorPool
+
+COV = np.diag([0.01 ** 2, 0.05 ** 2])   # (N/V)², µm²
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return SimulatorPool().get(0.5e-6)
+
+
+@pytest.mark.parametrize("lh_um", [1.0, 5.0, 8.0])
+@pytest.mark.parametrize("preload_n", [28.0, 160.0, 290.0])
+def test_the_corrected_drive_opens_the_valve_as_the_nominal_injector_does(sim, lh_um, preload_n):
+    comp = DriveCompensator()
+    target_stroke, target_opening = comp.target_at(sim)
+    c = comp.update(0, True, sim, 16.0, lh_um, COV, preload_n, sim)
+    stroke, opening = respond(sim, c.scale, 16.0, lh_um, preload_n)
+    assert c.valid and not c.held and not c.at_limit
+    assert abs(stroke - target_stroke) < 0.01 and abs(c.offset_us + opening - target_opening) < 0.2
+    assert abs(c.stroke_um - stroke) < 0.01 and abs(c.opening_us - (c.offset_us + opening)) < 0.2
+    # the nominal injector itself needs no correction
+    if lh_um == 1.0 and preload_n == 28.0:
+        c0 = DriveCompensator().update(1, True, sim, 16.4, 3.0, COV, 28.0, sim)
+        assert abs(c0.scale - 1.0) < 1e-4 and abs(c0.offset_us) < 0.01
+
+
+def test_sigma_follows_the_estimate_covariance(sim):
+    comp = DriveCompensator()
+    small = comp.update(0, True, sim, 16.0, 5.0, COV / 4, 100.0, sim)
+    comp.forget(0)
+    large = comp.update(0, True, sim, 16.0, 5.0, COV, 100.0, sim)
+    assert large.sigma_stroke_um == pytest.approx(2 * small.sigma_stroke_um, rel=0.02)
+    # the stroke moves about one to one with L_h
+    assert 0.04 < large.sigma_stroke_um < 0.07
+
+
+def test_without_an_ok_estimate_the_last_correction_is_held(sim):
+    comp = DriveCompensator()
+    none = comp.update(3, False, sim, 16.0, 5.0, COV, 100.0, sim)
+    assert not none.valid and not none.held and none.at(100.0) == (1.0, 0.0)   # the standard drive
+    good = comp.update(3, True, sim, 16.0, 5.0, COV, 100.0, sim)
+    held = comp.update(3, False, sim, 16.0, 7.5, COV, 100.0, sim)              # a mismatched estimate
+    assert held.held and held.valid and (held.scale, held.offset_us) == (good.scale, good.offset_us)
+    again = comp.update(3, True, sim, 16.0, 7.5, COV, 100.0, sim)
+    assert again.valid and not again.held and again.scale > good.scale        # more idle stroke, more current
+    comp.forget(3)
+    assert not comp.last(3).valid
+
+
+def test_a_correction_is_carried_to_another_preload_force_by_its_sensitivity(sim):
+    comp = DriveCompensator()
+    target_stroke, _ = comp.target_at(sim)
+    c = comp.update(0, True, sim, 16.0, 5.0, COV, 150.0, sim)
+    scale, _ = c.at(180.0)
+    stroke, _ = respond(sim, scale, 16.0, 5.0, 180.0)
+    uncorrected, _ = respond(sim, c.scale, 16.0, 5.0, 180.0)
+    assert abs(stroke - target_stroke) < 0.05 < abs(uncorrected - target_stroke)
+
+
+def test_the_limits_hold_and_say_so(sim):
+    comp = DriveCompensator(DriveTarget(scale_limits=(0.9, 1.1)))
+    c = comp.update(0, True, sim, 16.0, 9.0, COV, 28.0, sim)
+    assert c.at_limit and c.scale == pytest.approx(1.1) and c.stroke_um < c.target_stroke_um - 1.0
+    assert c.at(300.0, comp.target)[0] <= 1.1
+
+
+def test_a_configured_target_and_absurd_ones():
+    sim = SimulatorPool().get(0.5e-6)
+    c = DriveCompensator(DriveTarget(stroke_um=20.0, opening_us=45.0)).update(0, True, sim, 16.0, 4.0, COV, 60.0, sim)
+    stroke, opening = respond(sim, c.scale, 16.0, 4.0, 60.0)
+    assert abs(stroke - 20.0) < 0.01 and abs(c.offset_us + opening - 45.0) < 0.2
+    for bad in ({"scale_limits": (1.2, 0.8)}, {"offset_limits_us": (5.0, -5.0)}, {"stroke_um": -1.0},
+                {"opening_us": math.nan}):
+        with pytest.raises(ValueError):
+            DriveTarget(**bad)
+
+
+def test_to_dict_has_no_nan():
+    d = Correction().to_dict()
+    assert d["stroke_um"] is None and d["scale"] == 1.0 and d["valid"] is False
+
+
+def test_a_swapped_part_holds_its_correction_until_it_is_learned_again():
+    """A series injector whose part is swapped at injection 45: the correction comes only from ok
+    estimates (never from a mismatched one), is held through the swap and derived again for the new
+    part once it is learned, and then drives the new part's valve to the target."""
+    from estimator.ident.measurement import Injection
+    from estimator.ident.status import Status
+    from estimator.pipeline import build_pipeline
+    from estimator.service.config import DaemonConfig
+    from sim_bench.series_life import LotSpec, draw_lot
+
+    life = draw_lot(2, 2, LotSpec(swap_at=45, swapped=(1,)))[1]
+    assert abs(life.lh_um[0] - life.lh_um[1]) > 2.0            # the new part needs another drive
+    _, _, processor, _ = build_pipeline(DaemonConfig())
+    rng, walk = np.random.default_rng(life.seed), life.preload_walk(111, np.random.default_rng(life.seed + 1))
+    target_stroke, _ = processor.compensator.target_at(SimulatorPool().get(0.5e-6))
+    rows, last = [], None
+    for k in range(110):
+        scale_for = (lambda f, c=last: c.at(f)[0]) if last is not None and last.valid else None
+        m, truth = life.measure(k, 110, rng, scale_for, walk[k])
+        pub = processor.estimate(Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n, 1, k, math.nan, float(k)),
+                                 walk[k + 1])
+        c = pub.correction
+        rows.append((k, pub.result.status, c.valid, c.held, c.scale, m.stroke_m * 1e6))
+        last = c
+        if pub.result.status != Status.OK:
+            assert c.held or not c.valid, f"injection {k}: a correction from a {pub.result.status} estimate"
+    before = [r for r in rows if 30 <= r[0] < 45 and r[2] and not r[3]]
+    assert before, "no correction for the first part"
+    scale_before = before[-1][4]
+    after = [r for r in rows if r[0] >= 45 and r[2] and not r[3]]
+    held = [r for r in rows if 45 <= r[0] < after[0][0]] if after else []
+    assert held and all(r[3] and r[4] == scale_before for r in held)   # held at the old part's correction
+    assert after and abs(after[-1][4] - scale_before) > 0.01   # derived again for the new part
+    settled = [r[5] for r in rows[-15:]]
+    assert max(abs(s - target_stroke) for s in settled) < 0.3
