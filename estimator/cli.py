@@ -121,8 +121,11 @@ def cmd_track(args: argparse.Namespace) -> int:
 
     from estimator.ident.selfcal import SelfCalConfig
 
+    from estimator.ident.drive_correction import DriveCompensator, correction_after
+
     selfcal = SelfCalConfig() if args.self_calibrate else None
     tracker = Tracker(TrackerConfig(ident=_config(args)), pool=SimulatorPool(_params(args)), self_calibration=selfcal)
+    compensator = DriveCompensator()
     nan = float("nan")
     bad = 0
     for path in args.traces:
@@ -143,6 +146,8 @@ def cmd_track(args: argparse.Namespace) -> int:
         if selfcal is not None:
             status = tracker.calibration.get(inj.injector_id) if inj is not None else None
             out["self_calibration"] = status.to_dict() if status is not None else None
+        if inj is not None:   # the drive that makes this injector's valve open as the nominal one does
+            out["drive_correction"] = correction_after(compensator, tracker, inj, res).to_dict()
         print(json.dumps(out), flush=True)
     if bad:
         print(f"error: {bad} of {len(args.traces)} file(s) could not be read (see their lines)", file=sys.stderr)

@@ -159,6 +159,11 @@ def summarise(rows: list[dict]) -> list[dict]:
                     "raw_lh_um_median": float(np.median([r["raw_lh_um"] for r in ok if r.get("raw_lh_um") is not None]))
                     if ok else None,
                     "learning": rs[-1].get("learning"), "last_status": rs[-1].get("status"),
+                    # the electronic trim: the drive correction the part needs (its last valid one)
+                    "drive_scale": next((r["drive_scale"] for r in reversed(rs) if r.get("drive_scale") is not None),
+                                        None),
+                    "drive_offset_us": next((r["drive_offset_us"] for r in reversed(rs)
+                                             if r.get("drive_offset_us") is not None), None),
                     "out_of_tolerance": next((r["out_of_tolerance"] for r in reversed(rs) if r.get("out_of_tolerance")),
                                              "")})
     for name in ("lh_um", "nu_n_per_v"):
@@ -199,7 +204,9 @@ def write(res: FleetResult, out: Path) -> list[Path]:
 
 
 def format_report(res: FleetResult) -> str:
-    """The lot in the style of the paper's Table 3: L_h and N_u per injector, with the lot statistics."""
+    """The lot in the style of the paper's Table 3: L_h and N_u per injector, with the lot statistics,
+    and the drive trim each part needs (current scale, start-of-charge offset µs: the last valid
+    drive correction)."""
     import numpy as np
 
     est = [s for s in res.summary if s["lh_um"] is not None]
@@ -209,14 +216,16 @@ def format_report(res: FleetResult) -> str:
     if res.missing:
         lines.append(f"matched nothing: {', '.join(res.missing)}")
     lines.append(f"  {'injector':<40} {'id':>2} {'n':>5} {'N_u [N/V]':>10} {'L_h [µm]':>9} {'σ(L_h)':>7} {'mism':>5} "
-                 f"{'learning':<11} flag")
+                 f"{'learning':<11} {'trim':>7} {'[µs]':>7} flag")
     for s in res.summary:
         nu = f"{s['nu_n_per_v']:.4f}" if s["nu_n_per_v"] is not None else "-"
         lh = f"{s['lh_um']:.3f}" if s["lh_um"] is not None else "-"
         sg = f"{s['sigma_lh_um']:.3f}" if s["sigma_lh_um"] is not None else "-"
+        trim = f"{s['drive_scale']:.4f}" if s.get("drive_scale") is not None else "-"
+        shift = f"{s['drive_offset_us']:+.2f}" if s.get("drive_offset_us") is not None else "-"
         lines.append(f"  {str(s['injector'])[-40:]:<40} {s['injector_id'] if s['injector_id'] is not None else '-':>2} "
                      f"{s['injections']:>5} {nu:>10} {lh:>9} {sg:>7} {s.get('model_mismatch', 0):>5} "
-                     f"{s.get('learning') or '-':<11} {s['outlier']}"
+                     f"{s.get('learning') or '-':<11} {trim:>7} {shift:>7} {s['outlier']}"
                      + (f" out_of_tolerance: {s['out_of_tolerance']}" if s.get("out_of_tolerance") else ""))
     if est:
         lh = np.array([s["lh_um"] for s in est])

@@ -32,6 +32,9 @@ from estimator.errors import EstimatorError
 from estimator.ident.coords import UM_PER_M
 from estimator.model.drive import STANDARD_AMPLITUDE_A, StandardDrive
 from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
+from estimator.ident.measurement import Injection
+from estimator.ident.status import Status
+from estimator.ident.tracker import Tracker, TrackResult
 from estimator.model.parameters import NOMINAL_PRELOAD_N
 
 US_PER_S = 1e6
@@ -288,3 +291,23 @@ class DriveCompensator:
         return Correction(scale, offset, stroke, offset + opening, math.sqrt(max(float(js @ cov @ js), 0.0)),
                                math.sqrt(max(float(jo @ cov @ jo), 0.0)), target_stroke, target_opening,
                                ds_df * N_PER_KN, do_df * N_PER_KN, f_open_n, True, False, at_limit)
+
+
+def correction_after(compensator: DriveCompensator, tracker: Tracker, inj: Injection, res: TrackResult,
+                     preload_n: float | None = None) -> Correction:
+    """The injector's drive correction after the tracker's result ``res`` for ``inj``: from an ``ok``
+    estimate with the model the injector is estimated with, at ``preload_n`` (N; default this
+    injection's preload force), its covariance the published σ (which may cover a bias) with the
+    filter's correlation; otherwise the last one, held."""
+    iid = inj.injector_id
+    st = tracker.states.get(iid)
+    ok = res.status == Status.OK
+    cov = None
+    if st is not None and ok:
+        p = np.asarray(st.p, dtype=float)[:2, :2]
+        s_nu, s_lh = res.sigma_nu, res.sigma_lh_m * UM_PER_M
+        rho = float(p[0, 1] / math.sqrt(p[0, 0] * p[1, 1])) if p[0, 0] > 0 and p[1, 1] > 0 else 0.0
+        cov = np.array([[s_nu ** 2, rho * s_nu * s_lh], [rho * s_nu * s_lh, s_lh ** 2]])
+    return compensator.update(iid, ok, tracker.model_simulator(iid, inj.dt_s), res.nu_n_per_v, res.lh_m * UM_PER_M,
+                              cov, inj.f_open_n if preload_n is None else preload_n,
+                              tracker.nominal_simulator(inj.dt_s), res.rate_n_per_v_s, inj.time_s)

@@ -11,7 +11,6 @@ import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
-import numpy as np
 
 from estimator.codec.assembler import Completed, RejectReason, Rejected
 from estimator.codec.ingest import Counters, Event, Malformed
@@ -19,8 +18,7 @@ from estimator.codec.records import (HEARTBEAT_COUNTERS, Codec, Command, Estimat
                                      DriveCorrection, EstimatorCommand, EstimatorHealth, EstimatorStatus,
                                      ModelCalibration, ValvePrediction)
 from estimator.errors import ParameterError
-from estimator.ident.coords import UM_PER_M
-from estimator.ident.drive_correction import Correction, DriveCompensator
+from estimator.ident.drive_correction import Correction, DriveCompensator, correction_after
 from estimator.ident.measurement import Injection
 from estimator.ident.selfcal import CalibrationStatus
 from estimator.ident.status import Learning, Status
@@ -260,22 +258,8 @@ class Processor:
                          self.tracker.calibration.get(inj.injector_id), correction)
 
     def _correction(self, inj: Injection, res: TrackResult, preload_n: float | None = None) -> Correction:
-        """The injector's drive correction after ``res``: from an ``ok`` estimate with the model the
-        injector is estimated with, at ``preload_n`` (default this injection's preload force); else the
-        last one, held."""
         assert self.compensator is not None
-        iid = inj.injector_id
-        st = self.tracker.states.get(iid)
-        cov = None
-        if st is not None and res.status == Status.OK:
-            p = np.asarray(st.p, dtype=float)[:2, :2]
-            s_nu, s_lh = res.sigma_nu, res.sigma_lh_m * UM_PER_M    # the published σ (it may cover a bias)
-            rho = float(p[0, 1] / math.sqrt(p[0, 0] * p[1, 1])) if p[0, 0] > 0 and p[1, 1] > 0 else 0.0
-            cov = np.array([[s_nu ** 2, rho * s_nu * s_lh], [rho * s_nu * s_lh, s_lh ** 2]])
-        return self.compensator.update(iid, res.status == Status.OK, self.tracker.model_simulator(iid, inj.dt_s),
-                                       res.nu_n_per_v, res.lh_m * UM_PER_M, cov,
-                                       inj.f_open_n if preload_n is None else preload_n,
-                                       self.tracker.nominal_simulator(inj.dt_s), res.rate_n_per_v_s, inj.time_s)
+        return correction_after(self.compensator, self.tracker, inj, res, preload_n)
 
     def status_frame(self, queue_depth: int, latency_p99_ms: float, uptime_s: float,
                      stage_p99_ms: dict[str, float] | None = None):

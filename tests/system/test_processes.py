@@ -130,3 +130,23 @@ def test_bench_three_processes_converge_and_stop_cleanly(tmp_path):
     assert s["daemon_exit"] == 0 and s["daemon_stop_s"] < 2.0
     assert s["node"]["injections"] >= 4 * 30 and s["accepted"] >= 4 * 30
     assert (out / "capture.log").stat().st_size > 0
+
+
+def test_the_node_closes_the_loop_with_the_daemons_corrections(hub, monitor, tmp_path):
+    """``sim_bench node --apply-corrections`` on the hub beside the daemon: the daemon publishes a
+    DriveCorrection with each estimate, the node drives its next injections with them."""
+    from estimator.codec.records import DriveCorrection
+
+    d = start_daemon(hub, monitor, tmp_path / "state", tmp_path)
+    try:
+        r = subprocess.run([sys.executable, "-m", "sim_bench", "node", "--bus", hub.spec, "--scenario", "nominal",
+                            "--injectors", "1", "--rate", "20", "--count", "30", "--apply-corrections"],
+                           cwd=REPO, capture_output=True, text=True, timeout=240)
+        assert r.returncode == 0, r.stderr
+        summary = json.loads(r.stdout.strip().splitlines()[-1])
+        corrections = monitor.of_type(DriveCorrection)
+        assert corrections and any(c.state == 1 for c in corrections)   # valid ones, from ok estimates
+        # the node applied a correction to most of its injections after the first estimates came back
+        assert summary["node"]["corrections_applied"] >= 15, summary
+    finally:
+        assert d.stop() == 0
