@@ -474,31 +474,27 @@ def _attack_line(r: dict) -> str:
             f"memory +{r['rss_growth_mb']:.0f} MB; exit {r['daemon_exit']}")
 
 
+_LINES = {   # what each fault's row says, after the fault
+    "periods": lambda p: (f"published {p['published']}/{p['injections']}, RSS {p['rss_first_mb']:.0f} -> "
+                          f"{p['rss_max_mb']:.0f} MB (+{p['rss_growth_mb']:.1f}), heartbeat gap max "
+                          f"{p['heartbeat_max_gap_s']:.2f} s, exit {p['daemon_exit']}"),
+    "stall": lambda s: (f"live accepted {s['live_accepted']}/{s['injections']} (timeouts {s['live_timeouts']}), "
+                        f"replay accepted {s['replay_accepted']}, exit {s['daemon_exit']}"),
+    "flood": lambda f: (f"malformed {f['malformed']}, unknown commands {f['unknown_commands']}, good after: "
+                        f"{f['good_estimated']}/{f['good_after']}, RSS {f['rss_mb']:.0f} MB, exit {f['daemon_exit']}"),
+    "poisoned-state": lambda st: (f"published {st['published']}/{st['estimates']}, good entry kept "
+                                  f"{st['restored_good']}, original kept {st['kept_copy']}, exit {st['daemon_exit']}"),
+    "commands": lambda c: f"refused {c['refused']}, unknown {c['unknown']}, exit {c['daemon_exit']}",
+}
+
+
 def format_report(rep: dict) -> str:
     """One line per fault: what was sent, what the daemon did, what was lost."""
     lines = [f"reliability on {rep['bus']}"]
     rows = rep["rows"]
-    if "periods" in rows:
-        p = rows["periods"]
-        lines.append(f"  {p['fault']:<58} published {p['published']}/{p['injections']}, RSS {p['rss_first_mb']:.0f} -> "
-                     f"{p['rss_max_mb']:.0f} MB (+{p['rss_growth_mb']:.1f}), heartbeat gap max "
-                     f"{p['heartbeat_max_gap_s']:.2f} s, exit {p['daemon_exit']}")
-    if "stall" in rows:
-        s = rows["stall"]
-        lines.append(f"  {s['fault']:<58} live accepted {s['live_accepted']}/{s['injections']} (timeouts "
-                     f"{s['live_timeouts']}), replay accepted {s['replay_accepted']}, exit {s['daemon_exit']}")
-    if "flood" in rows:
-        f = rows["flood"]
-        lines.append(f"  {f['fault']:<58} malformed {f['malformed']}, unknown commands {f['unknown_commands']}, "
-                     f"good after: {f['good_estimated']}/{f['good_after']}, RSS {f['rss_mb']:.0f} MB, "
-                     f"exit {f['daemon_exit']}")
-    if "poisoned-state" in rows:
-        st = rows["poisoned-state"]
-        lines.append(f"  {st['fault']:<58} published {st['published']}/{st['estimates']}, good entry kept "
-                     f"{st['restored_good']}, original kept {st['kept_copy']}, exit {st['daemon_exit']}")
-    if "commands" in rows:
-        c = rows["commands"]
-        lines.append(f"  {c['fault']:<58} refused {c['refused']}, unknown {c['unknown']}, exit {c['daemon_exit']}")
+    for name, line in _LINES.items():
+        if name in rows:
+            lines.append(f"  {rows[name]['fault']:<58} {line(rows[name])}")
     for h in rows.get("state-dir", {}).get("hazards", []):
         ready = f"READY in {h['ready_s']:.1f} s" if h["ready_s"] is not None else "never READY"
         extra = (f", second daemon exit {h['second_exit']} in {h['second_s']:.1f} s ('{h['second_line'][:70]}')"
