@@ -165,9 +165,12 @@ def cmd_speed(args: argparse.Namespace) -> int:
     from sim_bench import ident_bench
 
     rep = ident_bench.speed(args.seed, args.injections, drive=_drive(args))
+    rep["targets_ms"] = ident_bench.SPEED_TARGETS_MS
+    rep["failures"] = ident_bench.speed_failures(rep)
     print(ident_bench.format_speed(rep))
+    print("PASS" if not rep["failures"] else "FAIL: " + "; ".join(rep["failures"]))
     _write_json(args.json_out, rep)
-    return 0
+    return 1 if rep["failures"] else 0
 
 
 def cmd_calibration_traces(args: argparse.Namespace) -> int:

@@ -300,6 +300,18 @@ def speed(seed: int = 4, injections: int = 300, drive: Drive | None = None) -> d
             "injections_per_s": (injections - 1) / total}
 
 
+#: what ``speed`` must reach (ms): the warm update's median, the drive correction's addition to it, the
+#: cold start's median
+SPEED_TARGETS_MS = {"warm_median_ms": 0.3, "correction_added_ms": 0.1, "cold_median_ms": 2.0}
+
+
+def speed_failures(rep: dict) -> list[str]:
+    """The speed targets missed (:data:`SPEED_TARGETS_MS`)."""
+    got = {"warm_median_ms": rep["warm_median_ms"], "cold_median_ms": rep["cold_median_ms"],
+           "correction_added_ms": rep["warm_with_correction_median_ms"] - rep["warm_median_ms"]}
+    return [f"{k} {got[k]:.3f} > {limit}" for k, limit in SPEED_TARGETS_MS.items() if not got[k] <= limit]
+
+
 def format_speed(rep: dict) -> str:
     """The speed report as a table."""
     return "\n".join([

@@ -191,6 +191,13 @@ class DriveCompensator:
         self._injectors: dict[int, _Injector] = {}
         self._targets: dict[int, tuple[float, float]] = {}
 
+    def warm_up(self, nominal: FastSimulator) -> None:
+        """The target and one correction on a throw-away injector, so the first real one is not slow
+        (the daemon calls it before READY)."""
+        cov = np.diag([0.01, 0.01])
+        self.update(-1, True, nominal, NOMINAL_NU_N_PER_V, NOMINAL_LH_UM + 1.0, cov, NOMINAL_PRELOAD_N, nominal)
+        self.forget(-1)
+
     def forget(self, injector_id: int) -> None:
         """Drop an injector's corrections (a reset: it is driven with the standard drive again)."""
         self._injectors.pop(injector_id, None)

@@ -30,6 +30,7 @@ from estimator.codec.frame import Frame
 from estimator.errors import EstimatorError
 from estimator.service.bus import open_bus, resolve, to_frame, to_message
 from estimator.ident.drive_correction import DriveCompensator
+from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.ident.tracker import Tracker
 from estimator.pipeline import build_pipeline, build_pool, build_tracker
 from estimator.service.config import ConfigError, DaemonConfig
@@ -402,6 +403,10 @@ class Daemon:
         """Load the compiled kernels and the N_u table before READY, so the first injection is not late
         (:meth:`Tracker.warm_up`: the daemon's own states are not touched)."""
         self.tracker.warm_up()
+        if self.processor.compensator is not None:
+            sim = self.tracker.nominal_simulator(SAMPLE_PERIOD_S)
+            if sim is not None:
+                self.processor.compensator.warm_up(sim)
 
     def run(self) -> int:
         """Run until stopped; returns the exit code. One estimator per state directory: a second one

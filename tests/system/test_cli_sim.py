@@ -74,3 +74,14 @@ def test_speed_sim_cli_writes_json(tmp_path):
 def test_estimator_entry_point():
     r = run("-m", "estimator", "params")
     assert r.returncode == 0 and "kp_n_per_m" in r.stdout
+
+
+def test_speed_judges_its_own_targets():
+    """``speed`` exits on its targets: the failures come from the measured figures, not a constant."""
+    from sim_bench.ident_bench import SPEED_TARGETS_MS, speed_failures
+
+    good = {"warm_median_ms": 0.2, "warm_with_correction_median_ms": 0.29, "cold_median_ms": 0.9}
+    assert speed_failures(good) == []
+    slow = dict(good, warm_with_correction_median_ms=0.2 + SPEED_TARGETS_MS["correction_added_ms"] + 0.05)
+    assert [f.split()[0] for f in speed_failures(slow)] == ["correction_added_ms"]
+    assert len(speed_failures(dict(good, warm_median_ms=float("nan")))) == 2   # NaN is a miss, never a pass
