@@ -290,11 +290,12 @@ def cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
-def can_errors() -> type:
+def can_errors() -> type[Exception]:
     """python-can's base error (imported lazily: only the service layer needs python-can)."""
     import can
 
-    return can.CanError
+    error: type[Exception] = can.CanError
+    return error
 
 
 def cmd_check_dbc(args: argparse.Namespace) -> int:

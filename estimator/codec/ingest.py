@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from typing import Any
-from dataclasses import dataclass, field, make_dataclass
+from dataclasses import dataclass, field, fields
 
 from estimator.codec.assembler import Assembler, Completed, RejectReason, Rejected
 from estimator.codec.errors import MalformedFrame
@@ -17,27 +17,44 @@ from estimator.codec.records import (HEARTBEAT_COUNTERS, Codec, EstimatorCommand
                                      SampleBlock)
 
 
-def _reject(self: Any, reason: RejectReason | str) -> None:   # self: a Counters (made below)
-    """Count one rejected injection under its reason (and the heartbeat counter it maps to)."""
-    reason = RejectReason(reason)
-    self.reasons[reason.value] = self.reasons.get(reason.value, 0) + 1
-    setattr(self, reason.counter, getattr(self, reason.counter) + 1)
+@dataclass
+class Counters:
+    """Everything the EstimatorStatus heartbeat reports (its rolling counters, ``records.HEARTBEAT_COUNTERS``,
+    under the same names and in the same order, first), plus finer detail for logs, JSON and the
+    EstimatorHealth message: frames_unknown, frames_total, commands_applied, worker_errors (unexpected
+    exceptions in the worker, a bug; logged rate-limited), stale (estimates the daemon published as
+    ``stale``: later than ``stale_after_ms``), injections_shed (complete injections the daemon's worker
+    dropped unestimated, overloaded by their injector) and the rejections per reason."""
+
+    accepted: int = 0
+    rejected_crc: int = 0
+    rejected_missing: int = 0
+    rejected_timeout: int = 0
+    rejected_invalid: int = 0
+    rejected_outlier: int = 0
+    frames_dropped: int = 0
+    frames_malformed: int = 0
+    bus_errors: int = 0
+    commands_refused: int = 0
+    commands_unknown: int = 0
+    frames_unknown: int = 0
+    frames_total: int = 0
+    commands_applied: int = 0
+    worker_errors: int = 0
+    stale: int = 0
+    injections_shed: int = 0
+    reasons: dict[str, int] = field(default_factory=dict)
+
+    def reject(self, reason: RejectReason | str) -> None:
+        """Count one rejected injection under its reason (and the heartbeat counter it maps to)."""
+        reason = RejectReason(reason)
+        self.reasons[reason.value] = self.reasons.get(reason.value, 0) + 1
+        setattr(self, reason.counter, getattr(self, reason.counter) + 1)
 
 
-#: Everything the EstimatorStatus heartbeat reports (its rolling counters, ``records.HEARTBEAT_COUNTERS``,
-#: under the same names), plus finer detail for logs and JSON: frames_unknown, frames_total,
-#: commands_applied, worker_errors (unexpected exceptions in the worker, a bug; logged rate-limited),
-#: stale (estimates the daemon published as ``stale``: later than ``stale_after_ms``), injections_shed
-#: (complete injections the daemon's worker dropped unestimated, overloaded by their injector) and the
-#: rejections per reason.
-Counters = make_dataclass(
-    "Counters",
-    [(name, int, 0) for name in HEARTBEAT_COUNTERS]
-    + [(name, int, 0) for name in ("frames_unknown", "frames_total", "commands_applied", "worker_errors", "stale",
-                                            "injections_shed")]
-    + [("reasons", dict, field(default_factory=dict))],
-    namespace={"reject": _reject, "__module__": __name__},
-)
+# the heartbeat's counters are the records' list (one source): Counters begins with exactly those
+assert tuple(f.name for f in fields(Counters))[:len(HEARTBEAT_COUNTERS)] == HEARTBEAT_COUNTERS, \
+    "ingest.Counters must begin with records.HEARTBEAT_COUNTERS, in order"
 
 
 @dataclass(frozen=True)

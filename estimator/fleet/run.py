@@ -228,10 +228,10 @@ def format_report(res: FleetResult) -> str:
                      f"{s.get('learning') or '-':<11} {trim:>7} {shift:>7} {s['outlier']}"
                      + (f" out_of_tolerance: {s['out_of_tolerance']}" if s.get("out_of_tolerance") else ""))
     if est:
-        lh = np.array([s["lh_um"] for s in est])
-        nu = np.array([s["nu_n_per_v"] for s in est])
-        lines.append(f"  lot: L_h mean {lh.mean():.3f} µm, std {lh.std():.3f} µm; N_u mean {nu.mean():.4f} N/V, "
-                     f"std {nu.std():.4f} N/V; flagged {sum(bool(s['outlier']) for s in res.summary)}; "
+        lh_lot = np.array([s["lh_um"] for s in est])
+        nu_lot = np.array([s["nu_n_per_v"] for s in est])
+        lines.append(f"  lot: L_h mean {lh_lot.mean():.3f} µm, std {lh_lot.std():.3f} µm; N_u mean {nu_lot.mean():.4f} N/V, "
+                     f"std {nu_lot.std():.4f} N/V; flagged {sum(bool(s['outlier']) for s in res.summary)}; "
                      f"model mismatch at the last injection of {sum(s.get('last_status') == 'model_mismatch' for s in res.summary)} "
                      f"injector(s) (their model cannot explain their samples: see their learning state), at some "
                      f"injection of {sum(bool(s.get('model_mismatch')) for s in res.summary)}")

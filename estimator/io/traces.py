@@ -11,11 +11,15 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from estimator.errors import TraceError
 from estimator.model.parameters import NOMINAL_PRELOAD_N
+
+if TYPE_CHECKING:
+    from estimator.ident.measurement import Injection
 
 
 #: metadata that name the injector a trace belongs to (traces with the same value are one injector)
@@ -136,17 +140,19 @@ def write_trace(path: str | Path, columns: dict[str, np.ndarray], meta: dict[str
     Path(path).write_text("\n".join(lines) + "\n" + buf.getvalue())
 
 
-def injection_from_trace(trace: Trace, default_preload_n: float = NOMINAL_PRELOAD_N):
+def injection_from_trace(trace: Trace, default_preload_n: float = NOMINAL_PRELOAD_N) -> Injection:
     """The :class:`~estimator.ident.measurement.Injection` of a trace (columns t_s, current_A, voltage_V;
     metadata preload_force_n, temperature_c, injector_id, time_s). Raises TraceError for unusable files."""
     from estimator.ident.measurement import Injection
 
     preload = trace.meta_float("preload_force_n", default_preload_n)
     temp = trace.meta_float("temperature_c", float("nan"))
+    assert preload is not None and temp is not None   # meta_float gives its default when the key is absent
     inj_id = trace.meta_float("injector_id", 0.0) or 0.0
     if inj_id != int(inj_id) or not 0 <= inj_id <= 255:
         raise TraceError(f"trace metadata injector_id={trace.meta['injector_id']!r} is not an id 0..255")
     time_s = trace.meta_float("time_s", float("nan"))
+    assert time_s is not None
     return Injection.from_samples(trace.column("t_s"), trace.column("current_A"), trace.column("voltage_V"),
                                   float(preload), injector_id=int(inj_id), temperature_c=float(temp),
                                   time_s=float(time_s))

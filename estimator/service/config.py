@@ -148,7 +148,8 @@ class DaemonConfig:
 
     def bus_spec(self) -> BusSpec:
         """The bus as python-can opens it (see :mod:`estimator.service.bus`)."""
-        base = dict(fd=self.fd, bitrate=self.bitrate, data_bitrate=self.data_bitrate, options=dict(self.bus_options))
+        base: dict[str, Any] = dict(fd=self.fd, bitrate=self.bitrate, data_bitrate=self.data_bitrate,
+                                    options=dict(self.bus_options))
         if self.bus is None:
             return BusSpec(None, None, **base)
         return BusSpec.parse(self.bus, **base)

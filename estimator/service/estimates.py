@@ -33,7 +33,7 @@ CAPTURE_CSV_HEADER = "timestamp,arbitration_id"   # python-can's CSV logger
 
 def is_capture_header(first_line: str | None) -> bool:
     """True for the header row of python-can's CSV logger (a capture, not a trace)."""
-    return bool(first_line) and first_line.startswith(CAPTURE_CSV_HEADER)
+    return first_line is not None and first_line.startswith(CAPTURE_CSV_HEADER)
 
 
 def source_kind(path: Path) -> str:

@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from typing import Any
 
 
 from estimator.codec.assembler import Completed, RejectReason, Rejected
@@ -49,9 +51,9 @@ def result_row(res: TrackResult, injector_id: int, counter: int, time_s: float,
         row[k] = f.get(k)
     row["learning"] = str(learning.state) if learning is not None else None
     row["out_of_tolerance"] = ";".join(learning.out_of_tolerance) if learning is not None else None
-    have = correction is not None and correction.valid
-    row["drive_scale"] = round(correction.scale, 5) if have else None
-    row["drive_offset_us"] = round(correction.offset_us, 3) if have else None
+    valid = correction if correction is not None and correction.valid else None
+    row["drive_scale"] = round(valid.scale, 5) if valid is not None else None
+    row["drive_offset_us"] = round(valid.offset_us, 3) if valid is not None else None
     row["drive_state"] = correction_state(correction) if correction is not None else None
     return row
 
@@ -157,10 +159,11 @@ class Processor:
         # rolling counters: each wraps at its signal's width (32 or 16 bits)
         self._masks = {name: (1 << status.get_signal_by_name(EstimatorStatus.SIGNALS[name]).length) - 1
                        for name in HEARTBEAT_COUNTERS}
-        self._handlers = {Completed: self._estimate, Rejected: self._log_reject, Malformed: self._log_malformed,
-                          EstimatorCommand: self._command}
+        self._handlers: dict[type, Callable[[Any], Published | None]] = {
+            Completed: self._estimate, Rejected: self._log_reject, Malformed: self._log_malformed,
+            EstimatorCommand: self._command}
 
-    def handle(self, events: list[Event]) -> list[Published]:
+    def handle(self, events: Sequence[Event]) -> list[Published]:
         """Process events in order (a handler per event type); returns one Published per injection that
         reached the estimator."""
         out = []
@@ -265,8 +268,8 @@ class Processor:
                      stage_p99_ms: dict[str, float] | None = None):
         """The EstimatorStatus heartbeat frame (``stage_p99_ms``: p99 per latency stage, keys queue,
         assembly, estimation, send, in ms)."""
-        counts = {name: getattr(self.counters, name) & self._masks[name] for name in HEARTBEAT_COUNTERS}
-        stages = {f"{k}_p99_ms": v for k, v in (stage_p99_ms or {}).items()}
+        counts: dict[str, Any] = {name: getattr(self.counters, name) & self._masks[name] for name in HEARTBEAT_COUNTERS}
+        stages: dict[str, Any] = {f"{k}_p99_ms": v for k, v in (stage_p99_ms or {}).items()}
         return self.codec.encode(EstimatorStatus(**counts, queue_depth=queue_depth, latency_p99_ms=latency_p99_ms,
                                                  uptime_s=int(uptime_s), **stages))
 
