@@ -98,3 +98,22 @@ def test_version_follows_the_changelog():
 
     first = re.search(r"^## \[(\d+\.\d+\.\d+)\]", (ROOT / "CHANGELOG.md").read_text(encoding="utf-8"), re.M)
     assert first and first.group(1) == estimator.__version__
+
+
+def _headline_rows() -> list[list[str]]:
+    readme = README.read_text(encoding="utf-8")
+    sec = readme[readme.index("## Headline figures"):]
+    sec = sec[sec.index("| what"):]
+    sec = sec[:sec.index("\n\n")]
+    return [[c.strip() for c in r.strip().strip("|").split("|")] for r in sec.splitlines()[2:]]
+
+
+def test_the_readme_headline_figures_are_the_performance_pages():
+    """Each figure the README's headline table states is one the performance page states (the page is
+    where a figure is replaced when it is measured again): a README left behind fails here."""
+    number = re.compile(r"\d[\d,]*(?:\.\d+)?")
+    page = {n.replace(",", "") for n in number.findall((ROOT / "docs" / "performance.md").read_text(encoding="utf-8"))}
+    rows = _headline_rows()
+    assert len(rows) >= 15
+    stale = {row[0]: [n for n in number.findall(row[1]) if n.replace(",", "") not in page] for row in rows}
+    assert not {k: v for k, v in stale.items() if v}, stale
