@@ -113,15 +113,12 @@ def cmd_track(args: argparse.Namespace) -> int:
     """Run the recursive estimator over trace files in order; one JSON line per injection."""
     from estimator.errors import TraceError
     from estimator.ident.config import TrackerConfig
+    from estimator.ident.drive_correction import DriveCompensator, correction_after
     from estimator.ident.estimate import rejected
+    from estimator.ident.selfcal import SelfCalConfig
+    from estimator.ident.simulators import SimulatorPool
     from estimator.ident.status import Status
     from estimator.ident.tracker import Tracker, TrackResult
-
-    from estimator.ident.simulators import SimulatorPool
-
-    from estimator.ident.selfcal import SelfCalConfig
-
-    from estimator.ident.drive_correction import DriveCompensator, correction_after
 
     selfcal = SelfCalConfig() if args.self_calibrate else None
     tracker = Tracker(TrackerConfig(ident=_config(args)), pool=SimulatorPool(_params(args)), self_calibration=selfcal)
@@ -245,10 +242,9 @@ def cmd_plot(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Run the estimator daemon on a CAN bus."""
+    from estimator.service.bus import overrides_from_args
     from estimator.service.config import DaemonConfig
     from estimator.service.launch import run_daemon
-
-    from estimator.service.bus import overrides_from_args
 
     overrides = dict(state_dir=args.state_dir, dbc=args.dbc, params=args.params, **overrides_from_args(args))
     cfg = DaemonConfig.load(args.config, **overrides)
@@ -301,8 +297,7 @@ def can_errors() -> type[Exception]:
 def cmd_check_dbc(args: argparse.Namespace) -> int:
     """Validate the DBC against the contract."""
     from estimator.codec.database import default_dbc_path
-    from estimator.codec.records import load_database
-    from estimator.codec.records import Codec
+    from estimator.codec.records import Codec, load_database
 
     path = args.dbc or default_dbc_path()
     db = load_database(path)

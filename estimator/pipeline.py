@@ -7,10 +7,10 @@ here, so that they estimate alike.
 
 from __future__ import annotations
 
-from estimator.ident.drive_correction import DriveCompensator
 from estimator.codec.bus_clock import BusClock
 from estimator.codec.ingest import Ingest
 from estimator.codec.records import Codec, InjectionHeader, load_database
+from estimator.ident.drive_correction import DriveCompensator
 from estimator.ident.selfcal import Calibrator
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.tracker import Tracker

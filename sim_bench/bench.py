@@ -19,9 +19,16 @@ from pathlib import Path
 
 import numpy as np
 
+from estimator.codec.records import (
+    Codec,
+    EstimateQuality,
+    EstimateState,
+    EstimatorStatus,
+    InjectionTrailer,
+    SimTruth,
+    ValvePrediction,
+)
 from estimator.ident.status import ESTIMATED_WORDS
-from estimator.codec.records import (Codec, EstimateQuality, EstimateState, EstimatorStatus, InjectionTrailer,
-                                     SimTruth, ValvePrediction)
 from estimator.service.bus import BusSetupError, check_socketcan
 from sim_bench import scenarios
 from sim_bench.hub import Hub

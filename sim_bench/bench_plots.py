@@ -4,15 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-
 from sim_bench.scenarios import Scenario
 
 
 def plot_bench(rows: list[dict], sc: Scenario, out_dir: Path, seed: int) -> list[Path]:
     """Write estimates.png (+ voltage_fit.png, cost_contour.png from one simulated injection)."""
+    from estimator.ident.measurement import Injection
     from estimator.plots.figures import pyplot, save
     from estimator.plots.identification import plot_identification
-    from estimator.ident.measurement import Injection
     from sim_bench.node import InjectionSource
 
     plt = pyplot()

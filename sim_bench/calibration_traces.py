@@ -10,10 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
+from estimator.io.traces import write_trace
 from estimator.model.drive import SAMPLE_PERIOD_S, Drive, StandardDrive, sample_times
 from estimator.model.parameters import load_nominal
 from estimator.model.psa_lti import simulate_psa
-from estimator.io.traces import write_trace
 from sim_bench.scenarios import nu_of_temperature
 
 

@@ -12,8 +12,8 @@ import numpy as np
 
 from estimator.cli_support import base_parser, lean_service_imports, run_cli
 from estimator.errors import EstimatorError
-from estimator.model.drive import DRIVES, Drive, named_drive
 from estimator.io.traces import read_trace, write_trace
+from estimator.model.drive import DRIVES, Drive, named_drive
 from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench import scenarios, tracking_bench
 
@@ -133,9 +133,7 @@ def cmd_accuracy(args: argparse.Namespace) -> int:
 
 def cmd_tracking(args: argparse.Namespace) -> int:
     """The recursive estimator on drift, steps, glitches and warm-ups; exit 1 if a target is missed."""
-    from sim_bench import tracking_bench
-
-    from sim_bench import lot_life
+    from sim_bench import lot_life, tracking_bench
 
     if args.scenario == "lot-life":
         life = lot_life.run(args.seed)

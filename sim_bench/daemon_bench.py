@@ -9,11 +9,11 @@ LatencyP99) and from outside (feeder's trailer send -> EstimateState received, w
 from __future__ import annotations
 
 import math
-from typing import Any
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -22,14 +22,13 @@ from estimator.codec.frame import Frame
 from estimator.codec.ingest import Ingest
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateState, EstimatorStatus, ModelCalibration
+from estimator.model.parameters import NOMINAL_PRELOAD_N
 from estimator.service.bus import open_bus, to_frame, to_message
 from estimator.service.latency import STAGES, WINDOW_S
-from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench import series_part
 from sim_bench.bench import resolve_bus
-from sim_bench.procs import DaemonProcess, rss_mb
 from sim_bench.plant import Plant, PlantConfig
-
+from sim_bench.procs import DaemonProcess, rss_mb
 
 SERIES_PRELOADS_N = (NOMINAL_PRELOAD_N, 60.0, 100.0, 150.0, 220.0, 300.0)   # the rail pressure cycling (series pool)
 

@@ -11,15 +11,14 @@ from dataclasses import replace
 
 import numpy as np
 
-from estimator.ident.crb import crb, crb_opening_time
 from estimator.ident.config import IdentConfig, TrackerConfig
+from estimator.ident.crb import crb, crb_opening_time
 from estimator.ident.idle_stroke import identify
 from estimator.ident.measurement import Injection
 from estimator.ident.tracker import Tracker
 from estimator.model.drive import Drive
 from estimator.model.fast_sim import FastSimulator
-from estimator.model.parameters import load_nominal
-from estimator.model.parameters import NOMINAL_PRELOAD_N
+from estimator.model.parameters import NOMINAL_PRELOAD_N, load_nominal
 from sim_bench import series_part
 from sim_bench.plant import AdcConfig, Measurement, Plant, PlantConfig
 from sim_bench.table import Column, keyed, plant, render

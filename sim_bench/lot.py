@@ -20,11 +20,11 @@ import numpy as np
 
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec
+from estimator.io.traces import write_trace
 from estimator.model.drive import Drive, StandardDrive
+from estimator.model.parameters import NOMINAL_PRELOAD_N
 from estimator.service.bus import to_message
 from estimator.service.config import DaemonConfig
-from estimator.io.traces import write_trace
-from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench.plant import Measurement, Plant, PlantConfig
 from sim_bench.series_life import LotSpec, draw_lot
 

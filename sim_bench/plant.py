@@ -16,13 +16,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from estimator._compiled import njit
 
+from estimator._compiled import njit
 from estimator.model.chain import NO_CHAIN, MeasurementChain
 from estimator.model.drive import SAMPLE_PERIOD_S, ChopperRipple, Drive, StandardDrive, sample_count, sample_times
 from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
-from estimator.model.parameters import InjectorParameters
-from estimator.model.parameters import NOMINAL_PRELOAD_N
+from estimator.model.parameters import NOMINAL_PRELOAD_N, InjectorParameters
 
 # Prandtl–Ishlinskii operator of the mismatch plant: thresholds in C, weights in V/C. The paper
 # (section 3.3) replaces the rising branch of H[Q] by R(N_u)·I: for a trapezoidal charge, H rises

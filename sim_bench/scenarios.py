@@ -15,9 +15,9 @@ valve spring's 28 N (Table 2) plus a rail-pressure share that varies per injecti
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from typing import Generic, NamedTuple, TypeVar
-from collections.abc import Iterator
 
 import numpy as np
 

@@ -26,7 +26,6 @@ import math
 import tempfile
 import time
 from pathlib import Path
-
 from typing import Any
 
 import numpy as np

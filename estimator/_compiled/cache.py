@@ -17,9 +17,9 @@ through which every compiled module gets ``njit``, calls :func:`configure` first
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Mapping
 import os
 import sys
+from collections.abc import Mapping
 
 PREFIX = "numba-"
 

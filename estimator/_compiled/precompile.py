@@ -36,8 +36,8 @@ MARKER = ".complete"   # in the numba cache directory: every entry point of Trac
 def _tracker() -> Tracker:
     """A tracker with the default configuration and its own simulator pool."""
     from estimator.ident.tracker import Tracker
-    from estimator.service.config import DaemonConfig
     from estimator.pipeline import build_pool
+    from estimator.service.config import DaemonConfig
 
     cfg = DaemonConfig()
     return Tracker(cfg.tracker_config(), pool=build_pool(cfg))

@@ -32,7 +32,6 @@ from estimator.codec.records import InjectionHeader, InjectionTrailer, SampleBlo
 from estimator.codec.samples import INVALID_RAW, SampleLayout, samples_crc32
 
 
-
 class RejectReason(str, Enum):
     """Why an injection is rejected (the module table); a ``str`` so logs and JSON show the word."""
 

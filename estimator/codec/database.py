@@ -6,9 +6,9 @@ The contract itself (which messages and signals) is defined by the record classe
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from collections.abc import Mapping
 
 import cantools
 from cantools.database.can import Database

@@ -7,14 +7,20 @@ why the two produce identical output on identical frames.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
 from dataclasses import dataclass, field, fields
+from typing import Any
 
-from estimator.codec.assembler import Assembler, Completed, RejectReason, Rejected
+from estimator.codec.assembler import Assembler, Completed, Rejected, RejectReason
 from estimator.codec.errors import MalformedFrame
 from estimator.codec.frame import Frame
-from estimator.codec.records import (HEARTBEAT_COUNTERS, Codec, EstimatorCommand, InjectionHeader, InjectionTrailer,
-                                     SampleBlock)
+from estimator.codec.records import (
+    HEARTBEAT_COUNTERS,
+    Codec,
+    EstimatorCommand,
+    InjectionHeader,
+    InjectionTrailer,
+    SampleBlock,
+)
 
 
 @dataclass

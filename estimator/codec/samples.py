@@ -8,10 +8,9 @@ and cantools agree on every field.
 
 from __future__ import annotations
 
-from typing import Any
-
 import zlib
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from cantools.database.can import Message

@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 
 from estimator.errors import EstimatorError
-from estimator.fleet.inputs import expand, group
 from estimator.fleet.cluster import dask_client
+from estimator.fleet.inputs import expand, group
 from estimator.fleet.tasks import WORKER_ENV
 
 MODES = ("per-injector", "per-lot")

@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from estimator.errors import EstimatorError
-from estimator.fleet.inputs import Group, expand, group
 from estimator.fleet.cluster import dask_client
+from estimator.fleet.inputs import Group, expand, group
 from estimator.fleet.tasks import process_groups, warm_worker
 from estimator.ident.status import ESTIMATED_WORDS
 from estimator.service.config import DaemonConfig

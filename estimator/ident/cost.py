@@ -25,14 +25,14 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from estimator._compiled import njit
 
+from estimator._compiled import njit
+from estimator._compiled.direct_call import DirectCall, c_float
 from estimator.choices import Norm
 from estimator.ident.measurement import Injection
-from estimator._compiled.direct_call import DirectCall, c_float
+from estimator.model.automaton import Automaton
 from estimator.model.drive import sample_count
 from estimator.model.fast_sim import BatchResult, FastSimulator
-from estimator.model.automaton import Automaton
 from estimator.model.kernel import KernelModel
 
 NUISANCE_THRESHOLDS = (0.04, 0.10, 0.25, 0.50)   # fractions of the window's final charge

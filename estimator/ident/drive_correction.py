@@ -30,11 +30,11 @@ import numpy as np
 
 from estimator.errors import EstimatorError
 from estimator.ident.coords import UM_PER_M
-from estimator.model.drive import STANDARD_AMPLITUDE_A, StandardDrive
-from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
 from estimator.ident.measurement import Injection
 from estimator.ident.status import Status
 from estimator.ident.tracker import Tracker, TrackResult
+from estimator.model.drive import STANDARD_AMPLITUDE_A, StandardDrive
+from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
 from estimator.model.parameters import NOMINAL_PRELOAD_N
 
 US_PER_S = 1e6

@@ -173,7 +173,7 @@ class _Simulators:
         return sim
 
 
-def calibrate_electrical(injections: list[Injection], base: InjectorParameters | None = None,
+def calibrate_electrical(injections: list[Injection], base: InjectorParameters | None = None,  # noqa: C901
                          names: tuple[str, ...] = STRUCTURAL_NAMES, tolerance: float = 0.10,
                          window_s: float = WINDOW_S, max_iterations: int = 30,
                          max_restarts: int = 4, fit_chain: bool = True,

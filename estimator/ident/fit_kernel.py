@@ -24,14 +24,14 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from estimator._compiled import njit
 
+from estimator._compiled import njit
+from estimator._compiled.direct_call import DirectCall, c_float
 from estimator.errors import ParameterError
 from estimator.ident.coords import UM_PER_M
 from estimator.ident.cost import CostModel, Problem, costs_of, noise_sigma, residuals_into
 from estimator.ident.search import TRUST_STEPS, Box, parabola_vertex
 from estimator.model import kernel
-from estimator._compiled.direct_call import DirectCall, c_float
 
 FIT, PARTIAL, NOT_SIMULABLE = 0, 1, 2
 """Outcomes: the fit is done; a warm cycle found its vertex (``ok`` says along which directions)

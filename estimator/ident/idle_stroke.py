@@ -19,17 +19,32 @@ import math
 
 import numpy as np
 
-from estimator.ident.cold_start import (SharedGrid, bound_tolerance, cold_fit, excess_residual_z, local_first_fit,
-                                        ring_checked, sd_radius, unchecked_fit, usable)
 from estimator.ident.adequacy import Adequacy
+from estimator.ident.cold_start import (
+    SharedGrid,
+    bound_tolerance,
+    cold_fit,
+    excess_residual_z,
+    local_first_fit,
+    ring_checked,
+    sd_radius,
+    unchecked_fit,
+    usable,
+)
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M, cov_to_si
 from estimator.ident.cost import CostModel
 from estimator.ident.estimate import Estimate, rejected
 from estimator.ident.local_fit import LocalFit
 from estimator.ident.measurement import Injection
-from estimator.ident.mismatch import (current_noise_cov, model_error_cov, plain_adequacy, preload_check, preload_cov,
-                                     preload_sensitivity)
+from estimator.ident.mismatch import (
+    current_noise_cov,
+    model_error_cov,
+    plain_adequacy,
+    preload_check,
+    preload_cov,
+    preload_sensitivity,
+)
 from estimator.ident.model_selection import likelihood_ratio, prefers_robust
 from estimator.ident.search import Box
 from estimator.ident.status import Status

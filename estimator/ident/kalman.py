@@ -17,15 +17,14 @@ the components that jumped.
 
 from __future__ import annotations
 
-from typing import Any
-
 import functools
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from estimator._compiled import njit
 
+from estimator._compiled import njit
 from estimator._compiled.direct_call import DirectCall, c_float
 
 N_STATE = 4

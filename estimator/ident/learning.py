@@ -48,8 +48,14 @@ from dataclasses import replace
 from typing import Any
 
 from estimator.ident.measurement import Injection
-from estimator.ident.selfcal import (Calibrator, CalibrationOutcome, CalibrationStatus, CalibrationWindow,
-                                     InlineCalibrator, SelfCalConfig)
+from estimator.ident.selfcal import (
+    CalibrationOutcome,
+    CalibrationStatus,
+    CalibrationWindow,
+    Calibrator,
+    InlineCalibrator,
+    SelfCalConfig,
+)
 from estimator.ident.status import ESTIMATED, Learning, Status
 from estimator.model.parameters import InjectorParameters
 

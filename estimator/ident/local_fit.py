@@ -13,10 +13,10 @@ from functools import cached_property
 
 import numpy as np
 
-from estimator.ident.fit_kernel import FIT, KernelFit, run_cycle, run_forward_fit
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M
 from estimator.ident.cost import CostModel
+from estimator.ident.fit_kernel import FIT, KernelFit, run_cycle, run_forward_fit
 from estimator.ident.search import Box, CostFn, line_search
 
 FD_STEP = np.array([2e-3, 2e-3])   # finite-difference steps: N/V, µm

@@ -10,8 +10,8 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from estimator._compiled import njit
 
+from estimator._compiled import njit
 from estimator.errors import TraceError
 from estimator.model.chain import MeasurementChain
 from estimator.model.drive import SAMPLE_PERIOD_REL_TOL, TableDrive, sample_count

@@ -6,10 +6,11 @@ batch per step (the fast simulator is ~5x cheaper per candidate in batches than 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
+
 from estimator._compiled import njit
 
 CostFn = Callable[[np.ndarray], np.ndarray]   # (B, 2) -> (B,)

@@ -32,8 +32,8 @@ from estimator.ident.adequacy import noise_level_v
 from estimator.ident.config import IdentConfig
 from estimator.ident.electrical import WINDOW_S, calibrate_electrical, confirmed_out_of_tolerance, measured_voltage
 from estimator.ident.idle_stroke import identify
-from estimator.ident.status import CALIBRATION_STATES, Learning
 from estimator.ident.measurement import Injection
+from estimator.ident.status import CALIBRATION_STATES, Learning
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import InjectorParameters
 

@@ -13,10 +13,9 @@ time, so a replay of a capture refuses what the live daemon refused; injections 
 
 from __future__ import annotations
 
-from collections.abc import Iterable
-
 import math
 from collections import OrderedDict
+from collections.abc import Iterable
 
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import InjectorParameters, load_nominal

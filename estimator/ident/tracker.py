@@ -37,28 +37,36 @@ from typing import Any
 
 import numpy as np
 
+from estimator.choices import ColdStart, Robust
 from estimator.errors import EstimatorError
 from estimator.ident import kalman
-from estimator.choices import ColdStart, Robust
+from estimator.ident.cold_start import bound_tolerance
 from estimator.ident.config import TrackerConfig
 from estimator.ident.coords import NuLh
 from estimator.ident.cost import CostModel, plain_model_error
-from estimator.ident.cold_start import bound_tolerance
 from estimator.ident.electrical import beyond_bounds
 from estimator.ident.estimate import Estimate, rejected
-from estimator.ident.idle_stroke import (check_injection, complement_fit, effective_window_s, finish, identify,
-                                         predict_valve, screen, search_box)
-from estimator.ident.mismatch import model_error_cov, plain_adequacy
+from estimator.ident.idle_stroke import (
+    check_injection,
+    complement_fit,
+    effective_window_s,
+    finish,
+    identify,
+    predict_valve,
+    screen,
+    search_box,
+)
 from estimator.ident.learning import Learner
-from estimator.ident.selfcal import Calibrator, CalibrationStatus, SelfCalConfig
 from estimator.ident.local_fit import next_steps, refine
 from estimator.ident.measurement import Injection
+from estimator.ident.mismatch import model_error_cov, plain_adequacy
 from estimator.ident.model_selection import likelihood_ratio
 from estimator.ident.search import Box
+from estimator.ident.selfcal import CalibrationStatus, Calibrator, SelfCalConfig
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.status import Learning, Status
-from estimator.model.fast_sim import FastSimulator, remember
 from estimator.model.drive import SAMPLE_PERIOD_S
+from estimator.model.fast_sim import FastSimulator, remember
 from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters
 
 STATE_VERSION = 2

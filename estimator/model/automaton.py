@@ -14,10 +14,20 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from estimator._compiled import njit
 
-from estimator.model.dynamics import (MODE_CONTACT, MODE_OPEN, NZ, RESET_CLOSE, RESET_OPEN, S4, V3, V4,
-                                      REGION_MODE, HybridStructure)
+from estimator._compiled import njit
+from estimator.model.dynamics import (
+    MODE_CONTACT,
+    MODE_OPEN,
+    NZ,
+    REGION_MODE,
+    RESET_CLOSE,
+    RESET_OPEN,
+    S4,
+    V3,
+    V4,
+    HybridStructure,
+)
 
 
 class Automaton(NamedTuple):

@@ -106,7 +106,7 @@ def unfilter(y: np.ndarray, tau_s: float, dt_s: float) -> np.ndarray:
 def lowpass(x: np.ndarray, tau_s: float, dt_s: float) -> np.ndarray:
     """First-order filter ``tau y' + y = x`` from rest, exact for ``x`` linear between samples; along
     the last axis of ``x``."""
-    from scipy.signal import lfilter   # here: importing scipy.signal costs ≈ 0.7 s, and only a chain needs it
+    from scipy.signal import lfilter  # here: importing scipy.signal costs ≈ 0.7 s, and only a chain needs it
 
     x = np.asarray(x, dtype=float)
     a = math.exp(-dt_s / tau_s)

@@ -15,9 +15,9 @@ one :func:`register_drive` call): the plant, the scenarios and the commands take
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
-from collections.abc import Callable
 
 import numpy as np
 

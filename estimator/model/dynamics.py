@@ -53,8 +53,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from estimator._compiled import njit
 
+from estimator._compiled import njit
 from estimator.errors import InfeasibleError
 from estimator.model.parameters import InjectorParameters, contact_force
 

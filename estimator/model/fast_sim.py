@@ -14,11 +14,11 @@ from typing import Any, NamedTuple, TypeVar
 import numpy as np
 from scipy.linalg import expm
 
+from estimator._compiled.direct_call import DirectCall
 from estimator.errors import ParameterError
 from estimator.model import dynamics as dyn
 from estimator.model import kernel
 from estimator.model.automaton import Automaton, build_automaton
-from estimator._compiled.direct_call import DirectCall
 from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.model.dynamics import STATUS_TEXT
 from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters, check_nu_in, load_nominal

@@ -13,12 +13,29 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from estimator._compiled import njit
 
+from estimator._compiled import njit
 from estimator.model.automaton import Automaton, apply_reset, dot, guard_value, in_contact, rearmed
-from estimator.model.dynamics import (MODE_OPEN, NX, NZ, S3, S4, STATUS_EVENT_CAP, STATUS_INFEASIBLE, STATUS_OK, V4,
-                                      Z1, ZF, ZI, ZID, ZL, coupling_jit, damping_jit, output_row_into,
-                                      precompressed_starts)
+from estimator.model.dynamics import (
+    MODE_OPEN,
+    NX,
+    NZ,
+    S3,
+    S4,
+    STATUS_EVENT_CAP,
+    STATUS_INFEASIBLE,
+    STATUS_OK,
+    V4,
+    Z1,
+    ZF,
+    ZI,
+    ZID,
+    ZL,
+    coupling_jit,
+    damping_jit,
+    output_row_into,
+    precompressed_starts,
+)
 
 MAX_EVENTS_PER_SAMPLE = 12
 # the sample step in simulate_kernel is written out for these nine physical states, the plunger last

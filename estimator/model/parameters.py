@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
-from collections.abc import Mapping
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -19,8 +19,8 @@ else:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 import numpy as np
-from estimator._compiled import njit
 
+from estimator._compiled import njit
 from estimator.errors import ParameterError
 from estimator.model.chain import NO_CHAIN, MeasurementChain
 

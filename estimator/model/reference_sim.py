@@ -32,7 +32,7 @@ def _kinks(cur: np.ndarray) -> np.ndarray:
     return np.unique(np.concatenate(([0], inner, [cur.size - 1])))
 
 
-def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_open_n: float | None = None,
+def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_open_n: float | None = None,  # noqa: C901
                        params: InjectorParameters | None = None, dt_s: float = SAMPLE_PERIOD_S,
                        rtol: float = 1e-11, atol: float = 1e-11) -> BatchResult:
     """Simulate one candidate; returns a :class:`BatchResult` with B = 1.

@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 
 from estimator.errors import EstimatorError
-from estimator.plots.figures import pyplot, save
-from estimator.ident.cost import CostModel
 from estimator.ident.config import IdentConfig
+from estimator.ident.cost import CostModel
 from estimator.ident.idle_stroke import effective_window_s, identify, search_box
 from estimator.ident.measurement import Injection
 from estimator.model.fast_sim import FastSimulator
+from estimator.plots.figures import pyplot, save
 
 
 def plot_identification(inj: Injection, out_dir: Path, config: IdentConfig | None = None, grid: int = 41,

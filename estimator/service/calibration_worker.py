@@ -29,8 +29,13 @@ from typing import Any
 
 import numpy as np
 
-from estimator.ident.selfcal import (CalibrationOutcome, CalibrationStatus, CalibrationWindow, SelfCalConfig,
-                                     calibrate_and_tabulate)
+from estimator.ident.selfcal import (
+    CalibrationOutcome,
+    CalibrationStatus,
+    CalibrationWindow,
+    SelfCalConfig,
+    calibrate_and_tabulate,
+)
 from estimator.ident.status import Learning
 from estimator.model.parameters import InjectorParameters
 

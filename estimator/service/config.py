@@ -19,19 +19,19 @@ import logging
 import math
 import os
 import sys
+from collections.abc import Callable
 from dataclasses import MISSING, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
-from collections.abc import Callable
 
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
     import tomli as tomllib
 
+from estimator.choices import Switch
 from estimator.codec.assembler import MAX_SAMPLE_PERIOD_NS
 from estimator.errors import EstimatorError
-from estimator.choices import Switch
 from estimator.ident.config import IdentConfig, TrackerConfig
 from estimator.ident.drive_correction import DriveTarget
 from estimator.ident.selfcal import SelfCalConfig
@@ -248,7 +248,7 @@ class DaemonConfig:
 
     def check_files(self) -> None:
         """Fail fast on a parameter file that cannot be used (the DBC is checked when it is loaded)."""
-        from estimator.model.parameters import InjectorParameters   # noqa: PLC0415 (only when configured)
+        from estimator.model.parameters import InjectorParameters  # noqa: PLC0415 (only when configured)
         if self.params is not None:
             try:
                 InjectorParameters.from_toml(self.params)

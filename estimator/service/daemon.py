@@ -20,25 +20,25 @@ import os
 import signal
 import threading
 import time
-from dataclasses import dataclass, replace
 from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import can
 
 from estimator.codec.assembler import Completed
 from estimator.codec.frame import Frame
 from estimator.errors import EstimatorError
-from estimator.service.bus import open_bus, resolve, to_frame, to_message
 from estimator.ident.drive_correction import DriveCompensator
-from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.ident.tracker import Tracker
+from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.pipeline import build_pipeline, build_pool, build_tracker
+from estimator.service.bus import open_bus, resolve, to_frame, to_message
+from estimator.service.calibration_worker import BackgroundCalibrator
 from estimator.service.config import ConfigError, DaemonConfig
 from estimator.service.fair_queue import FairQueue
 from estimator.service.latency import Stats
 from estimator.service.ratelimit import RateLimitedLog
 from estimator.service.sdnotify import SdNotify
-from estimator.service.calibration_worker import BackgroundCalibrator
 from estimator.service.state_store import keep_rejected, load_all, lock_state_dir, save_states
 
 log = logging.getLogger(__name__)

@@ -13,19 +13,19 @@ trace is a CSV trace (``t_s,current_A,voltage_V`` columns) or an MDF4 file (``tr
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
-from collections.abc import Iterator
 
 from estimator.codec.records import Codec
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.tracker import Tracker
 from estimator.io.mdf import is_mdf, read_any_trace
-from estimator.service.config import DaemonConfig
+from estimator.io.traces import csv_head, injection_from_trace
 from estimator.pipeline import build_pipeline, build_tracker
+from estimator.service.config import DaemonConfig
 from estimator.service.processor import ROW_FIELDS, result_row
 from estimator.service.replay import CAPTURE_SUFFIXES, iter_capture
-from estimator.io.traces import csv_head, injection_from_trace
 
 FIELDS = ("source",) + ROW_FIELDS
 CAPTURE_CSV_HEADER = "timestamp,arbitration_id"   # python-can's CSV logger

@@ -13,12 +13,21 @@ from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
 
-
-from estimator.codec.assembler import Completed, RejectReason, Rejected
+from estimator.codec.assembler import Completed, Rejected, RejectReason
 from estimator.codec.ingest import Counters, Event, Malformed
-from estimator.codec.records import (HEARTBEAT_COUNTERS, Codec, Command, EstimateQuality, EstimateState,
-                                     DriveCorrection, EstimatorCommand, EstimatorHealth, EstimatorStatus,
-                                     ModelCalibration, ValvePrediction)
+from estimator.codec.records import (
+    HEARTBEAT_COUNTERS,
+    Codec,
+    Command,
+    DriveCorrection,
+    EstimateQuality,
+    EstimateState,
+    EstimatorCommand,
+    EstimatorHealth,
+    EstimatorStatus,
+    ModelCalibration,
+    ValvePrediction,
+)
 from estimator.errors import ParameterError
 from estimator.ident.drive_correction import Correction, DriveCompensator, correction_after
 from estimator.ident.measurement import Injection

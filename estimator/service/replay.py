@@ -14,17 +14,17 @@ import csv
 import io
 import json
 import logging
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
-from collections.abc import Iterator
 
 import can
 
 from estimator.codec.ingest import Counters
+from estimator.pipeline import build_pipeline
 from estimator.service.bus import to_frame, to_message
 from estimator.service.config import DaemonConfig
-from estimator.pipeline import build_pipeline
 from estimator.service.processor import ROW_FIELDS, Published
 
 log = logging.getLogger(__name__)

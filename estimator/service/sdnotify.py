@@ -6,7 +6,6 @@ import os
 import socket
 import time
 
-
 RETRY_S = 0.5                          # how long READY=1, STOPPING=1, RELOADING=1 wait for room in the queue
 DROPPABLE = ("STATUS=", "WATCHDOG=")   # lines a full queue may lose
 

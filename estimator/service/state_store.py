@@ -15,9 +15,8 @@ import os
 import stat
 import tempfile
 import time
-from pathlib import Path
-
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, TypeVar
 
 from estimator.errors import EstimatorError

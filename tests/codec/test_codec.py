@@ -12,9 +12,20 @@ import pytest
 from estimator.codec.database import check_contract
 from estimator.codec.errors import ContractError, MalformedFrame
 from estimator.codec.frame import Frame
-from estimator.codec.records import (CONTRACT, Codec, EstimateQuality, EstimateState, EstimatorCommand,
-                                     EstimatorStatus, InjectionHeader, InjectionTrailer, SampleBlock, SimTruth,
-                                     ValvePrediction, load_database)
+from estimator.codec.records import (
+    CONTRACT,
+    Codec,
+    EstimateQuality,
+    EstimateState,
+    EstimatorCommand,
+    EstimatorStatus,
+    InjectionHeader,
+    InjectionTrailer,
+    SampleBlock,
+    SimTruth,
+    ValvePrediction,
+    load_database,
+)
 from estimator.codec.samples import samples_crc32
 
 from ..conftest import REPO

@@ -11,8 +11,16 @@ import pytest
 
 from estimator.codec.errors import ContractError
 from estimator.codec.ingest import Counters
-from estimator.codec.records import (CONTRACT, HEARTBEAT_COUNTERS, REGISTRY, Codec, Command, EstimatorStatus, Record,
-                                     load_database)
+from estimator.codec.records import (
+    CONTRACT,
+    HEARTBEAT_COUNTERS,
+    REGISTRY,
+    Codec,
+    Command,
+    EstimatorStatus,
+    Record,
+    load_database,
+)
 
 from ..conftest import REPO
 

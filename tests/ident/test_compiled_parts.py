@@ -154,7 +154,7 @@ def test_search_box_and_noise_kept_per_simulator_weakly():
 def test_refine_step_rules_in_floats_are_the_numpy_rules():
     """refine's step sizes and Gauss–Newton tests, written in floats for speed, give what the numpy
     expressions they replace give, NaN, inf, zero and negative variances included."""
-    from estimator.ident.local_fit import next_steps, _within
+    from estimator.ident.local_fit import _within, next_steps
     rng = np.random.default_rng(0)
     tol = (2e-4, 2e-3)
     for _ in range(5000):

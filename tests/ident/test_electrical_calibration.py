@@ -10,11 +10,11 @@ import sys
 import numpy as np
 import pytest
 
+from estimator.errors import ParameterError
 from estimator.ident.electrical import calibrate_electrical
 from estimator.ident.measurement import Injection
-from estimator.errors import ParameterError
-from estimator.model.parameters import InjectorParameters, load_nominal
 from estimator.io.traces import write_trace
+from estimator.model.parameters import InjectorParameters, load_nominal
 from sim_bench import series_part
 from sim_bench.plant import Plant, PlantConfig
 

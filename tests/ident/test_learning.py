@@ -7,13 +7,13 @@ import json
 
 import pytest
 
+from estimator.codec.ingest import Counters
 from estimator.codec.records import Codec, Command, EstimatorCommand
 from estimator.ident.selfcal import CalibrationOutcome, CalibrationStatus, SelfCalConfig
 from estimator.ident.status import Learning, Status
 from estimator.ident.tracker import Tracker
 from estimator.service.config import DaemonConfig
 from estimator.service.processor import Processor
-from estimator.codec.ingest import Counters
 from estimator.service.state_store import load_learning, save_states
 from sim_bench.series_life import LotSpec, draw_lot
 

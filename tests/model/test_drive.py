@@ -11,11 +11,18 @@ import pytest
 from estimator.errors import TraceError
 from estimator.ident.idle_stroke import predict_valve
 from estimator.ident.measurement import Injection
-from estimator.model import drive as drv
-from estimator.model.drive import (SAMPLE_PERIOD_S, Drive, StandardDrive, TableDrive, TimeFunction, sample_times,
-                                   standard_drive)
-from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
 from estimator.io.traces import read_trace
+from estimator.model import drive as drv
+from estimator.model.drive import (
+    SAMPLE_PERIOD_S,
+    Drive,
+    StandardDrive,
+    TableDrive,
+    TimeFunction,
+    sample_times,
+    standard_drive,
+)
+from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
 from sim_bench import scenarios
 from sim_bench import tracking_bench as tb
 from sim_bench.cli import build_parser

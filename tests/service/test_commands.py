@@ -73,12 +73,13 @@ def test_counters_roll_at_their_signal_width():
 def test_output_frames_are_encoded_when_asked_for_and_equal_the_eager_encoding():
     """A Published injection encodes its frames on first access (rows do not need them), once, and they
     are the frames output_frames gives."""
+    import numpy as np
+
     from estimator.codec.injection_frames import injection_frames
     from estimator.pipeline import build_pipeline
     from estimator.service.config import DaemonConfig
     from estimator.service.processor import output_frames
     from sim_bench.plant import Plant, PlantConfig
-    import numpy as np
 
     codec, ingest, processor, clock = build_pipeline(DaemonConfig(self_calibration=None))
     m = Plant(PlantConfig(window_s=100e-6)).measure(17.0, 3e-6, 30.0, np.random.default_rng(1))

@@ -10,8 +10,16 @@ import can
 import pytest
 
 from estimator.codec.injection_frames import injection_frames
-from estimator.codec.records import (Codec, Command, EstimateQuality, EstimateState, EstimatorCommand,
-                                     EstimatorHealth, EstimatorStatus, ValvePrediction)
+from estimator.codec.records import (
+    Codec,
+    Command,
+    EstimateQuality,
+    EstimateState,
+    EstimatorCommand,
+    EstimatorHealth,
+    EstimatorStatus,
+    ValvePrediction,
+)
 from estimator.ident.tracker import Tracker
 from estimator.service.bus import to_frame, to_message
 from estimator.service.config import DaemonConfig

@@ -165,8 +165,8 @@ def test_daemon_sd_notify_and_sigterm(tmp_path):
 def test_pipeline_runs_on_the_pool_it_is_given_even_an_empty_one():
     """The fleet hands a worker's pool to each capture pipeline: a fresh pool has no simulators yet
     (len 0) and must still be the one used, not replaced by a second pool that builds its tables again."""
-    from estimator.service.config import DaemonConfig
     from estimator.pipeline import build_pool
+    from estimator.service.config import DaemonConfig
     from estimator.service.estimates import new_pipeline
     cfg = DaemonConfig()
     pool = build_pool(cfg)

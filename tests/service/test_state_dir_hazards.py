@@ -19,8 +19,15 @@ from estimator.ident.config import TrackerConfig
 from estimator.ident.tracker import Tracker, TrackerState, _store, state_bounds
 from estimator.service.config import DaemonConfig
 from estimator.service.daemon import Daemon
-from estimator.service.state_store import (MAX_BYTES, REJECTED_KEPT, StateDirectoryBusy, keep_rejected, load_all,
-                                           lock_state_dir, read_regular)
+from estimator.service.state_store import (
+    MAX_BYTES,
+    REJECTED_KEPT,
+    StateDirectoryBusy,
+    keep_rejected,
+    load_all,
+    lock_state_dir,
+    read_regular,
+)
 
 from ..conftest import REPO
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
@@ -10,7 +9,7 @@ from estimator.codec.assembler import Completed
 from estimator.codec.ingest import Ingest
 from estimator.codec.records import Codec, SimTruth
 from sim_bench import scenarios
-from sim_bench.node import InjectorNode, apply_faults, NodeStats
+from sim_bench.node import InjectorNode, NodeStats, apply_faults
 
 
 @pytest.fixture(scope="module")
