@@ -43,6 +43,7 @@ NOMINAL_NU_N_PER_V = 16.4      # Table 3's N_u at room temperature (the nominal 
 NOMINAL_LH_UM = 3.0            # and its idle stroke
 MAX_INTERVAL_S = 60.0          # a longer pause between injections: N_u is not carried forward by the drift rate
 REFRESH_INJECTIONS = 16        # derivatives are simulated again this often (and whenever the model changes)
+CORRECTION_STATES = ("none", "valid", "held")   # DriveCorrection.State: code = index (the DBC's value table)
 STEP_NU, STEP_LH_UM, STEP_F_N, STEP_SCALE = 0.05, 0.1, 10.0, 0.01   # finite-difference steps
 
 
@@ -100,6 +101,12 @@ class Correction:
     held: bool = False
     at_limit: bool = False
 
+    @property
+    def state(self) -> str:
+        """``none`` (no ok estimate yet), ``valid`` (from this injection) or ``held`` (the last valid one):
+        :data:`CORRECTION_STATES`, the words of ``DriveCorrection.State``."""
+        return "held" if self.held else ("valid" if self.valid else "none")
+
     def at(self, preload_n: float, target: DriveTarget | None = None) -> tuple[float, float]:
         """(scale, offset µs) to apply at ``preload_n`` (N), within the target's limits."""
         if not self.valid:
@@ -110,11 +117,12 @@ class Correction:
         offset = float(np.clip(self.offset_us + self.offset_per_kn_us * d_kn, *t.offset_limits_us))
         return scale, offset
 
-    def to_dict(self) -> dict[str, float | bool | None]:
-        """JSON-ready (units in the names; NaN as None)."""
-        out: dict[str, float | bool | None] = {}
+    def to_dict(self) -> dict[str, float | bool | str | None]:
+        """JSON-ready (units in the names; NaN as None), with the :attr:`state` word."""
+        out: dict[str, float | bool | str | None] = {}
         for k, v in self.__dict__.items():
             out[k] = None if isinstance(v, float) and not math.isfinite(v) else v
+        out["state"] = self.state
         return out
 
 

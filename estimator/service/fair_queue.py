@@ -41,8 +41,7 @@ class FairQueue(Generic[T]):
             raise ValueError(f"per_injector = {per_injector}: must be >= 1")
         self.per_injector = per_injector
         self._waiting: dict[int, collections.deque[tuple[int, int, T]]] = {}   # (class, arrival number, item)
-        self._tag: dict[int, float] = {}       # start tag of the injector's next item (s of worker time)
-        self._finish: dict[int, float] = {}    # tag after its last identification
+        self._tag: dict[int, float] = {}       # start tag of the injector's next item, the end of its last one
         self._virtual = 0.0                    # the tag of the item served last
         self._arrivals = 0
         self.shed = 0
@@ -57,9 +56,9 @@ class FairQueue(Generic[T]):
         just reset), whatever the tags."""
         q = self._waiting.setdefault(injector, collections.deque())
         if not self.pending:   # the worker was idle: nobody owes it anything
-            self._virtual = max(self._virtual, max(self._finish.values(), default=0.0))
+            self._virtual = max(self._virtual, max(self._tag.values(), default=0.0))
         if not q:   # the injector becomes active: it joins at the virtual clock, idle time earns nothing
-            self._tag[injector] = max(self._virtual, self._finish.get(injector, 0.0))
+            self._tag[injector] = max(self._virtual, self._tag.get(injector, 0.0))
         shed = None
         if len(q) >= self.per_injector:
             shed = q.popleft()[2]
@@ -88,6 +87,5 @@ class FairQueue(Generic[T]):
 
     def charge(self, injector: int, seconds: float) -> None:
         """Book ``seconds`` of worker time to the injector's last item taken."""
-        finish = self._tag.get(injector, self._virtual) + max(0.0, seconds)
-        self._finish[injector] = finish
-        self._tag[injector] = finish   # its next waiting item, if any, starts where this one ended
+        # its next waiting item, if any, starts where this one ended
+        self._tag[injector] = self._tag.get(injector, self._virtual) + max(0.0, seconds)

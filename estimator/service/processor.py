@@ -29,7 +29,7 @@ from estimator.codec.records import (
     ValvePrediction,
 )
 from estimator.errors import ParameterError
-from estimator.ident.drive_correction import Correction, DriveCompensator, correction_after
+from estimator.ident.drive_correction import CORRECTION_STATES, Correction, DriveCompensator, correction_after
 from estimator.ident.measurement import Injection
 from estimator.ident.selfcal import CalibrationStatus
 from estimator.ident.status import Learning, Status
@@ -63,16 +63,8 @@ def result_row(res: TrackResult, injector_id: int, counter: int, time_s: float,
     valid = correction if correction is not None and correction.valid else None
     row["drive_scale"] = round(valid.scale, 5) if valid is not None else None
     row["drive_offset_us"] = round(valid.offset_us, 3) if valid is not None else None
-    row["drive_state"] = correction_state(correction) if correction is not None else None
+    row["drive_state"] = correction.state if correction is not None else None
     return row
-
-
-CORRECTION_STATES = ("none", "valid", "held")   # DriveCorrection.State (the DBC's value table)
-
-
-def correction_state(c: Correction) -> str:
-    """``none`` (no ok estimate yet), ``valid`` (from this injection) or ``held`` (the last valid one)."""
-    return "held" if c.held else ("valid" if c.valid else "none")
 
 
 def correction_frame(codec: Codec, injector_id: int, counter: int, c: Correction):
@@ -81,7 +73,7 @@ def correction_frame(codec: Codec, injector_id: int, counter: int, c: Correction
         return x if math.isfinite(x) else 0.0
     return codec.encode(DriveCorrection(injector_id, counter, c.scale, c.offset_us, v(c.stroke_um), v(c.sigma_stroke_um),
                                         v(c.opening_us), v(c.sigma_opening_us), c.scale_per_kn, c.offset_per_kn_us,
-                                        v(c.preload_n), CORRECTION_STATES.index(correction_state(c)),
+                                        v(c.preload_n), CORRECTION_STATES.index(c.state),
                                         int(c.at_limit)))
 
 
@@ -146,7 +138,7 @@ class Published:
         if self.calibrations:   # self-calibration changes with this injection (ModelCalibration frames)
             out["self_calibration"] = {str(i): st.to_dict() for i, st in self.calibrations}
         if self.correction is not None:
-            out["drive_correction"] = {**self.correction.to_dict(), "state": correction_state(self.correction)}
+            out["drive_correction"] = self.correction.to_dict()
         return out
 
 
