@@ -246,7 +246,9 @@ def cmd_compensation(args: argparse.Namespace) -> int:
 
     if not (2 <= args.injectors <= 8) or args.injections < compensation.SETTLED + 20:
         raise EstimatorError(f"--injectors must be 2..8 and --injections at least {compensation.SETTLED + 20}")
-    rep = compensation.run(args.seed, args.injectors, args.injections)
+    if not (1 <= args.lots <= 10):
+        raise EstimatorError("--lots must be 1..10")
+    rep = compensation.run(args.seed, args.injectors, args.injections, args.lots)
     print(compensation.format_report(rep))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     compensation.figure(rep, args.out)
@@ -433,8 +435,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_node)
 
     s = sub.add_parser("compensation", help="drive compensation: a lot of series injectors open and closed loop")
-    s.add_argument("--seed", type=int, default=1, help="seed of the lot (default 1)")
-    s.add_argument("--injectors", type=int, default=8, help="injectors in the lot (default 8)")
+    s.add_argument("--seed", type=int, default=1, help="seed of the first lot (default 1)")
+    s.add_argument("--injectors", type=int, default=8, help="injectors in a lot (default 8)")
+    s.add_argument("--lots", type=int, default=3, help="lots, seeds SEED, SEED+1, ... (default 3)")
     s.add_argument("--injections", type=int, default=150, help="injections per injector (default 150)")
     s.add_argument("--out", type=Path, default=DEFAULT_OUT / "compensation.png", help="figure (default bench-results/compensation.png)")
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "compensation.json", help="JSON report (default bench-results/compensation.json)")

@@ -1,0 +1,49 @@
+"""The drive-compensation bench's verdicts (sim_bench.compensation): σ judged over every lot's parts,
+spreads and settling per lot."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_bench import compensation
+
+TARGET = 22.0
+
+
+def _run(bias_um: list[float], sigma_um: float, n: int = 100) -> compensation.Run:
+    """A closed loop whose parts each sit ``bias_um`` off their predicted stroke (a learned model's bias)."""
+    k = len(bias_um)
+    predicted = np.full((k, n), TARGET)
+    stroke = predicted + np.array(bias_um)[:, None]
+    opening = np.full((k, n), 40.0)
+    return compensation.Run(stroke, opening + 0.2, predicted, np.full((k, n), sigma_um), opening, np.full((k, n), 0.2),
+                            np.ones((k, n), bool), [10] * k)
+
+
+
+def _report(lots: list[compensation.Run]) -> dict:
+    rep: dict = {"lots": [{"seed": seed, "closed": compensation.summarise(run, TARGET)} for seed, run in enumerate(lots)]}
+    rep.update(compensation.pooled_z(rep["lots"]))
+    return rep
+
+
+def test_sigma_is_judged_over_all_the_lots_parts_not_part_by_part():
+    # each part's error is a constant bias: part by part RMS(error/σ) is |bias|/σ (0.2 or 1.4), over all
+    # parts sqrt(mean of squares) = 1.0
+    lots = [_run([0.02, 0.14], 0.1), _run([0.14, 0.02], 0.1)]
+    rep = _report(lots)
+    per_part = [p["z_rms_stroke"] for lot in rep["lots"] for p in lot["closed"]["injectors"]]
+    assert min(per_part) < 0.5 < 1.0 < max(per_part)
+    assert abs(rep["z_rms_stroke"] - 1.0) < 1e-9
+    assert not [f for f in compensation.failures(rep) if "RMS" in f]
+    # σ ten times too small: confidently wrong, over the lots too
+    rep = _report([_run([0.02, 0.14], 0.01), _run([0.14, 0.02], 0.01)])
+    assert [f for f in compensation.failures(rep) if "stroke over the lots' parts" in f]
+
+
+def test_a_part_that_does_not_settle_fails_its_lot():
+    late = _run([0.0, 0.0], 0.05)
+    late.stroke_um[1, :60] += 1.0        # off target for 50 injections after its adoption at 10
+    rep = _report([late])
+    assert any("lot 0: injector 1 settled after" in f for f in compensation.failures(rep))
+    assert not _report([_run([0.0, 0.0], 0.05)])["lots"][0]["closed"]["injectors"][0]["overshoots"]
