@@ -57,8 +57,14 @@ _HOMES: dict[str, str] = {
     "write_trace": "estimator.io.traces",
     "injection_from_trace": "estimator.io.traces",
     "read_injections": "estimator.io.mdf",
-    "iter_estimates": "estimator.service.estimates",
-    # the bus and the daemon's configuration
+    "read_capture": "estimator.io.captures",
+    # the pipeline, as every entry point builds it, and its configuration
+    "EstimatorConfig": "estimator.pipeline.config",
+    "ConfigError": "estimator.pipeline.config",
+    "build_pipeline": "estimator.pipeline.build",
+    "iter_estimates": "estimator.pipeline.estimates",
+    "replay": "estimator.pipeline.replay",
+    # the bus and the daemon's configuration (the estimator's, with the bus, state and service keys)
     "Codec": "estimator.codec.records",
     "DaemonConfig": "estimator.service.config",
     # errors

@@ -7,10 +7,14 @@ import json
 import logging
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from estimator.choices import Norm, Robust
 from estimator.cli_support import base_parser, lean_service_imports, run_cli
 from estimator.errors import EstimatorError
+
+if TYPE_CHECKING:
+    from estimator.pipeline.config import EstimatorConfig
 
 log = logging.getLogger("estimator")
 
@@ -116,13 +120,16 @@ def cmd_track(args: argparse.Namespace) -> int:
     from estimator.ident.drive_correction import DriveCompensator, correction_after
     from estimator.ident.estimate import rejected
     from estimator.ident.selfcal import SelfCalConfig
-    from estimator.ident.simulators import SimulatorPool
     from estimator.ident.status import Status
-    from estimator.ident.tracker import Tracker, TrackResult
+    from estimator.ident.tracker import TrackResult
+    from estimator.pipeline.build import build_tracker
+    from estimator.pipeline.config import EstimatorConfig
 
     selfcal = SelfCalConfig() if args.self_calibrate else None
-    tracker = Tracker(TrackerConfig(ident=_config(args)), pool=SimulatorPool(_params(args)), self_calibration=selfcal)
-    compensator = DriveCompensator()
+    cfg = EstimatorConfig(params=getattr(args, "params", None), tracker=TrackerConfig(ident=_config(args)),
+                          self_calibration=selfcal)
+    tracker = build_tracker(cfg)
+    compensator = DriveCompensator(cfg.drive_correction)
     nan = float("nan")
     bad = 0
     for path in args.traces:
@@ -240,6 +247,14 @@ def cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def offline_config(path: Path | None, **overrides: Any) -> EstimatorConfig:
+    """The estimator's configuration for an offline command: the daemon's file is accepted as it is
+    (every key checked), and only the estimator's part is used."""
+    from estimator.service.config import DaemonConfig
+
+    return DaemonConfig.load(path, **overrides).estimator_config()
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """Run the estimator daemon on a CAN bus."""
     from estimator.service.bus import overrides_from_args
@@ -256,10 +271,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     """Replay a capture through the daemon's pipeline, offline."""
-    from estimator.service.config import DaemonConfig
-    from estimator.service.replay import replay
+    from estimator.pipeline.replay import replay
 
-    cfg = DaemonConfig.load(args.config, dbc=args.dbc, params=args.params)
+    cfg = offline_config(args.config, dbc=args.dbc, params=args.params)
     if not args.capture.exists():
         raise EstimatorError(f"capture {args.capture} does not exist")
     out_json = open(args.json, "w") if args.json and str(args.json) != "-" else (sys.stdout if args.json else None)
@@ -333,9 +347,7 @@ def cmd_fleet(args: argparse.Namespace) -> int:
     except ImportError as exc:
         raise EstimatorError(f"the fleet command needs dask[distributed] and pyarrow: pip install '.[fleet]' ({exc})") \
             from None
-    from estimator.service.config import DaemonConfig
-
-    cfg = DaemonConfig.load(args.config, params=args.params)
+    cfg = offline_config(args.config, params=args.params)
     opts = {k: getattr(args, k) for k in ("current_channel", "voltage_channel") if getattr(args, k, None)}
     if args.sample_period_us:
         opts["sample_period_s"] = args.sample_period_us * 1e-6
@@ -373,7 +385,7 @@ def cmd_dbc_path(args: argparse.Namespace) -> int:
 
 def cmd_compile(args: argparse.Namespace) -> int:
     """Fill numba's cache for this version on two cores (``make`` runs it before demo and test)."""
-    from estimator._compiled.precompile import precompile
+    from estimator.pipeline.precompile import precompile
 
     seconds = precompile(parallel=not args.serial, log=lambda m: print(m, file=sys.stderr))
     if seconds == 0.0 and not args.quiet:

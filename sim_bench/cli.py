@@ -188,7 +188,8 @@ def cmd_node(args: argparse.Namespace) -> int:
 
     import can
 
-    from estimator.service.bus import open_bus, resolve, spec_from_args, to_message
+    from estimator.io.captures import to_message
+    from estimator.service.bus import open_bus, resolve, spec_from_args
     from estimator.service.sdnotify import SdNotify
     from sim_bench import scenarios
     from sim_bench.node import InjectorNode
@@ -214,7 +215,7 @@ def cmd_node(args: argparse.Namespace) -> int:
         notifier = None
         if args.apply_corrections:   # drive each injector with the estimator's DriveCorrection, as an amplifier would
             from estimator.codec.records import Codec, DriveCorrection
-            from estimator.service.bus import to_frame
+            from estimator.io.captures import to_frame
 
             codec = Codec()
             wanted = codec.messages[DriveCorrection].frame_id

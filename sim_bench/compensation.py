@@ -27,7 +27,7 @@ import numpy as np
 from estimator.ident.drive_correction import Correction, DriveCompensator
 from estimator.ident.measurement import Injection
 from estimator.ident.status import Learning, Status
-from estimator.service.config import DaemonConfig
+from estimator.pipeline.config import EstimatorConfig
 from sim_bench.series_life import LotSpec, draw_lot
 
 INJECTORS = 8              # a lot: an engine's injectors
@@ -63,7 +63,7 @@ def run_loop(closed: bool, seed: int, injectors: int = INJECTORS, injections: in
     from estimator.pipeline import build_pipeline
 
     lives = draw_lot(injectors, seed, LotSpec())
-    _, _, processor, _ = build_pipeline(DaemonConfig())
+    _, _, processor, _ = build_pipeline(EstimatorConfig())
     compensator = processor.compensator
     assert compensator is not None    # on by default
     shape = (injectors, injections)

@@ -22,8 +22,9 @@ from estimator.codec.frame import Frame
 from estimator.codec.ingest import Ingest
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateState, EstimatorStatus, ModelCalibration
+from estimator.io.captures import to_frame, to_message
 from estimator.model.parameters import NOMINAL_PRELOAD_N
-from estimator.service.bus import open_bus, to_frame, to_message
+from estimator.service.bus import open_bus
 from estimator.service.latency import STAGES, WINDOW_S
 from sim_bench import series_part
 from sim_bench.bench import resolve_bus

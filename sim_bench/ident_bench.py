@@ -279,7 +279,7 @@ def speed(seed: int = 4, injections: int = 300, drive: Drive | None = None) -> d
     from estimator.codec.ingest import Counters
     from estimator.codec.records import Codec
     from estimator.ident.drive_correction import DriveCompensator
-    from estimator.service.processor import Processor
+    from estimator.pipeline.processor import Processor
 
     processor = Processor(Codec(), Tracker(TrackerConfig(), sim), Counters(), compensator=DriveCompensator())
     processor.estimate(_injection(meas[0]))

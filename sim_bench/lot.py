@@ -20,11 +20,11 @@ import numpy as np
 
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec
+from estimator.io.captures import to_message
 from estimator.io.traces import write_trace
 from estimator.model.drive import Drive, StandardDrive
 from estimator.model.parameters import NOMINAL_PRELOAD_N
-from estimator.service.bus import to_message
-from estimator.service.config import DaemonConfig
+from estimator.pipeline.config import EstimatorConfig
 from sim_bench.plant import Measurement, Plant, PlantConfig
 from sim_bench.series_life import LotSpec, draw_lot
 
@@ -32,7 +32,7 @@ NU_MEAN, NU_SD = 17.5, 0.3
 LH_MEAN, LH_SD = 3.5, 0.6
 BAD_FRACTION, MISMATCH_FRACTION = 0.02, 0.10
 CAPTURE_FRAME_DT_S = 2e-4     # between the frames of one injection in a capture
-CAPTURE_SLOTS = DaemonConfig.max_injectors   # injector ids on the bus the daemon accepts by default; serial i uses i % slots
+CAPTURE_SLOTS = EstimatorConfig.max_injectors   # injector ids on the bus the daemon accepts by default; serial i uses i % slots
 
 
 def make_lot(out: Path, injectors: int, injections: int = 1, seed: int = 11, window_s: float = 100e-6,

@@ -30,8 +30,8 @@ from typing import Any
 import can
 
 from estimator.codec.records import Codec, EstimatorStatus, Record
-from estimator.service.bus import open_bus, resolve, to_frame
-from estimator.service.replay import open_writer
+from estimator.io.captures import open_writer, to_frame
+from estimator.service.bus import open_bus, resolve
 
 REPO = Path(__file__).resolve().parents[1]
 

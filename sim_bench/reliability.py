@@ -26,8 +26,9 @@ import numpy as np
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, Command, EstimateState, EstimatorCommand, EstimatorHealth, EstimatorStatus
 from estimator.ident.measurement import Injection
+from estimator.io.captures import to_message
 from estimator.model.parameters import NOMINAL_PRELOAD_N
-from estimator.service.bus import open_bus, to_message
+from estimator.service.bus import open_bus
 from sim_bench.bench import resolve_bus
 from sim_bench.plant import Plant, PlantConfig
 from sim_bench.procs import REPO, BusMonitor, DaemonProcess, rss_mb, watched_daemon

@@ -31,7 +31,7 @@ def injection_messages(injector: int, n: int, seed: int, frame_dt_s: float = 2e-
     """python-can messages of ``n`` simulated injections of one injector, timestamped like a bus capture."""
     from estimator.codec.injection_frames import injection_frames
     from estimator.codec.records import Codec
-    from estimator.service.bus import to_message
+    from estimator.io.captures import to_message
 
     codec = Codec()
     out, t = [], t0

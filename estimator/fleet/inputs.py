@@ -13,10 +13,10 @@ import glob
 from dataclasses import dataclass
 from pathlib import Path
 
+from estimator.io.captures import CAPTURE_SUFFIXES
 from estimator.io.mdf import MDF_SUFFIXES
 from estimator.io.traces import csv_head, injector_key
-from estimator.service.estimates import is_capture_header
-from estimator.service.replay import CAPTURE_SUFFIXES
+from estimator.pipeline.estimates import is_capture_header
 
 TRACE_SUFFIXES = (".csv",) + MDF_SUFFIXES
 

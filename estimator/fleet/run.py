@@ -19,8 +19,8 @@ from estimator.fleet.cluster import dask_client
 from estimator.fleet.inputs import Group, expand, group
 from estimator.fleet.tasks import process_groups, warm_worker
 from estimator.ident.status import ESTIMATED_WORDS
-from estimator.service.config import DaemonConfig
-from estimator.service.estimates import FIELDS
+from estimator.pipeline.config import EstimatorConfig
+from estimator.pipeline.estimates import FIELDS
 
 COLUMNS = FIELDS + ("injector_key",)
 MAX_GROUPS_PER_TASK = 64   # groups (an injector's traces, or one input) sent to a worker in one Dask task at most
@@ -43,7 +43,7 @@ class FleetResult:
     workers: int = 0
 
 
-def run_fleet(inputs: list[str], out: Path, cfg: DaemonConfig | None = None, workers: int | None = None,
+def run_fleet(inputs: list[str], out: Path, cfg: EstimatorConfig | None = None, workers: int | None = None,
               scheduler: str | None = None, trace_options: dict[str, Any] | None = None,
               progress: bool = False, groups_per_task: int | None = None) -> FleetResult:
     """Process every input on a Dask cluster; write ``out`` (.parquet or .csv) and its companions.
@@ -55,7 +55,7 @@ def run_fleet(inputs: list[str], out: Path, cfg: DaemonConfig | None = None, wor
     if not files:
         raise EstimatorError(f"no input files in {' '.join(inputs)}")
     groups = group(files)
-    cfg = cfg or DaemonConfig()
+    cfg = cfg or EstimatorConfig()
     t0 = time.perf_counter()
     rows, n_workers, ready, finished = _compute(groups, cfg, trace_options or {}, workers, scheduler, progress,
                                                 groups_per_task)
@@ -101,7 +101,7 @@ def task_chunks(groups: list[Group], n_workers: int, groups_per_task: int | None
     return chunks
 
 
-def _compute(groups: list[Group], cfg: DaemonConfig, trace_options: dict, workers: int | None,
+def _compute(groups: list[Group], cfg: EstimatorConfig, trace_options: dict, workers: int | None,
              scheduler: str | None, progress: bool, groups_per_task: int | None = None
              ) -> tuple[list[dict], int, float, float]:
     """The rows, the number of workers, and when (``perf_counter``) every worker was ready and the last

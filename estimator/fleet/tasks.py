@@ -81,7 +81,7 @@ def process_group(key: str | None, paths: tuple[str, ...], cfg: Any, trace_optio
     ``tracker_config``: ``cfg.tracker_config()``, if the caller has it (the same for every group)."""
     from estimator.errors import EstimatorError
     from estimator.ident.tracker import Tracker
-    from estimator.service.estimates import iter_estimates, new_pipeline, source_kind
+    from estimator.pipeline.estimates import iter_estimates, new_pipeline, source_kind
 
     pool, codec = _worker_parts(cfg)
     tracker = Tracker(tracker_config or cfg.tracker_config(), pool=pool,   # one per group: state per injector key

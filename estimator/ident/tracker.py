@@ -957,7 +957,7 @@ class Tracker:
         that shares this one's simulators (this tracker's states are not touched), and a cold start
         with the global search (what a local-first cold start falls back to). ``cold_start=False``:
         the scratch tracker starts from a prior, so the local-first cold start's fits are left out
-        (another process compiles them: :mod:`estimator._compiled.precompile`)."""
+        (another process compiles them: :mod:`estimator.pipeline.precompile`)."""
         from estimator.model.drive import SAMPLE_PERIOD_S, StandardDrive
 
         sim = self.simulator(SAMPLE_PERIOD_S)

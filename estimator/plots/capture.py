@@ -1,7 +1,7 @@
 """``plot-capture``: N_u, L_h and the valve-opening time over time from a bus capture, one line per
 injector, with the truth and a ± band around it where the capture holds SimTruth (bench captures).
 
-Any capture format python-can reads (:func:`estimator.service.replay.read_capture`); times in s
+Any capture format python-can reads (:func:`estimator.io.captures.read_capture`); times in s
 from the first frame; only published estimates (every status that carries an estimate of its injection) are drawn.
 """
 
@@ -14,8 +14,7 @@ from estimator.codec.errors import MalformedFrame
 from estimator.codec.records import Codec, EstimateState, SimTruth, ValvePrediction
 from estimator.errors import EstimatorError
 from estimator.ident.status import ESTIMATED
-from estimator.service.bus import to_frame
-from estimator.service.replay import read_capture
+from estimator.io.captures import read_capture, to_frame
 
 
 def series(capture: Path) -> dict:

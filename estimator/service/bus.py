@@ -24,7 +24,6 @@ from typing import Any
 
 import can
 
-from estimator.codec.frame import Frame
 from estimator.errors import EstimatorError
 
 log = logging.getLogger(__name__)
@@ -176,14 +175,3 @@ def open_bus(spec: str | BusSpec | None, receive_own_messages: bool = False) -> 
         raise
     except (can.CanError, OSError, ValueError, TypeError, ImportError) as exc:
         raise BusSetupError(f"cannot open bus {s}: {exc}") from None
-
-
-def to_frame(msg: can.Message) -> Frame:
-    """python-can message -> codec frame (timestamp: the bus's receive time in s)."""
-    return Frame(msg.arbitration_id, bytes(msg.data), bool(msg.is_fd), float(msg.timestamp), bool(msg.is_extended_id))
-
-
-def to_message(frame: Frame, timestamp: float = 0.0) -> can.Message:
-    """Codec frame -> python-can message (CAN FD frames with bit-rate switch)."""
-    return can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_fd=frame.is_fd,
-                       bitrate_switch=frame.is_fd, is_extended_id=frame.is_extended_id, timestamp=timestamp)

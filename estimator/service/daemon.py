@@ -30,14 +30,15 @@ from estimator.codec.frame import Frame
 from estimator.errors import EstimatorError
 from estimator.ident.drive_correction import DriveCompensator
 from estimator.ident.tracker import Tracker
+from estimator.io.captures import to_frame, to_message
 from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.pipeline import build_pipeline, build_pool, build_tracker
-from estimator.service.bus import open_bus, resolve, to_frame, to_message
+from estimator.pipeline.ratelimit import RateLimitedLog
+from estimator.service.bus import open_bus, resolve
 from estimator.service.calibration_worker import BackgroundCalibrator
 from estimator.service.config import ConfigError, DaemonConfig
 from estimator.service.fair_queue import FairQueue
 from estimator.service.latency import Stats
-from estimator.service.ratelimit import RateLimitedLog
 from estimator.service.sdnotify import SdNotify
 from estimator.service.state_store import keep_rejected, load_all, lock_state_dir, save_states
 
@@ -121,7 +122,8 @@ class Daemon:
         self.loader = loader
         # self-calibrations run in a low-priority process of their own, never on the injection worker
         self.calibrator = BackgroundCalibrator() if cfg.self_calibration is not None else None
-        self.codec, self.ingest, self.processor, self.clock = build_pipeline(cfg, calibrator=self.calibrator)
+        self.codec, self.ingest, self.processor, self.clock = build_pipeline(cfg, calibrator=self.calibrator,
+                                                                                 silent_bus_s=cfg.silent_bus_s)
         self.stop = threading.Event()
         self.reload_requested = threading.Event()
         self._send_lock = threading.Lock()

@@ -13,7 +13,7 @@ from estimator.codec.ingest import Ingest
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec
 from estimator.ident.tracker import Tracker
-from estimator.service.processor import Processor
+from estimator.pipeline.processor import Processor
 
 from ..helpers import measured
 

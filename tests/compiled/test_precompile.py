@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
-from estimator._compiled import precompile as pc
+from estimator.pipeline import precompile as pc
 
 
 class _Child:

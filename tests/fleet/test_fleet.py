@@ -17,8 +17,8 @@ pd = pytest.importorskip("pandas")
 from estimator.errors import EstimatorError  # noqa: E402
 from estimator.fleet.run import run_fleet  # noqa: E402
 from estimator.pipeline import build_tracker  # noqa: E402
+from estimator.pipeline.estimates import iter_estimates  # noqa: E402
 from estimator.service.config import DaemonConfig  # noqa: E402
-from estimator.service.estimates import iter_estimates  # noqa: E402
 from sim_bench.lot import make_lot  # noqa: E402
 
 from ..conftest import REPO  # noqa: E402

@@ -12,8 +12,8 @@ from estimator.codec.records import Codec, Command, EstimatorCommand
 from estimator.ident.selfcal import CalibrationOutcome, CalibrationStatus, SelfCalConfig
 from estimator.ident.status import Learning, Status
 from estimator.ident.tracker import Tracker
+from estimator.pipeline.processor import Processor
 from estimator.service.config import DaemonConfig
-from estimator.service.processor import Processor
 from estimator.service.state_store import load_learning, save_states
 from sim_bench.series_life import LotSpec, draw_lot
 

@@ -21,7 +21,7 @@ from estimator.codec.records import (
     ValvePrediction,
 )
 from estimator.ident.tracker import Tracker
-from estimator.service.bus import to_frame, to_message
+from estimator.io.captures import to_frame, to_message
 from estimator.service.config import DaemonConfig
 from estimator.service.daemon import Daemon
 from estimator.service.state_store import load_states

@@ -9,8 +9,8 @@ from estimator.codec.ingest import Counters
 from estimator.codec.records import Codec
 from estimator.ident.config import TrackerConfig
 from estimator.ident.tracker import Tracker
+from estimator.pipeline.processor import Processor
 from estimator.service.latency import STAGES, Stats
-from estimator.service.processor import Processor
 
 
 def test_heartbeat_shows_an_overload_of_seconds_and_the_stages():

@@ -18,12 +18,12 @@ from estimator.codec.records import Codec, EstimateState, EstimatorStatus, Model
 from estimator.ident.measurement import Injection
 from estimator.ident.selfcal import STATES, CalibrationOutcome, CalibrationStatus, CalibrationWindow, SelfCalConfig
 from estimator.ident.tracker import Tracker
+from estimator.io.captures import to_frame, to_message
 from estimator.model.parameters import load_nominal, scaled
-from estimator.service.bus import to_frame, to_message
+from estimator.pipeline.processor import calibration_frame
 from estimator.service.calibration_worker import BackgroundCalibrator
 from estimator.service.config import ConfigError, DaemonConfig
 from estimator.service.daemon import Daemon
-from estimator.service.processor import calibration_frame
 from estimator.service.state_store import load_calibrations, save_states
 from sim_bench import series_part
 from sim_bench.plant import Plant, PlantConfig

@@ -166,8 +166,8 @@ def test_pipeline_runs_on_the_pool_it_is_given_even_an_empty_one():
     """The fleet hands a worker's pool to each capture pipeline: a fresh pool has no simulators yet
     (len 0) and must still be the one used, not replaced by a second pool that builds its tables again."""
     from estimator.pipeline import build_pool
+    from estimator.pipeline.estimates import new_pipeline
     from estimator.service.config import DaemonConfig
-    from estimator.service.estimates import new_pipeline
     cfg = DaemonConfig()
     pool = build_pool(cfg)
     assert len(pool) == 0

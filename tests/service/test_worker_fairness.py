@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimatorHealth
-from estimator.service.bus import to_message
+from estimator.io.captures import to_message
 from estimator.service.config import DaemonConfig
 from estimator.service.daemon import ESTABLISHED_AFTER, Daemon, QueueListener
 from estimator.service.fair_queue import PENDING_PER_INJECTOR

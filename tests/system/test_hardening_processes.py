@@ -18,7 +18,8 @@ import pytest
 
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, Command, EstimateState, EstimatorCommand, EstimatorStatus
-from estimator.service.bus import open_bus, to_message
+from estimator.io.captures import to_message
+from estimator.service.bus import open_bus
 from sim_bench.procs import DaemonProcess, rss_mb
 from sim_bench.reliability import STALL_CONFIG, stalled_injection
 

@@ -14,7 +14,8 @@ import pytest
 
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateQuality, EstimateState, ValvePrediction
-from estimator.service.bus import open_bus, to_frame, to_message
+from estimator.io.captures import to_frame, to_message
+from estimator.service.bus import open_bus
 from sim_bench.procs import DaemonProcess, wait_until
 
 from ..conftest import REPO

@@ -21,7 +21,7 @@ import can
 import pytest
 
 from estimator.codec.records import Codec, EstimateQuality, EstimateState, EstimatorStatus, SimTruth
-from estimator.service.bus import to_frame
+from estimator.io.captures import to_frame
 
 from ..helpers import COLD_MIN_EVALUATIONS, WARM_MAX_EVALUATIONS
 

@@ -9,7 +9,7 @@ from estimator.codec.ingest import Counters
 from estimator.codec.records import Codec, Command, EstimatorCommand, EstimatorStatus
 from estimator.ident.config import TrackerConfig
 from estimator.ident.tracker import Tracker, TrackerState
-from estimator.service.processor import Processor
+from estimator.pipeline.processor import Processor
 
 
 def processor(policy: str) -> Processor:
@@ -77,8 +77,8 @@ def test_output_frames_are_encoded_when_asked_for_and_equal_the_eager_encoding()
 
     from estimator.codec.injection_frames import injection_frames
     from estimator.pipeline import build_pipeline
+    from estimator.pipeline.processor import output_frames
     from estimator.service.config import DaemonConfig
-    from estimator.service.processor import output_frames
     from sim_bench.plant import Plant, PlantConfig
 
     codec, ingest, processor, clock = build_pipeline(DaemonConfig(self_calibration=None))

@@ -1,8 +1,8 @@
 """The one place that builds the estimation pipeline from a configuration.
 
-The live daemon, ``replay``, the library's :func:`~estimator.service.estimates.iter_estimates`, the
-fleet's workers and ``estimator compile`` all build codec, simulator pool, tracker and the rest
-here, so that they estimate alike.
+The live daemon, ``replay``, the library's :func:`~estimator.pipeline.estimates.iter_estimates`, the
+fleet's workers, the benches and ``estimator compile`` all build codec, simulator pool, tracker and
+the rest here from an :class:`~estimator.pipeline.config.EstimatorConfig`, so that they estimate alike.
 """
 
 from __future__ import annotations
@@ -14,18 +14,20 @@ from estimator.ident.drive_correction import DriveCompensator
 from estimator.ident.selfcal import Calibrator
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.tracker import Tracker
-from estimator.service.config import DaemonConfig
-from estimator.service.processor import Processor
+from estimator.pipeline.config import EstimatorConfig
+from estimator.pipeline.processor import Processor
+
+SILENT_BUS_S = 1.0   # s: the bus clock's guard unless the daemon's configuration says otherwise
 
 
-def build_pool(cfg: DaemonConfig) -> SimulatorPool:
+def build_pool(cfg: EstimatorConfig) -> SimulatorPool:
     """The bounded simulator pool as configured (parameters from ``cfg.params`` or Tables 1-2)."""
     from estimator.model.parameters import load_parameters
 
     return SimulatorPool(load_parameters(cfg.params), cfg.max_sample_periods, cfg.sample_periods_ns)
 
 
-def build_tracker(cfg: DaemonConfig, pool: SimulatorPool | None = None,
+def build_tracker(cfg: EstimatorConfig, pool: SimulatorPool | None = None,
                   calibrator: Calibrator | None = None, codec: Codec | None = None) -> Tracker:
     """The recursive estimator as configured (on ``pool`` if given: its simulators' tables are built
     once), each injector with a configured parameter file of its own starting from it. With learning
@@ -42,19 +44,21 @@ def build_tracker(cfg: DaemonConfig, pool: SimulatorPool | None = None,
     return tracker
 
 
-def build_codec(cfg: DaemonConfig) -> Codec:
+def build_codec(cfg: EstimatorConfig) -> Codec:
     """The codec of the configured DBC (``cfg.dbc``, else the packaged one)."""
     return Codec(load_database(cfg.dbc))
 
 
-def build_pipeline(cfg: DaemonConfig, pool: SimulatorPool | None = None, codec: Codec | None = None,
-                   calibrator: Calibrator | None = None) -> tuple[Codec, Ingest, Processor, BusClock]:
+def build_pipeline(cfg: EstimatorConfig, pool: SimulatorPool | None = None, codec: Codec | None = None,
+                   calibrator: Calibrator | None = None,
+                   silent_bus_s: float = SILENT_BUS_S) -> tuple[Codec, Ingest, Processor, BusClock]:
     """Codec, ingest, processor and bus clock: the same in the live daemon and in the replay. ``pool``
     and ``codec`` (built from ``cfg`` when not given) hold no state of a run: a fleet worker shares them
-    between its inputs (the simulator tables and the DBC parse cost ≈ 35 ms each)."""
+    between its inputs (the simulator tables and the DBC parse cost ≈ 35 ms each). ``silent_bus_s``:
+    the live daemon's wall-clock guard (its configuration's); a replay's capture ends it."""
     codec = codec or build_codec(cfg)
     ingest = Ingest(codec, cfg.assembly_timeout_ms * 1e-3, cfg.max_injectors)
     compensator = DriveCompensator(cfg.drive_correction) if cfg.drive_correction is not None else None
     processor = Processor(codec, build_tracker(cfg, pool, calibrator, codec), ingest.counters, cfg.commands,
                           compensator)
-    return codec, ingest, processor, BusClock(cfg.silent_bus_s)
+    return codec, ingest, processor, BusClock(silent_bus_s)

@@ -34,7 +34,7 @@ from estimator.ident.measurement import Injection
 from estimator.ident.selfcal import CalibrationStatus
 from estimator.ident.status import Learning, Status
 from estimator.ident.tracker import Tracker, TrackResult
-from estimator.service.ratelimit import RateLimitedLog
+from estimator.pipeline.ratelimit import RateLimitedLog
 
 log = logging.getLogger(__name__)
 COMMAND_POLICIES = ("off", "reset-only", "all")   # who may steer the estimator over the bus (config key commands)

@@ -36,10 +36,10 @@ MARKER = ".complete"   # in the numba cache directory: every entry point of Trac
 def _tracker() -> Tracker:
     """A tracker with the default configuration and its own simulator pool."""
     from estimator.ident.tracker import Tracker
-    from estimator.pipeline import build_pool
-    from estimator.service.config import DaemonConfig
+    from estimator.pipeline.build import build_pool
+    from estimator.pipeline.config import EstimatorConfig
 
-    cfg = DaemonConfig()
+    cfg = EstimatorConfig()
     return Tracker(cfg.tracker_config(), pool=build_pool(cfg))
 
 
@@ -94,7 +94,7 @@ def precompile(parallel: bool = True, log: Callable[..., Any] = print) -> float:
     log(f"compiling the kernels into {marker.parent} (once per version; ~30-60 s)")
     child = None
     if parallel and (os.cpu_count() or 1) > 1:
-        child = subprocess.Popen([sys.executable, "-c", "from estimator._compiled.precompile import warm_the_rest; "
+        child = subprocess.Popen([sys.executable, "-c", "from estimator.pipeline.precompile import warm_the_rest; "
                                   "warm_the_rest()"])
     tracker = _tracker()
     warm_cold_start(tracker)

@@ -1,7 +1,7 @@
 """The library API: one row per injection from a capture or a trace file, through the same pipeline
 as the daemon and ``replay`` (:func:`estimator.pipeline.build_pipeline`).
 
->>> from estimator.service.estimates import iter_estimates
+>>> from estimator.pipeline.estimates import iter_estimates
 >>> for row in iter_estimates(Path("bench.blf")):
 ...     print(row["injector_id"], row["lh_um"], row["status"])
 
@@ -20,12 +20,13 @@ from typing import Any
 from estimator.codec.records import Codec
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.tracker import Tracker
+from estimator.io.captures import CAPTURE_SUFFIXES
 from estimator.io.mdf import is_mdf, read_any_trace
 from estimator.io.traces import csv_head, injection_from_trace
-from estimator.pipeline import build_pipeline, build_tracker
-from estimator.service.config import DaemonConfig
-from estimator.service.processor import ROW_FIELDS, result_row
-from estimator.service.replay import CAPTURE_SUFFIXES, iter_capture
+from estimator.pipeline.build import build_pipeline, build_tracker
+from estimator.pipeline.config import EstimatorConfig
+from estimator.pipeline.processor import ROW_FIELDS, result_row
+from estimator.pipeline.replay import iter_capture
 
 FIELDS = ("source",) + ROW_FIELDS
 CAPTURE_CSV_HEADER = "timestamp,arbitration_id"   # python-can's CSV logger
@@ -46,12 +47,12 @@ def source_kind(path: Path) -> str:
     return "capture" if suffix in CAPTURE_SUFFIXES else "trace"
 
 
-def iter_estimates(source: Path, cfg: DaemonConfig | None = None, *, kind: str | None = None,
+def iter_estimates(source: Path, cfg: EstimatorConfig | None = None, *, kind: str | None = None,
                    trace_options: dict[str, Any] | None = None, tracker: Tracker | None = None,
                    pipeline: tuple | None = None) -> Iterator[dict]:
     """Rows for every injection in ``source``. ``tracker`` / ``pipeline`` carry state across sources of
     one injector (traces / captures). Raises OSError/ValueError/EstimatorError for unreadable files."""
-    cfg = cfg or DaemonConfig()
+    cfg = cfg or EstimatorConfig()
     source = Path(source)
     kind = kind or source_kind(source)
     if kind == "capture":
@@ -67,7 +68,7 @@ def iter_estimates(source: Path, cfg: DaemonConfig | None = None, *, kind: str |
     yield {"source": str(source), **result_row(res, inj.injector_id, counter, t, tracker.calibration.get(inj.injector_id))}
 
 
-def new_pipeline(cfg: DaemonConfig | None = None, pool: SimulatorPool | None = None, codec: Codec | None = None) -> tuple:
+def new_pipeline(cfg: EstimatorConfig | None = None, pool: SimulatorPool | None = None, codec: Codec | None = None) -> tuple:
     """A fresh pipeline for :func:`iter_estimates` (captures of one injector in time order), on
     ``pool`` and ``codec`` if given (shared, stateless parts: see :func:`build_pipeline`)."""
-    return build_pipeline(cfg or DaemonConfig(), pool, codec)
+    return build_pipeline(cfg or EstimatorConfig(), pool, codec)
