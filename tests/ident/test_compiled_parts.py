@@ -129,21 +129,21 @@ def test_search_box_and_noise_kept_per_simulator_weakly():
     import gc
     import weakref
 
-    from estimator.ident import tracker as tr
+    from estimator.ident import recursive as tr
     from estimator.ident.idle_stroke import search_box
     from estimator.model.fast_sim import FastSimulator
     config = TrackerConfig()
     s = FastSimulator()
-    b1, n1 = tr._box_and_noise(config, s, 28.0)
-    b2, _ = tr._box_and_noise(config, s, 60.0)
-    assert tr._box_and_noise(config, s, 28.0)[0] is b1                     # kept
+    b1, n1 = tr.box_and_noise(config, s, 28.0)
+    b2, _ = tr.box_and_noise(config, s, 60.0)
+    assert tr.box_and_noise(config, s, 28.0)[0] is b1                     # kept
     for f_open, box in ((28.0, b1), (60.0, b2)):                            # and what search_box gives
         want = search_box(config.ident, s, f_open)
         assert np.array_equal(box.lo, want.lo) and np.array_equal(box.hi, want.hi)
     assert b2 is not b1                                                     # one per F_open (it moves the feasible L_h)
     assert n1 == tr.process_noise(config, b1)
     for f_open in np.linspace(20.0, 80.0, 40):                              # bounded per simulator
-        tr._box_and_noise(config, s, float(f_open))
+        tr.box_and_noise(config, s, float(f_open))
     assert len(tr._BOXES[s]) <= tr._BOXES_PER_SIMULATOR
     gone = weakref.ref(s)
     del s

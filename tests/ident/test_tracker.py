@@ -134,7 +134,7 @@ def test_a_cold_start_that_chose_the_robust_cost_switches_the_mode_at_once(sim, 
     """A first estimate with model error puts the tracker in robust mode with it: the injections after
     it are warm robust updates, none rejected, and the cold start runs once (it used to run twice and
     leave the tracker plain, so the next two injections were rejected as outliers)."""
-    import estimator.ident.tracker as tracker_mod
+    import estimator.ident.recursive as tracker_mod
     colds = []
     real = tracker_mod._cold_estimate
     monkeypatch.setattr(tracker_mod, "_cold_estimate", lambda *a: colds.append(1) or real(*a))
@@ -150,7 +150,7 @@ def test_a_cold_starts_valve_prediction_is_published_not_made_again(sim, monkeyp
     """The first injection's published contact, opening and stroke are its cold start's own prediction
     (one prediction simulated, not two, the numbers a prediction at the published point gives); a warm
     update's are predicted for its filtered point."""
-    import estimator.ident.tracker as tracker_mod
+    import estimator.ident.recursive as tracker_mod
     from estimator.ident.idle_stroke import predict_valve
     calls = []
     monkeypatch.setattr(tracker_mod, "predict_valve", lambda *a: calls.append(1) or predict_valve(*a))

@@ -16,7 +16,9 @@ from hypothesis import strategies as st
 
 from estimator.ident import kalman
 from estimator.ident.config import TrackerConfig
-from estimator.ident.tracker import Tracker, TrackerState, _store, state_bounds
+from estimator.ident.recursive import _store
+from estimator.ident.tracker import Tracker, TrackerState
+from estimator.ident.tracker_state import state_bounds
 from estimator.service.config import DaemonConfig
 from estimator.service.daemon import Daemon
 from estimator.service.state_store import (
