@@ -173,7 +173,233 @@ class _Simulators:
         return sim
 
 
-def calibrate_electrical(injections: list[Injection], base: InjectorParameters | None = None,  # noqa: C901
+@dataclass
+class _Batch:
+    """A calibration's batch as the fit sees it: the usable injections cut to the window, their sample
+    period, and the measurement chain they are seen through (``fit_chain``: its parameters are fitted)."""
+
+    injections: list[Injection]
+    dt_s: float
+    chain: MeasurementChain
+    fit_chain: bool
+
+
+def _batch(injections: list[Injection], base: InjectorParameters, names: tuple[str, ...], tolerance: float,
+           window_s: float, fit_chain: bool) -> _Batch:
+    """The batch checked (ValueError naming what is wrong) and cut to ``window_s``."""
+    if not (isinstance(tolerance, (int, float)) and 0.0 < tolerance <= 1.0):
+        raise ValueError(f"tolerance {tolerance!r} must be a relative standard deviation in (0, 1]")
+    if not (20e-6 <= window_s <= 2e-3):
+        raise ValueError(f"window {window_s * 1e6:.1f} µs must be within 20..2000 µs")
+    known = {f"psa.{f.name}" for f in fields(base.psa)} | {f"valve.{f.name}" for f in fields(base.valve)}
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise ValueError(f"unknown structural parameter(s) {', '.join(unknown)}")
+    usable = [inj for inj in injections if not inj.problem()]
+    if len(usable) < 2:
+        raise ValueError(f"an electrical calibration needs at least two usable injections, got {len(usable)}")
+    if len({round(inj.dt_s, 12) for inj in usable}) > 1:
+        raise ValueError("the injections of one calibration must share their sample period")
+    chain = base.chain
+    if any(inj.chain_corrected for inj in usable):   # the chain already undone: nothing left to model
+        usable = [inj.through_chain(base.chain) for inj in usable]
+        chain, fit_chain = MeasurementChain(), False
+    return _Batch([inj.window(window_s) for inj in usable], usable[0].dt_s, chain, fit_chain)
+
+
+class _Problem:
+    """The calibration's least-squares problem over one batch.
+
+    The unknowns ``x``: the ``k`` structural log factors, the ``nc`` chain parameters (µs; ``p = k +
+    nc`` shared ones), then each injection's N_u (N/V) and L_h (µm). The residual is every sample's
+    voltage error over its injection's noise level, then the shared parameters' prior.
+    """
+
+    def __init__(self, batch: _Batch, base: InjectorParameters, names: tuple[str, ...], tolerance: float,
+                 limits: dict[str, tuple[float, float]] | None) -> None:
+        self.batch, self.names = batch, names
+        self.usable = batch.injections
+        self.n_win = [inj.n for inj in self.usable]
+        self.k, self.b = len(names), len(self.usable)
+        self.chain_names = CHAIN_NAMES if batch.fit_chain else ()
+        self.nc = len(self.chain_names)
+        self.p = self.k + self.nc
+        self.c_base = np.array([getattr(batch.chain, n) * 1e6 for n in self.chain_names])
+        self.sims = _Simulators(replace(base, chain=MeasurementChain()), names, batch.dt_s)
+        self.ident = IdentConfig()
+        self.sigma = np.ones(self.b)
+        self.evaluations = 0        # simulations of the cold starts
+        self.count = 0              # simulations of the residuals and Jacobians
+        self._last: dict[bytes, np.ndarray] = {}   # the residual last computed (the solver asks for the Jacobian there)
+        k, b = self.k, self.b
+        nu_range = (base.psa.nu_min_n_per_v, base.psa.nu_max_n_per_v)
+        prior_sd = math.log1p(tolerance)
+        self.prior_sd = prior_sd
+        self.prior = np.concatenate([np.full(k, prior_sd), np.full(self.nc, CHAIN_PRIOR_SD_US)])
+        self.prior_centre = np.concatenate([np.zeros(k), self.c_base])
+        self.lo = np.concatenate([np.full(k, -BOUND_SDS * prior_sd), [CHAIN_BOUNDS_US[n][0] for n in self.chain_names],
+                                  np.tile([nu_range[0] - 0.1, base.valve.lh_min_m * 1e6], b)])
+        self.hi = np.concatenate([np.full(k, BOUND_SDS * prior_sd), [CHAIN_BOUNDS_US[n][1] for n in self.chain_names],
+                                  np.tile([nu_range[1] + 0.1, base.valve.lh_max_m * 1e6], b)])
+        for name, (f_lo, f_hi) in (limits or {}).items():
+            i = list(names).index(name)
+            self.lo[i], self.hi[i] = max(self.lo[i], math.log(f_lo)), min(self.hi[i], math.log(f_hi))
+
+    def chain_of(self, c: np.ndarray) -> MeasurementChain:
+        """The measurement chain of the chain parameters ``c`` (µs)."""
+        return replace(self.batch.chain, **{n: float(v) * 1e-6 for n, v in zip(self.chain_names, c)})
+
+    def per_injection(self, theta: np.ndarray, chain: MeasurementChain) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Each injection's (N_u, L_h) from its own cold start on the structure ``theta`` behind
+        ``chain``, and its residual (V)."""
+        sim = self.sims(theta)
+        start_sim = FastSimulator(replace(sim.params, chain=chain), self.batch.dt_s, nu_step=NU_STEP) \
+            if not chain.identity else sim
+        out, resid = np.empty(2 * self.b), []
+        for j, inj in enumerate(self.usable):
+            est = identify(inj, start_sim, self.ident)
+            self.evaluations += est.evaluations
+            nu = est.nu_n_per_v if math.isfinite(est.nu_n_per_v) else self.ident.start_point[0]
+            lh = est.lh_m * 1e6 if math.isfinite(est.lh_m) else self.ident.start_point[1]
+            out[2 * j:2 * j + 2] = nu, lh
+            resid.append(measured_voltage(sim, inj, np.array([nu]), np.array([lh]), chain)[0] - inj.voltage_v)
+        return out, resid
+
+    def start(self) -> tuple[np.ndarray, list[np.ndarray]]:
+        """The start: each injection fitted alone with the base parameters, whose residual sets its
+        noise level; and those residuals (V)."""
+        x0 = np.zeros(self.p + 2 * self.b)
+        x0[self.k:self.p] = self.c_base
+        x0[self.p:], before = self.per_injection(np.zeros(self.k), self.batch.chain)
+        self.sigma = np.array([noise_level_v(r) for r in before])
+        return x0, before
+
+    def residual(self, x: np.ndarray) -> np.ndarray:
+        """Every sample's voltage error over its noise level, then the shared parameters' prior."""
+        k, p = self.k, self.p
+        sim, chain = self.sims(x[:k]), self.chain_of(x[k:p])
+        parts = []
+        for j, inj in enumerate(self.usable):
+            u = measured_voltage(sim, inj, x[p + 2 * j:p + 2 * j + 1], x[p + 2 * j + 1:p + 2 * j + 2], chain)[0]
+            parts.append((u - inj.voltage_v) / self.sigma[j])
+        self.count += self.b
+        parts.append((x[:p] - self.prior_centre) / self.prior)
+        r = np.concatenate(parts)
+        self._last.clear()
+        self._last[x.tobytes()] = r
+        return r
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """Forward differences: one simulator per perturbed shared parameter, every injection on it;
+        each injection's own (N_u, L_h) in one batched simulation."""
+        k, p, hi = self.k, self.p, self.hi
+        r0 = self._last.get(x.tobytes())
+        if r0 is None:
+            r0 = self.residual(x)
+        jac = np.zeros((r0.size, x.size))
+        for i in range(p):
+            h = FD_THETA if i < k else (FD_CHAIN_US if x[i] + FD_CHAIN_US <= hi[i] else -FD_CHAIN_US)
+            xp = x.copy()
+            xp[i] += h
+            jac[:, i] = (self.residual(xp) - r0) / h
+        sim, chain = self.sims(x[:k]), self.chain_of(x[k:p])
+        row = 0
+        for j, inj in enumerate(self.usable):
+            nu, lh = x[p + 2 * j], x[p + 2 * j + 1]
+            h_nu = FD_NU if nu + FD_NU <= hi[p + 2 * j] else -FD_NU       # stay inside the simulator's range
+            h_lh = FD_LH_UM if lh + FD_LH_UM <= hi[p + 2 * j + 1] else -FD_LH_UM
+            u = measured_voltage(sim, inj, np.array([nu, nu + h_nu, nu]), np.array([lh, lh, lh + h_lh]), chain)
+            self.count += 3
+            jac[row:row + self.n_win[j], p + 2 * j] = (u[1] - u[0]) / h_nu / self.sigma[j]
+            jac[row:row + self.n_win[j], p + 2 * j + 1] = (u[2] - u[0]) / h_lh / self.sigma[j]
+            row += self.n_win[j]
+        return jac
+
+    def solve(self, start: np.ndarray, max_iterations: int) -> LeastSquaresResult:
+        """The bounded Levenberg–Marquardt fit from ``start``."""
+        return least_squares_lm(self.residual, self.jacobian, np.clip(start, self.lo + 1e-9, self.hi - 1e-9),
+                                self.lo, self.hi, max_nfev=max_iterations, xtol=1e-8, ftol=1e-10)
+
+    def voltage_residuals(self, f: LeastSquaresResult) -> list[np.ndarray]:
+        """Each injection's voltage residual (V) at the solution ``f``."""
+        edges = np.cumsum([0] + self.n_win)
+        return [f.fun[edges[j]:edges[j + 1]] * self.sigma[j] for j in range(self.b)]
+
+    def misfit_z(self, f: LeastSquaresResult) -> float:
+        """The worst injection's smooth residual structure (chi-square of its lowest cosine components,
+        :func:`~estimator.ident.adequacy.assess`) in standard deviations above its expectation."""
+        return max((assess(r, 2 + self.p // self.b).structure - SMOOTH_COLUMNS) / math.sqrt(2.0 * SMOOTH_COLUMNS)
+                   for r in self.voltage_residuals(f))
+
+    def restarted(self, fit: LeastSquaresResult, max_restarts: int, max_iterations: int) -> tuple[LeastSquaresResult, int]:
+        """The best of ``fit`` and up to ``max_restarts`` restarts while the residual is not white.
+
+        A local minimum: the valve's stiffness and damping trade against each other and L_h, and an
+        injection's (N_u, L_h) can sit in the wrong basin of its own cost. Start again with every
+        injection re-identified from a cold start (a global search of its own two parameters), first
+        on the structure found, then on structures redrawn within the prior (seeded)."""
+        k, p = self.k, self.p
+        rng = np.random.default_rng(RESTART_SEED)
+        restarts = 0
+        while self.misfit_z(fit) > RESTART_Z and restarts < max_restarts:
+            start = fit.x.copy()
+            if restarts > 0:
+                start[:k] = np.clip(rng.normal(0.0, self.prior_sd, k), self.lo[:k] + 1e-9, self.hi[:k] - 1e-9)
+                start[k:p] = self.c_base
+            start[p:] = self.per_injection(start[:k], self.chain_of(start[k:p]))[0]
+            trial = self.solve(start, max_iterations)
+            restarts += 1
+            if trial.cost < fit.cost:
+                fit = trial
+        return fit, restarts
+
+    def gain_slope(self, c: np.ndarray) -> np.ndarray:
+        """The derivative of the chain's noise gain in each chain parameter (per µs), central
+        differences kept inside the bounds."""
+        out = np.zeros(self.nc)
+        for i, n in enumerate(self.chain_names):
+            a, b_ = c.copy(), c.copy()
+            a[i] = max(a[i] - FD_CHAIN_US, CHAIN_BOUNDS_US[n][0])
+            b_[i] = min(b_[i] + FD_CHAIN_US, CHAIN_BOUNDS_US[n][1])
+            ga, gb = (noise_gain(ch.u_filter_tau_s, ch.i_skew_s, self.batch.dt_s) for ch in (self.chain_of(a), self.chain_of(b_)))
+            out[i] = (gb - ga) / (b_[i] - a[i])
+        return out
+
+    def covariance(self, fit: LeastSquaresResult) -> np.ndarray:
+        """The unknowns' covariance: the Gauss–Newton matrix's inverse, plus the pull of the measured
+        current's noise on the chain (and what correlates with it) as a bias ``b b'``."""
+        x, k, p = fit.x, self.k, self.p
+        cov = np.linalg.pinv(fit.jac.T @ fit.jac)
+        if self.nc:
+            psa = self.sims.params(x[:k]).psa
+            share = sum(inj.n * (current_noise_a(inj.current_a) / self.sigma[j]) ** 2
+                        * psa.resistance_ohm(float(x[p + 2 * j])) ** 2 for j, inj in enumerate(self.usable))
+            pull = np.zeros(x.size)       # the gradient of half the share (the cost is half the squares)
+            pull[k:p] = 0.5 * share * self.gain_slope(x[k:p])
+            bias = cov @ pull
+            cov = cov + np.outer(bias, bias)
+        result: np.ndarray = cov
+        return result
+
+    def left_uncertainty(self, fit: LeastSquaresResult, cov: np.ndarray) -> CalibrationUncertainty:
+        """What the shared parameters' uncertainty leaves in each injection's (N_u, L_h), RMS over the
+        batch: its marginal covariance less the part its own samples explain (the inverse of its own
+        two columns' J'J)."""
+        nu_rel, lh_sd = [], []
+        for j in range(self.b):
+            idx = [self.p + 2 * j, self.p + 2 * j + 1]
+            own = fit.jac[:, idx]
+            try:
+                shared_part = cov[np.ix_(idx, idx)] - np.linalg.inv(own.T @ own)
+            except np.linalg.LinAlgError:
+                continue
+            nu_rel.append(math.sqrt(max(shared_part[0, 0], 0.0)) / fit.x[idx[0]])
+            lh_sd.append(math.sqrt(max(shared_part[1, 1], 0.0)))
+        return CalibrationUncertainty(min(float(np.sqrt(np.mean(np.square(nu_rel)))) if nu_rel else 0.0, 0.1),
+                                      min(float(np.sqrt(np.mean(np.square(lh_sd)))) * 1e-6 if lh_sd else 0.0, 10e-6))
+
+
+def calibrate_electrical(injections: list[Injection], base: InjectorParameters | None = None,
                          names: tuple[str, ...] = STRUCTURAL_NAMES, tolerance: float = 0.10,
                          window_s: float = WINDOW_S, max_iterations: int = 30,
                          max_restarts: int = 4, fit_chain: bool = True,
@@ -192,185 +418,34 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
     parameters to (low, high) factors on their base values, and ``start`` (an earlier result's
     ``solution`` of the same batch) is where the fit starts: :func:`confirmed_out_of_tolerance` uses both."""
     base = base or load_nominal()
-    if not (isinstance(tolerance, (int, float)) and 0.0 < tolerance <= 1.0):
-        raise ValueError(f"tolerance {tolerance!r} must be a relative standard deviation in (0, 1]")
-    if not (20e-6 <= window_s <= 2e-3):
-        raise ValueError(f"window {window_s * 1e6:.1f} µs must be within 20..2000 µs")
-    known = {f"psa.{f.name}" for f in fields(base.psa)} | {f"valve.{f.name}" for f in fields(base.valve)}
-    unknown = [n for n in names if n not in known]
-    if unknown:
-        raise ValueError(f"unknown structural parameter(s) {', '.join(unknown)}")
-    usable = [inj for inj in injections if not inj.problem()]
-    if len(usable) < 2:
-        raise ValueError(f"an electrical calibration needs at least two usable injections, got {len(usable)}")
-    dts = {round(inj.dt_s, 12) for inj in usable}
-    if len(dts) > 1:
-        raise ValueError("the injections of one calibration must share their sample period")
-    dt = usable[0].dt_s
-    if any(inj.chain_corrected for inj in usable):   # the chain already undone: nothing left to model
-        usable = [inj.through_chain(base.chain) for inj in usable]
-        chain0, fit_chain = MeasurementChain(), False
-    else:
-        chain0 = base.chain
-    usable = [inj.window(window_s) for inj in usable]
-    n_win = [inj.n for inj in usable]
-    k, b = len(names), len(usable)
-    chain_names = CHAIN_NAMES if fit_chain else ()
-    nc = len(chain_names)
-    p = k + nc                       # shared parameters: structure, then chain (µs)
-    c_base = np.array([getattr(chain0, n) * 1e6 for n in chain_names])
-    sims = _Simulators(replace(base, chain=MeasurementChain()), names, dt)
-
-    def chain_of(c: np.ndarray) -> MeasurementChain:
-        return replace(chain0, **{n: float(v) * 1e-6 for n, v in zip(chain_names, c)})
-
-    # start: each injection fitted alone with the base parameters; its residual gives its noise level
-    ident = IdentConfig()
-    sigma = np.empty(b)
-    evaluations = 0
-
-    def per_injection(theta: np.ndarray, chain: MeasurementChain) -> tuple[np.ndarray, list[np.ndarray]]:
-        """Each injection's (N_u, L_h) from its own cold start on the structure ``theta`` behind
-        ``chain``, and its residual."""
-        nonlocal evaluations
-        sim = sims(theta)
-        start_sim = FastSimulator(replace(sim.params, chain=chain), dt, nu_step=NU_STEP) if not chain.identity else sim
-        out, resid = np.empty(2 * b), []
-        for j, inj in enumerate(usable):
-            est = identify(inj, start_sim, ident)
-            evaluations += est.evaluations
-            nu = est.nu_n_per_v if math.isfinite(est.nu_n_per_v) else ident.start_point[0]
-            lh = est.lh_m * 1e6 if math.isfinite(est.lh_m) else ident.start_point[1]
-            out[2 * j:2 * j + 2] = nu, lh
-            resid.append(measured_voltage(sim, inj, np.array([nu]), np.array([lh]), chain)[0] - inj.voltage_v)
-        return out, resid
-
-    x0 = np.zeros(p + 2 * b)
-    x0[k:p] = c_base
-    x0[p:], before = per_injection(np.zeros(k), chain0)
-    for j, r in enumerate(before):
-        sigma[j] = noise_level_v(r)
+    problem = _Problem(_batch(injections, base, names, tolerance, window_s, fit_chain), base, names, tolerance, limits)
+    x0, before = problem.start()
     rms_before = float(np.sqrt(np.mean(np.concatenate(before) ** 2)))
-
-    f_open = np.array([inj.f_open_n for inj in usable])
-    warnings = []
-    if np.ptp(f_open) < 0.2 * np.mean(f_open):
-        warnings.append(f"the preload forces span only {np.min(f_open):.0f}-{np.max(f_open):.0f} N: the valve's "
-                        "parameters are weakly determined (calibrate over rail pressures, e.g. 28-300 N)")
-    nu_range = (base.psa.nu_min_n_per_v, base.psa.nu_max_n_per_v)
-    prior_sd = math.log1p(tolerance)
-    prior = np.concatenate([np.full(k, prior_sd), np.full(nc, CHAIN_PRIOR_SD_US)])
-    lo = np.concatenate([np.full(k, -BOUND_SDS * prior_sd), [CHAIN_BOUNDS_US[n][0] for n in chain_names],
-                         np.tile([nu_range[0] - 0.1, base.valve.lh_min_m * 1e6], b)])
-    hi = np.concatenate([np.full(k, BOUND_SDS * prior_sd), [CHAIN_BOUNDS_US[n][1] for n in chain_names],
-                         np.tile([nu_range[1] + 0.1, base.valve.lh_max_m * 1e6], b)])
-    for name, (f_lo, f_hi) in (limits or {}).items():
-        i = list(names).index(name)
-        lo[i], hi[i] = max(lo[i], math.log(f_lo)), min(hi[i], math.log(f_hi))
     if start is not None and start.shape == x0.shape:
-        x0 = np.clip(start, lo + 1e-9, hi - 1e-9)
-    count = [0]
-    prior_centre = np.concatenate([np.zeros(k), c_base])
-    last: dict[bytes, np.ndarray] = {}   # the residual last computed (the solver asks for the Jacobian there)
+        x0 = np.clip(start, problem.lo + 1e-9, problem.hi - 1e-9)
+    fit, restarts = problem.restarted(problem.solve(x0, max_iterations), max_restarts, max_iterations)
+    return _result(problem, fit, restarts, base, rms_before)
 
-    def residual(x: np.ndarray) -> np.ndarray:
-        sim, chain = sims(x[:k]), chain_of(x[k:p])
-        parts = []
-        for j, inj in enumerate(usable):
-            u = measured_voltage(sim, inj, x[p + 2 * j:p + 2 * j + 1], x[p + 2 * j + 1:p + 2 * j + 2], chain)[0]
-            parts.append((u - inj.voltage_v) / sigma[j])
-        count[0] += b
-        parts.append((x[:p] - prior_centre) / prior)
-        r = np.concatenate(parts)
-        last.clear()
-        last[x.tobytes()] = r
-        return r
 
-    def jacobian(x: np.ndarray) -> np.ndarray:
-        r0 = last.get(x.tobytes())
-        if r0 is None:
-            r0 = residual(x)
-        jac = np.zeros((r0.size, x.size))
-        for i in range(p):   # one simulator per perturbed structural factor, every injection on it
-            h = FD_THETA if i < k else (FD_CHAIN_US if x[i] + FD_CHAIN_US <= hi[i] else -FD_CHAIN_US)
-            xp = x.copy()
-            xp[i] += h
-            jac[:, i] = (residual(xp) - r0) / h
-        sim, chain = sims(x[:k]), chain_of(x[k:p])
-        row = 0
-        for j, inj in enumerate(usable):   # each injection's own (N_u, L_h): one batched simulation
-            nu, lh = x[p + 2 * j], x[p + 2 * j + 1]
-            h_nu = FD_NU if nu + FD_NU <= hi[p + 2 * j] else -FD_NU       # stay inside the simulator's range
-            h_lh = FD_LH_UM if lh + FD_LH_UM <= hi[p + 2 * j + 1] else -FD_LH_UM
-            u = measured_voltage(sim, inj, np.array([nu, nu + h_nu, nu]), np.array([lh, lh, lh + h_lh]), chain)
-            count[0] += 3
-            jac[row:row + n_win[j], p + 2 * j] = (u[1] - u[0]) / h_nu / sigma[j]
-            jac[row:row + n_win[j], p + 2 * j + 1] = (u[2] - u[0]) / h_lh / sigma[j]
-            row += n_win[j]
-        return jac
-
-    def gain_slope(c: np.ndarray) -> np.ndarray:
-        """The derivative of the chain's noise gain in each chain parameter (per µs), central
-        differences kept inside the bounds."""
-        out = np.zeros(nc)
-        for i, n in enumerate(chain_names):
-            a, b_ = c.copy(), c.copy()
-            a[i] = max(a[i] - FD_CHAIN_US, CHAIN_BOUNDS_US[n][0])
-            b_[i] = min(b_[i] + FD_CHAIN_US, CHAIN_BOUNDS_US[n][1])
-            ga, gb = (noise_gain(ch.u_filter_tau_s, ch.i_skew_s, dt) for ch in (chain_of(a), chain_of(b_)))
-            out[i] = (gb - ga) / (b_[i] - a[i])
-        return out
-
-    def solve(start: np.ndarray) -> LeastSquaresResult:
-        return least_squares_lm(residual, jacobian, np.clip(start, lo + 1e-9, hi - 1e-9), lo, hi,
-                                max_nfev=max_iterations, xtol=1e-8, ftol=1e-10)
-
-    def voltage_residuals(f: LeastSquaresResult) -> list[np.ndarray]:
-        """Each injection's voltage residual (V) at the solution ``f``."""
-        edges = np.cumsum([0] + n_win)
-        return [f.fun[edges[j]:edges[j + 1]] * sigma[j] for j in range(b)]
-
-    def misfit_z(f: LeastSquaresResult) -> float:
-        """The worst injection's smooth residual structure (chi-square of its lowest cosine components,
-        :func:`~estimator.ident.adequacy.assess`) in standard deviations above its expectation."""
-        return max((assess(r, 2 + p // b).structure - SMOOTH_COLUMNS) / math.sqrt(2.0 * SMOOTH_COLUMNS)
-                   for r in voltage_residuals(f))
-
-    fit = solve(x0)
-    rng = np.random.default_rng(RESTART_SEED)
-    restarts = 0
-    while misfit_z(fit) > RESTART_Z and restarts < max_restarts:
-        # a local minimum: the valve's stiffness and damping trade against each other and L_h, and an
-        # injection's (N_u, L_h) can sit in the wrong basin of its own cost. Start again with every
-        # injection re-identified from a cold start (a global search of its own two parameters), first on
-        # the structure found, then on structures redrawn within the prior
-        start = fit.x.copy()
-        if restarts > 0:
-            start[:k] = np.clip(rng.normal(0.0, prior_sd, k), lo[:k] + 1e-9, hi[:k] - 1e-9)
-            start[k:p] = c_base
-        start[p:] = per_injection(start[:k], chain_of(start[k:p]))[0]
-        trial = solve(start)
-        restarts += 1
-        if trial.cost < fit.cost:
-            fit = trial
-    x = fit.x
-    cov = np.linalg.pinv(fit.jac.T @ fit.jac)
-    if nc:   # the measured current's noise pulls the chain (and what correlates with it): a bias
-        psa = sims.params(x[:k]).psa
-        share = sum(inj.n * (current_noise_a(inj.current_a) / sigma[j]) ** 2
-                    * psa.resistance_ohm(float(x[p + 2 * j])) ** 2 for j, inj in enumerate(usable))
-        pull = np.zeros(x.size)       # the gradient of half the share (the cost is half the squares)
-        pull[k:p] = 0.5 * share * gain_slope(x[k:p])
-        bias = cov @ pull
-        cov = cov + np.outer(bias, bias)
+def _result(problem: _Problem, fit: LeastSquaresResult, restarts: int, base: InjectorParameters,
+            rms_before: float) -> ElectricalCalibration:
+    """The calibration's report of the fit ``fit``: parameters with their σ, correlations, the
+    parameters the batch hardly informs, warnings, the verdict, the uncertainty left in estimates."""
+    x, k, p, names = fit.x, problem.k, problem.p, problem.names
+    cov = problem.covariance(fit)
     sd = np.sqrt(np.clip(np.diag(cov)[:p], 0, None))
     d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
     corr = cov / np.outer(d, d)
-    shared = tuple(names) + tuple(f"chain.{n}" for n in chain_names)
+    shared = tuple(names) + tuple(f"chain.{n}" for n in problem.chain_names)
     correlated = [(shared[i], shared[j], float(corr[i, j])) for i in range(p) for j in range(i + 1, p)
                   if abs(corr[i, j]) > CORRELATED]
-    weak = [shared[i] for i in range(p) if sd[i] > WEAK_FRACTION * prior[i]]
-    z = misfit_z(fit)
+    weak = [shared[i] for i in range(p) if sd[i] > WEAK_FRACTION * problem.prior[i]]
+    warnings = []
+    f_open = np.array([inj.f_open_n for inj in problem.usable])
+    if np.ptp(f_open) < 0.2 * np.mean(f_open):
+        warnings.append(f"the preload forces span only {np.min(f_open):.0f}-{np.max(f_open):.0f} N: the valve's "
+                        "parameters are weakly determined (calibrate over rail pressures, e.g. 28-300 N)")
+    z = problem.misfit_z(fit)
     if z > MISFIT_Z:
         warnings.append(f"the calibrated model does not explain the batch (residual {z:.0f} standard deviations "
                         f"above the noise after {restarts} restart(s)): do not use it; add injections or check "
@@ -378,28 +453,16 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
     if weak:
         warnings.append(f"{len(weak)} parameter(s) hardly informed by this batch (kept near the tables): "
                         + ", ".join(weak))
-    chain = chain_of(x[k:p])
-    after = voltage_residuals(fit)
-    # what the shared parameters' uncertainty leaves in each injection's (N_u, L_h): its marginal
-    # covariance less the part its own samples explain (the inverse of its own two columns' J'J)
-    nu_rel, lh_sd = [], []
-    for j in range(b):
-        idx = [p + 2 * j, p + 2 * j + 1]
-        own = fit.jac[:, idx]
-        try:
-            shared_part = cov[np.ix_(idx, idx)] - np.linalg.inv(own.T @ own)
-        except np.linalg.LinAlgError:
-            continue
-        nu_rel.append(math.sqrt(max(shared_part[0, 0], 0.0)) / x[idx[0]])
-        lh_sd.append(math.sqrt(max(shared_part[1, 1], 0.0)))
-    uncertainty = CalibrationUncertainty(min(float(np.sqrt(np.mean(np.square(nu_rel)))) if nu_rel else 0.0, 0.1),
-                                         min(float(np.sqrt(np.mean(np.square(lh_sd)))) * 1e-6 if lh_sd else 0.0, 10e-6))
-    params = replace(sims.params(x[:k]), chain=replace(base.chain, **{n: getattr(chain, n) for n in chain_names}),
-                     calibration=uncertainty)
+    chain = problem.chain_of(x[k:p])
+    after = problem.voltage_residuals(fit)
+    params = replace(problem.sims.params(x[:k]),
+                     chain=replace(base.chain, **{n: getattr(chain, n) for n in problem.chain_names}),
+                     calibration=problem.left_uncertainty(fit, cov))
     return ElectricalCalibration(
         params, tuple(names), np.exp(x[:k]), sd[:k], x[p::2].copy(), x[p + 1::2].copy(), rms_before,
-        float(np.sqrt(np.mean(np.concatenate(after) ** 2))), correlated, weak, warnings, evaluations + count[0],
-        z <= MISFIT_Z, z, {n: float(v) for n, v in zip(chain_names, sd[k:p])}, d[p::2].copy(), d[p + 1::2].copy(),
+        float(np.sqrt(np.mean(np.concatenate(after) ** 2))), correlated, weak, warnings,
+        problem.evaluations + problem.count, z <= MISFIT_Z, z,
+        {n: float(v) for n, v in zip(problem.chain_names, sd[k:p])}, d[p::2].copy(), d[p + 1::2].copy(),
         2.0 * float(fit.cost), x.copy())
 
 
