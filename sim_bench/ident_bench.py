@@ -23,7 +23,8 @@ from sim_bench import series_part
 from sim_bench.plant import AdcConfig, Measurement, Plant, PlantConfig
 from sim_bench.table import Column, keyed, plant, render
 
-NU_RANGE = (15.0, 21.0)
+_PSA = load_nominal().psa
+NU_RANGE = (_PSA.nu_min_n_per_v, _PSA.nu_max_n_per_v)   # Table 1: 15-21 N/V from 0 to 100 degC
 LH_RANGE_UM = (-1.0, 10.0)
 F_OPEN_N = NOMINAL_PRELOAD_N
 

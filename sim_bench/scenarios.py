@@ -22,10 +22,11 @@ from typing import Generic, NamedTuple, TypeVar
 import numpy as np
 
 from estimator.model.drive import Drive, StandardDrive
-from estimator.model.parameters import NOMINAL_PRELOAD_N
+from estimator.model.parameters import NOMINAL_PRELOAD_N, load_nominal
 
-NU_AT_0C = 15.0
-NU_PER_DEGC = 0.06
+NU_RANGE = (load_nominal().psa.nu_min_n_per_v, load_nominal().psa.nu_max_n_per_v)   # Table 1, 0-100 degC
+NU_AT_0C = NU_RANGE[0]
+NU_PER_DEGC = (NU_RANGE[1] - NU_RANGE[0]) / 100.0   # N/V per degC: the range over 0-100 degC
 
 
 def nu_of_temperature(t_c: float) -> float:
@@ -151,7 +152,7 @@ class Scenario:
         """Truth of injection ``k`` of ``injector`` at time t (s since start); the same for any k."""
         temp = self.temperature(t)
         nu = nu_of_temperature(temp) + self.nu_offset[injector % len(self.nu_offset)]
-        nu = float(np.clip(nu, 15.0, 21.0))
+        nu = float(np.clip(nu, *NU_RANGE))
         lh = self.lh_um[injector % len(self.lh_um)] + self.wear_um * min(t / self.seconds, 1.0)
         mean, std = self.rail_force_n
         f_open = NOMINAL_PRELOAD_N + max(0.0, mean + std * float(rng.standard_normal())) if (mean or std) else NOMINAL_PRELOAD_N

@@ -14,7 +14,7 @@ from estimator.model.fast_sim import FastSimulator
 
 def measure(batch_sizes: tuple[int, ...] = (1, 16, 256), window_s: float = 100e-6, seconds: float = 2.0,
             seed: int = 0, drive: Drive | None = None) -> dict:
-    """Time ``FastSimulator.simulate`` on random candidates (N_u in [15, 21], L_h in [-1, 10] µm).
+    """Time ``FastSimulator.simulate`` on random candidates (N_u over Table 1's range, L_h in [-1, 10] µm).
 
     Returns a JSON-ready dict with one entry per batch size: calls, candidates per second and
     microseconds per candidate, and the machine it ran on.
@@ -24,7 +24,7 @@ def measure(batch_sizes: tuple[int, ...] = (1, 16, 256), window_s: float = 100e-
     rng = np.random.default_rng(seed)
     rows = []
     for b in batch_sizes:
-        nu = rng.uniform(15.0, 21.0, b)
+        nu = rng.uniform(sim.params.psa.nu_min_n_per_v, sim.params.psa.nu_max_n_per_v, b)
         lh = rng.uniform(-1e-6, 10e-6, b)
         sim.simulate(cur, nu, lh)  # compile / warm the caches outside the timing
         calls = 0

@@ -31,15 +31,18 @@ class AdaptationResult:
 
 
 def adapt_nu(injection: Injection, sim: FastSimulator | None = None, window_s: float = 170e-6,
-             norm: str = "l1", nu_bounds: tuple[float, float] = (15.0, 21.0)) -> AdaptationResult:
-    """Identify N_u of an actuator without valve from one trace (eq. 26). Never raises for bad data."""
+             norm: str = "l1", nu_bounds: tuple[float, float] | None = None) -> AdaptationResult:
+    """Identify N_u of an actuator without valve from one trace (eq. 26), within ``nu_bounds`` (N/V;
+    default the parameter set's N_u range). Never raises for bad data."""
     problem = injection.problem()
     if problem:
         return AdaptationResult(float("nan"), float("nan"), float("nan"), 0, "rejected", problem)
     sim = sim or FastSimulator(dt_s=injection.dt_s)
     model = CostModel(sim, injection, window_s, norm, robust=False)
     psa = sim.params.psa
-    lo, hi = max(nu_bounds[0], psa.nu_min_n_per_v), min(nu_bounds[1], psa.nu_max_n_per_v)
+    lo, hi = psa.nu_min_n_per_v, psa.nu_max_n_per_v
+    if nu_bounds is not None:
+        lo, hi = max(nu_bounds[0], lo), min(nu_bounds[1], hi)
     grid = np.linspace(lo, hi, 25)
     j = model(grid, NO_CONTACT_LH_M)
     x0 = grid[int(np.argmin(j))]
