@@ -23,6 +23,7 @@ extensions = [
     "sphinx.ext.mathjax",
     "sphinxarg.ext",
     "injector_docs",
+    "doc_figures",
 ]
 myst_enable_extensions = ["colon_fence", "dollarmath", "deflist"]
 myst_heading_anchors = 3

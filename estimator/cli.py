@@ -337,6 +337,17 @@ def cmd_plot_capture(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_plot_estimates(args: argparse.Namespace) -> int:
+    """L_h and N_u with their ±2σ bands over each injector's injections, from the estimator's rows."""
+    from estimator.plots.estimates import plot_estimates, read_rows
+
+    if not args.rows.exists():
+        raise EstimatorError(f"rows {args.rows} do not exist")
+    path = plot_estimates(read_rows(args.rows), args.out, title=f"{args.rows.name}: filtered estimates, ±2σ; x: not ok")
+    print(f"wrote {path}")
+    return 0
+
+
 def cmd_fleet(args: argparse.Namespace) -> int:
     """Many captures and traces on a Dask cluster: one row per injection, summary, lot report."""
     import os
@@ -489,6 +500,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("capture", type=Path, help="any python-can capture (.log, .asc, .blf, .trc, .csv, .mf4)")
     s.add_argument("--out", type=Path, default=Path("capture.png"), help="output PNG (default capture.png)")
     s.set_defaults(func=cmd_plot_capture)
+
+    s = sub.add_parser("plot-estimates", help="PNG: L_h and N_u with ±2σ per injector from the rows replay --csv or "
+                       "the fleet wrote")
+    s.add_argument("rows", type=Path, help="a CSV of the estimator's rows (replay --csv, fleet --out rows.csv)")
+    s.add_argument("--out", type=Path, default=Path("estimates.png"), help="output PNG (default estimates.png)")
+    s.set_defaults(func=cmd_plot_estimates)
 
     s = sub.add_parser("fleet", help="many captures/traces on Dask: one row per injection, summary, lot report")
     s.add_argument("inputs", nargs="+", help="files, directories (recursive) and glob patterns (quote them)")

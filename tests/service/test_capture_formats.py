@@ -88,3 +88,18 @@ def test_plot_capture_draws_one_series_per_injector(tmp_path, messages):
     assert png.read_bytes()[:4] == b"\x89PNG"
     r = run("-m", "estimator", "plot-capture", str(cap), "--out", str(png))     # injection frames only
     assert r.returncode == 2 and "no estimates" in r.stderr
+
+
+def test_plot_estimates_draws_the_rows_replay_wrote(tmp_path, messages):
+    cap = tmp_path / "cap.blf"
+    write(cap, messages)
+    table = tmp_path / "est.csv"
+    assert run("-m", "estimator", "replay", str(cap), "--csv", str(table)).returncode == 0
+    png = tmp_path / "est.png"
+    r = run("-m", "estimator", "plot-estimates", str(table), "--out", str(png))
+    assert r.returncode == 0, r.stderr
+    assert png.read_bytes()[:4] == b"\x89PNG"
+    not_rows = tmp_path / "trace.csv"
+    not_rows.write_text("t_s,current_A,voltage_V\n0,0,0\n")
+    r = run("-m", "estimator", "plot-estimates", str(not_rows), "--out", str(png))
+    assert r.returncode == 2 and "not the estimator's rows" in r.stderr and r.stderr.count("\n") == 1
