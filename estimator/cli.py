@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 from estimator.choices import Norm, Robust
 from estimator.cli_support import base_parser, lean_service_imports, run_cli
 from estimator.errors import EstimatorError
+from estimator.units import MEGA, PER_MICRO, S_PER_US
 
 if TYPE_CHECKING:
     from estimator.pipeline.config import EstimatorConfig
@@ -24,7 +25,7 @@ def _config(args: argparse.Namespace):
 
     kw = {}
     if getattr(args, "window_us", None) is not None:
-        kw["window_s"] = args.window_us * 1e-6
+        kw["window_s"] = args.window_us * S_PER_US
     if getattr(args, "robust", None):
         kw["robust"] = args.robust
     if getattr(args, "norm", None):
@@ -43,7 +44,7 @@ def _trace(path: Path, args: argparse.Namespace | None = None):
                                    ("temperature_c", getattr(args, "temperature_c", None))) if v is not None}
     period = getattr(args, "sample_period_us", None)
     return read_any_trace(path, getattr(args, "current_channel", None), getattr(args, "voltage_channel", None),
-                          getattr(args, "s3_channel", None), period * 1e-6 if period else None, meta)
+                          getattr(args, "s3_channel", None), period * S_PER_US if period else None, meta)
 
 
 def _load(path: Path, args: argparse.Namespace | None = None):
@@ -75,7 +76,7 @@ def cmd_params(args: argparse.Namespace) -> int:
         for k, v in group.__dict__.items():
             print(f"  {k:<16} = {v:.6g}")
     nu = args.nu
-    print(f"derived at N_u = {nu} N/V: C = {p.psa.capacitance_f(nu) * 1e6:.4f} µF, "
+    print(f"derived at N_u = {nu} N/V: C = {p.psa.capacitance_f(nu) * PER_MICRO:.4f} µF, "
           f"R = {p.psa.resistance_ohm(nu):.4f} Ohm, b_p = {p.psa.damping_ns_per_m(nu):.2f} N*s/m")
     return 0
 
@@ -166,20 +167,20 @@ def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     meta = {k: str(v) for k, v in (("preload_force_n", args.preload_n), ("temperature_c", args.temperature_c))
             if v is not None}
     found = read_injections(args.traces, args.current_channel, args.voltage_channel,
-                            args.sample_period_us * 1e-6 if args.sample_period_us else None, meta, args.serial)
+                            args.sample_period_us * S_PER_US if args.sample_period_us else None, meta, args.serial)
     for line in found.unreadable + found.unusable:   # a corrupt trace is named and skipped, the others calibrate
         print(f"skipped {line}", file=sys.stderr)
     injections, bad = found.injections, len(found.unreadable)
     try:
         res = calibrate_electrical(injections, _params(args), tolerance=args.tolerance,
-                                   window_s=(200.0 if args.window_us is None else args.window_us) * 1e-6)
+                                   window_s=(200.0 if args.window_us is None else args.window_us) * S_PER_US)
     except ValueError as exc:
         raise EstimatorError(str(exc)) from None
     header = (f"parameters calibrated electrically (python -m estimator calibrate --electrical) from "
               f"{len(injections)} injections;\nRMS voltage residual {res.rms_before_v * 1e3:.1f} mV before, "
               f"{res.rms_after_v * 1e3:.1f} mV after; SI units.")
     flagged = confirmed_out_of_tolerance(injections, _params(args), res, args.part_tolerance, tolerance=args.tolerance,
-                                         window_s=(200.0 if args.window_us is None else args.window_us) * 1e-6) \
+                                         window_s=(200.0 if args.window_us is None else args.window_us) * S_PER_US) \
         if res.adequate else []
     if res.adequate:
         toml = res.params.to_toml(header)
@@ -218,7 +219,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             raise EstimatorError(f"{path}: calibration traces need '# temperature_c=...'")
         traces.append(CalibrationTrace(injection_from_trace(tr), tr.column("s3_m"), temp))
     try:
-        res = calibrate(traces, _params(args), window_s=(170.0 if args.window_us is None else args.window_us) * 1e-6, gamma_v_per_m=args.gamma)
+        res = calibrate(traces, _params(args), window_s=(170.0 if args.window_us is None else args.window_us) * S_PER_US, gamma_v_per_m=args.gamma)
     except ValueError as exc:
         raise EstimatorError(str(exc)) from None
     toml = to_toml(res, _params(args))
@@ -276,8 +277,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
     cfg = offline_config(args.config, dbc=args.dbc, params=args.params)
     if not args.capture.exists():
         raise EstimatorError(f"capture {args.capture} does not exist")
-    out_json = open(args.json, "w") if args.json and str(args.json) != "-" else (sys.stdout if args.json else None)
-    out_csv = open(args.csv, "w", newline="") if args.csv and str(args.csv) != "-" else (
+    # the outputs are closed after the replay (below); "-" is standard output
+    out_json = open(args.json, "w") if args.json and str(args.json) != "-" else (sys.stdout if args.json else None)  # noqa: SIM115
+    out_csv = open(args.csv, "w", newline="") if args.csv and str(args.csv) != "-" else (  # noqa: SIM115
         sys.stdout if args.csv else None)
     try:
         res = replay(args.capture, cfg, args.out, out_json, out_csv=out_csv)
@@ -317,7 +319,7 @@ def cmd_check_dbc(args: argparse.Namespace) -> int:
     db = load_database(path)
     codec = Codec(db)
     attrs = getattr(getattr(db, "dbc", None), "attributes", {})
-    rates = "/".join(f"{attrs[k].value / 1e6:g}" for k in ("Baudrate", "BaudrateCANFD") if k in attrs)
+    rates = "/".join(f"{attrs[k].value / MEGA:g}" for k in ("Baudrate", "BaudrateCANFD") if k in attrs)
     print(f"{path}: ok - {len(db.messages)} messages, CAN FD {rates} Mbit/s, {codec.layout.per_block} samples per "
           f"InjectionSamples frame ({codec.layout.current_scale * 1e3:g} mA, {codec.layout.voltage_scale * 1e3:g} mV)")
     return 0
@@ -361,7 +363,7 @@ def cmd_fleet(args: argparse.Namespace) -> int:
     cfg = offline_config(args.config, params=args.params)
     opts = {k: getattr(args, k) for k in ("current_channel", "voltage_channel") if getattr(args, k, None)}
     if args.sample_period_us:
-        opts["sample_period_s"] = args.sample_period_us * 1e-6
+        opts["sample_period_s"] = args.sample_period_us * S_PER_US
     if args.calibrate:
         from estimator.fleet.calibrate import format_report, run_lot_calibration
 

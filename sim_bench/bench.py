@@ -8,6 +8,7 @@ writes the capture as a candump log, joins every estimate with the node's SimTru
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import subprocess
@@ -271,22 +272,11 @@ def run_bench(scenario_name: str, bus: str | None, seconds: float | None, out_di
         peak_rss = 0.0
         while node.poll() is None:
             check_stop()                 # a stop signal that landed while the node was starting
-            try:
+            with contextlib.suppress(subprocess.TimeoutExpired):
                 node.wait(timeout=0.5)   # the progress line ticks while the node runs
-            except subprocess.TimeoutExpired:
-                pass
             peak_rss = max(peak_rss, rss_mb(daemon.pid))
             if progress:
-                with listener.lock:
-                    rows = list(listener.cap.rows[-200:])
-                    st = listener.cap.status
-                e = [abs(r["lh_um"] - r["lh_true_um"]) for r in rows[-20:]]
-                lat = [r["latency_ms"] for r in rows if math.isfinite(r["latency_ms"])]
-                line = (f"\r[{time.monotonic() - t0:5.1f}/{sc.seconds:.0f} s] estimates {len(listener.cap.rows):5d}  "
-                        f"|dL_h| now {max(e) if e else float('nan'):.3f} µm  p99 {np.percentile(lat, 99) if lat else 0:.1f} ms"
-                        f"  dropped {st.frames_dropped if st else 0}  rejected "
-                        f"{(st.rejected_crc + st.rejected_missing + st.rejected_timeout + st.rejected_invalid) if st else 0}")
-                print(line, end="", flush=True, file=sys.stderr)
+                print(_progress_line(listener, time.monotonic() - t0, sc.seconds), end="", flush=True, file=sys.stderr)
         node_out = node.stdout.read() if node.stdout else ""
         if progress:
             print(file=sys.stderr)
@@ -314,10 +304,29 @@ def run_bench(scenario_name: str, bus: str | None, seconds: float | None, out_di
     s.update(bus=bus, seconds=sc.seconds, seed=seed, throughput_per_s=len(rows) / max(duration, 1e-9),
              daemon_exit=daemon_exit, daemon_stop_s=stop_s, daemon_rss_mb=peak_rss,
              description=sc.description)
-    if daemon_exit != 0:
-        s["failures"].append(f"daemon exit code {daemon_exit}")
-    if stop_s > 2.0:
-        s["failures"].append(f"daemon took {stop_s:.2f} s to stop")
+    return _finish_score(s, rows, sc, out_dir, seed, plots)
+
+
+def _progress_line(listener: Listener, elapsed_s: float, seconds: float) -> str:
+    """The bench's progress line: estimates, the latest L_h error, latency p99, drops, rejections."""
+    with listener.lock:
+        rows = list(listener.cap.rows[-200:])
+        count = len(listener.cap.rows)
+        st = listener.cap.status
+    e = [abs(r["lh_um"] - r["lh_true_um"]) for r in rows[-20:]]
+    lat = [r["latency_ms"] for r in rows if math.isfinite(r["latency_ms"])]
+    return (f"\r[{elapsed_s:5.1f}/{seconds:.0f} s] estimates {count:5d}  "
+            f"|dL_h| now {max(e) if e else float('nan'):.3f} µm  p99 {np.percentile(lat, 99) if lat else 0:.1f} ms"
+            f"  dropped {st.frames_dropped if st else 0}  rejected "
+            f"{(st.rejected_crc + st.rejected_missing + st.rejected_timeout + st.rejected_invalid) if st else 0}")
+
+
+def _finish_score(s: dict, rows: list[dict], sc: scenarios.Scenario, out_dir: Path, seed: int, plots: bool) -> dict:
+    """The daemon's exit and stop time judged, the rows and score written, the figures drawn."""
+    if s["daemon_exit"] != 0:
+        s["failures"].append(f"daemon exit code {s['daemon_exit']}")
+    if s["daemon_stop_s"] > 2.0:
+        s["failures"].append(f"daemon took {s['daemon_stop_s']:.2f} s to stop")
     (out_dir / f"bench-{sc.name}.json").write_text(json.dumps({"score": s, "rows": rows}, indent=1, default=float))
     if plots:
         try:

@@ -83,7 +83,7 @@ def run_loop(closed: bool, seed: int, injectors: int = INJECTORS, injections: in
                 scale, offset = corr.at(f, compensator.target)
                 applied.update(scale=scale, offset=offset)
                 return scale
-            m, truth = life.measure(k, injections, rngs[i], scale_for if use else None, walks[i][k])
+            m, _truth = life.measure(k, injections, rngs[i], scale_for if use else None, walks[i][k])
             inj = Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n, i, k % 256, float("nan"), float(k))
             pub = processor.estimate(inj, walks[i][k + 1] if ecu else None)
             offset = applied.get("offset", 0.0)

@@ -142,6 +142,67 @@ def _wait_for(done: Callable[[], bool], timeout_s: float) -> bool:
     return True
 
 
+def _warm_up(b: Any, codec: Codec, pool: list, rate: float, w: _Watcher, self_calibration: bool) -> None:
+    """The first injection of each injector is a cold start (grid search, ~60 ms); the heartbeat's p99
+    covers the last 10 s, so the measured phases start after it. With learning: only the cold starts (a
+    calibration needs a window of injections and must run while the latency is measured, not before);
+    then the cold starts leave the p99's window."""
+    if self_calibration:
+        injectors = len({i for i, _ in pool})
+        _feed(b, codec, pool, rate, injectors / rate, w)
+        _wait_for(lambda: w.estimates >= injectors, 60.0)
+        time.sleep(WINDOW_S + 0.5)
+    else:
+        _feed(b, codec, pool, rate, 3.0, w)
+        time.sleep(0.5)
+
+
+def _phase(b: Any, codec: Codec, pool: list, rate: float, seconds: float, w: _Watcher,
+           d: DaemonProcess) -> dict:
+    """One measured phase at ``rate`` injections/s for ``seconds``: the latency as the listener saw it
+    and as the daemon's heartbeat reports it (its stages too), drops, rejections, memory, learning."""
+    w.latency.clear()
+    e0 = w.estimates
+    t_phase = time.monotonic()
+    st0 = w.status
+    peak = 0.0
+    stop_rss = threading.Event()
+
+    def sample_rss() -> None:
+        nonlocal peak
+        while not stop_rss.wait(0.2):
+            peak = max(peak, rss_mb(d.pid))
+    th = threading.Thread(target=sample_rss, daemon=True)
+    th.start()
+    fed = _feed(b, codec, pool, rate, seconds, w)
+    # the queue drained (or what overflowed is given up on), then a heartbeat after it: its p99 covers
+    # the phase's last 10 s
+    target = e0 + fed["offered"]
+    _wait_for(lambda: w.estimates >= target, 5.0)
+    w.got_status.clear()
+    w.got_status.wait(2.0)
+    stop_rss.set()
+    st = w.status
+    lat = np.array(w.latency) * 1e3
+    return {
+        **fed, "estimated": w.estimates - e0,
+        "external_latency_p50_ms": float(np.percentile(lat, 50)) if lat.size else math.nan,
+        "external_latency_p99_ms": float(np.percentile(lat, 99)) if lat.size else math.nan,
+        "daemon_latency_p99_ms": st.latency_p99_ms if st else math.nan,
+        "daemon_stage_p99_ms": {k: getattr(st, f"{k}_p99_ms") if st else math.nan for k in STAGES},
+        "external_latency_ms": [round(float(v), 4) for v in lat],
+        "frames_dropped": (st.frames_dropped - st0.frames_dropped) if st else 0,
+        "rejected": ((st.rejected_missing + st.rejected_timeout + st.rejected_crc + st.rejected_invalid)
+                     - (st0.rejected_missing + st0.rejected_timeout + st0.rejected_crc
+                        + st0.rejected_invalid)) if st else 0,
+        "queue_depth_end": st.queue_depth if st else 0, "daemon_rss_peak_mb": peak,
+        "daemon_alive": d.alive(),
+        "calibration_states": [codec.calibration_state(c.state) for t, c in w.calibrations if t >= t_phase],
+        "adopted_injectors": sorted({c.injector_id for _, c in w.calibrations
+                                     if codec.calibration_state(c.state) == "adopted"}),
+    }
+
+
 def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float = 10.0,
                              overload_factor: float = 2.0, bus: str | None = None,
                              self_calibration: bool = False) -> dict:
@@ -162,62 +223,13 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
             w.start()
             if not d.notify.wait_for("READY=1", 120, d.alive) or not w.got_status.wait(60):
                 raise RuntimeError(f"daemon did not start: {d.why()}")
-            # warm-up: the first injection of each injector is a cold start (grid search, ~60 ms); the
-            # heartbeat's p99 covers the last 10 s, so the nominal phase must start after it
-            if self_calibration:
-                # only the cold starts: a calibration needs a window of injections and must run while
-                # the latency is measured, not before; then the cold starts leave the p99's window
-                injectors = len({i for i, _ in pool})
-                _feed(b, codec, pool, rate, injectors / rate, w)
-                _wait_for(lambda: w.estimates >= injectors, 60.0)
-                time.sleep(WINDOW_S + 0.5)
-            else:
-                _feed(b, codec, pool, rate, 3.0, w)
-                time.sleep(0.5)
+            _warm_up(b, codec, pool, rate, w, self_calibration)
             phases = [("nominal", rate)] + ([("adopted", rate)] if self_calibration else []) + \
                 [("overload", rate * overload_factor)]
             for phase, r in phases:
                 if phase == "adopted":   # until every injector has adopted its model and had its refinement
                     report["learned_after_s"] = _feed_until_learned(b, codec, pool, rate, w, LEARN_TIMEOUT_S)
-                w.latency.clear()
-                e0 = w.estimates
-                t_phase = time.monotonic()
-                st0 = w.status
-                peak = 0.0
-                stop_rss = threading.Event()
-
-                def sample_rss(stop_rss: threading.Event = stop_rss) -> None:
-                    nonlocal peak
-                    while not stop_rss.wait(0.2):
-                        peak = max(peak, rss_mb(d.pid))
-                th = threading.Thread(target=sample_rss, daemon=True)
-                th.start()
-                fed = _feed(b, codec, pool, r, seconds, w)
-                # the queue drained (or what overflowed is given up on), then a heartbeat after it:
-                # its p99 covers the phase's last 10 s
-                target = e0 + fed["offered"]
-                _wait_for(lambda target=target: w.estimates >= target, 5.0)
-                w.got_status.clear()
-                w.got_status.wait(2.0)
-                stop_rss.set()
-                st = w.status
-                lat = np.array(w.latency) * 1e3
-                report[phase] = {
-                    **fed, "estimated": w.estimates - e0,
-                    "external_latency_p50_ms": float(np.percentile(lat, 50)) if lat.size else math.nan,
-                    "external_latency_p99_ms": float(np.percentile(lat, 99)) if lat.size else math.nan,
-                    "daemon_latency_p99_ms": st.latency_p99_ms if st else math.nan,
-                    "daemon_stage_p99_ms": {k: getattr(st, f"{k}_p99_ms") if st else math.nan for k in STAGES},
-                    "external_latency_ms": [round(float(v), 4) for v in lat],
-                    "frames_dropped": (st.frames_dropped - st0.frames_dropped) if st else 0,
-                    "rejected": ((st.rejected_missing + st.rejected_timeout + st.rejected_crc + st.rejected_invalid)
-                                 - (st0.rejected_missing + st0.rejected_timeout + st0.rejected_crc
-                                    + st0.rejected_invalid)) if st else 0,
-                    "queue_depth_end": st.queue_depth if st else 0, "daemon_rss_peak_mb": peak,
-                    "daemon_alive": d.alive(),
-                    "calibration_states": [codec.calibration_state(c.state) for t, c in w.calibrations if t >= t_phase],
-                    "adopted_injectors": sorted({c.injector_id for _, c in w.calibrations if codec.calibration_state(c.state) == "adopted"}),
-                }
+                report[phase] = _phase(b, codec, pool, r, seconds, w, d)
             w.stop.set()
             w.join(timeout=2)
         report["daemon_exit"] = d.stop(timeout=10)
@@ -286,7 +298,7 @@ def format_report(ing: dict, rep: dict) -> str:
         lines.append(f"{phase:<9} {p['offered_per_s']:>9.0f} {p['estimated']:>9} {p['external_latency_p50_ms']:>7.2f} "
                      f"{p['external_latency_p99_ms']:>7.2f} {p['daemon_latency_p99_ms']:>9.2f} "
                      f"{p['frames_dropped']:>8} {p['rejected']:>8} {p['daemon_rss_peak_mb']:>7.0f} "
-                     f"{str(p['daemon_alive']):>5}")
+                     f"{p['daemon_alive']!s:>5}")
     lines.append("daemon p99 by stage (heartbeat, ms): " + "; ".join(
         f"{phase} " + " ".join(f"{k} {rep[phase]['daemon_stage_p99_ms'][k]:.2f}" for k in STAGES)
         for phase in shown))

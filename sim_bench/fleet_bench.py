@@ -48,7 +48,8 @@ def run(out: Path, injectors: int = 1000, workers: tuple[int, ...] = (1, 2), see
         t0 = time.perf_counter()
         make_lot(lot, injectors, injections, seed, captures=captures)
         print(f"lot of {injectors} injectors x {injections} written in {time.perf_counter() - t0:.1f} s")
-    truth = {r["serial"]: r for r in csv.DictReader(open(lot / "truth.csv"))}
+    with open(lot / "truth.csv", newline="") as f:
+        truth = {r["serial"]: r for r in csv.DictReader(f)}
     report: dict = {"benchmark": "fleet", "injectors": injectors, "injections_per_injector": injections,
                     "inputs": "captures" if captures else "traces", "runs": []}
     for n in workers:

@@ -128,7 +128,7 @@ def accuracy(n: int = 60, seed: int = 1, mismatch: bool = False, window_s: float
 
 NEAR_EDGE_NU = ((15.02, 15.3), (20.7, 20.95))
 SPREAD_SWEEPS = ("spread", "spread-chain")
-HONESTY_SWEEPS = SPREAD_SWEEPS + ("preload-off",)   # plants the model does not describe: judged on honesty
+HONESTY_SWEEPS = (*SPREAD_SWEEPS, "preload-off")   # plants the model does not describe: judged on honesty
 PLANT_LABELS = {"spread": "spread", "spread-chain": "spread-chain", "chain": "chain", "preload-off": "header"}
 PRELOAD_MAX_N = 300.0                 # preload forces of the preload-off sweep: 28..300 N
 PRELOAD_HEADER_ERROR = (0.10, 0.15)   # the header's preload force off by 10-15 %

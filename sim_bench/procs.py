@@ -37,16 +37,14 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _die_with_parent() -> None:   # pragma: no cover (runs in the child between fork and exec)
-    try:
+    with contextlib.suppress(OSError, AttributeError):
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
 
 
 def spawn(args: list[str], log_path: Path | None = None, env: dict[str, str] | None = None,
           stdout: Any = subprocess.DEVNULL) -> subprocess.Popen:
     """A child Python process (``args`` after the interpreter) that dies with us; stderr to ``log_path``."""
-    err = open(log_path, "w") if log_path is not None else subprocess.DEVNULL
+    err = open(log_path, "w") if log_path is not None else subprocess.DEVNULL   # noqa: SIM115 (the child's, closed below)
     try:
         return subprocess.Popen([sys.executable, *args], cwd=REPO, stdout=stdout, stderr=err,
                                 env=dict(os.environ, PYTHONUNBUFFERED="1", **(env or {})),

@@ -8,7 +8,11 @@ Into ``docs/_generated/`` (not kept in git), each seeded:
   what ``estimator plot`` draws);
 - ``learning.png``: three series parts of one lot through the estimator as the daemon runs it
   (learning on by default), the middle one swapped at injection 40
-  (:func:`estimator.plots.estimates.plot_estimates`, what ``estimator plot-estimates`` draws).
+  (:func:`estimator.plots.estimates.plot_estimates`, what ``estimator plot-estimates`` draws);
+- ``fleet/lot-lot.png``: a synthetic lot of 40 injectors (three injections each)
+  judged on a local Dask cluster of one worker (what ``estimator fleet`` draws);
+- ``daemon/latency-histogram.png``: the daemon's latency at 200 and 400 injections/s, 3 s each, the
+  daemon and the listener as processes on the loopback hub (what ``sim_bench daemon-bench`` draws).
 """
 
 from __future__ import annotations
@@ -26,23 +30,23 @@ SWAP_AT = 40
 
 
 def identification(out: Path) -> list[Path]:
-    import numpy as np  # noqa: PLC0415 (docs build only)
+    import numpy as np
 
-    from estimator.ident.measurement import Injection  # noqa: PLC0415
-    from estimator.plots.identification import plot_identification  # noqa: PLC0415
-    from sim_bench.plant import Plant, PlantConfig  # noqa: PLC0415
+    from estimator.ident.measurement import Injection
+    from estimator.plots.identification import plot_identification
+    from sim_bench.plant import Plant, PlantConfig
 
     m = Plant(PlantConfig()).measure(17.0, 3e-6, 28.0, np.random.default_rng(SEED))
     return plot_identification(Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n), out / "identification")
 
 
 def learning(out: Path) -> Path:
-    import numpy as np  # noqa: PLC0415
+    import numpy as np
 
-    from estimator.ident.measurement import Injection  # noqa: PLC0415
-    from estimator.pipeline import EstimatorConfig, build_pipeline  # noqa: PLC0415
-    from estimator.plots.estimates import plot_estimates  # noqa: PLC0415
-    from sim_bench.series_life import LotSpec, draw_lot  # noqa: PLC0415
+    from estimator.ident.measurement import Injection
+    from estimator.pipeline import EstimatorConfig, build_pipeline
+    from estimator.plots.estimates import plot_estimates
+    from sim_bench.series_life import LotSpec, draw_lot
 
     lives = draw_lot(3, SEED, LotSpec(swap_at=SWAP_AT, swapped=(1,)))
     _, _, processor, _ = build_pipeline(EstimatorConfig())
@@ -62,17 +66,42 @@ def learning(out: Path) -> Path:
                                 f"at injection {SWAP_AT}; dashed: truth, x: not ok")
 
 
+def fleet(out: Path) -> Path:
+    import os
+
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")   # as `estimator fleet` runs it
+    import shutil
+
+    from estimator.fleet.run import run_fleet
+    from sim_bench.lot import make_lot
+
+    lot = out / "fleet" / "lot"
+    shutil.rmtree(lot, ignore_errors=True)   # a lot of the same seed, written afresh
+    make_lot(lot, 40, 3, seed=SEED)
+    res = run_fleet([str(lot)], out / "fleet" / "lot.csv", workers=1)
+    return next(Path(f) for f in res.files if str(f).endswith(".png"))
+
+
+def latency(out: Path) -> Path:
+    from sim_bench.daemon_bench import run_latency_and_overload
+
+    report = run_latency_and_overload(out / "daemon", seconds=3.0)
+    if not report.get("histogram_png"):
+        raise RuntimeError("daemon-bench drew no latency histogram")
+    return Path(report["histogram_png"])
+
+
 def draw(app: Sphinx) -> None:
-    import logging as std_logging  # noqa: PLC0415
+    import logging as std_logging
 
     out = Path(app.srcdir) / "_generated"
     t0 = time.perf_counter()
-    quiet = [std_logging.getLogger(name) for name in ("estimator", "numexpr")]
+    quiet = [std_logging.getLogger(name) for name in ("estimator", "numexpr", "distributed", "sim_bench")]
     levels = [q.level for q in quiet]
     for q in quiet:
         q.setLevel(std_logging.WARNING)   # the learning's progress lines are not the build's
     try:
-        paths = [*identification(out), learning(out)]
+        paths = [*identification(out), learning(out), fleet(out), latency(out)]
     finally:
         for q, level in zip(quiet, levels):
             q.setLevel(level)

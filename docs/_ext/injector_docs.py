@@ -29,7 +29,7 @@ def _list_table(title: str, header: list[str], rows: list[list[str]], widths: st
     for row in [header, *rows]:
         out.append(f"   * - {_cell(row[0])}")
         out.extend(f"     - {_cell(c)}" for c in row[1:])
-    return out + [""]
+    return [*out, ""]
 
 
 def _parse(directive: SphinxDirective, lines: list[str]) -> list[nodes.Node]:
@@ -39,9 +39,9 @@ def _parse(directive: SphinxDirective, lines: list[str]) -> list[nodes.Node]:
 
 
 def _database():
-    import cantools  # noqa: PLC0415 (docs build only)
+    import cantools
 
-    from estimator.codec.database import default_dbc_path  # noqa: PLC0415
+    from estimator.codec.database import default_dbc_path
 
     return cantools.database.load_file(default_dbc_path(), strict=True)
 
@@ -75,8 +75,8 @@ class StatusTable(SphinxDirective):
     """Status words and wire codes, with the DBC's description."""
 
     def run(self) -> list[nodes.Node]:
-        from estimator.codec.records import Codec  # noqa: PLC0415
-        from estimator.ident.status import Status  # noqa: PLC0415
+        from estimator.codec.records import Codec
+        from estimator.ident.status import Status
 
         codec = Codec(_database())   # the codes are the DBC's value table's, read by the codec
         rows = [[f"``{s.value}``", str(codec.status_code(s))] for s in Status]
@@ -99,14 +99,14 @@ def _literal_backticks(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
 
 def estimator_parser() -> argparse.ArgumentParser:
     """``python -m estimator``'s parser, for sphinx-argparse."""
-    from estimator.cli import build_parser  # noqa: PLC0415
+    from estimator.cli import build_parser
 
     return _literal_backticks(build_parser())
 
 
 def sim_bench_parser() -> argparse.ArgumentParser:
     """``python -m sim_bench``'s parser, for sphinx-argparse."""
-    from sim_bench.cli import build_parser  # noqa: PLC0415
+    from sim_bench.cli import build_parser
 
     return _literal_backticks(build_parser())
 

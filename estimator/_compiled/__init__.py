@@ -23,6 +23,6 @@ if TYPE_CHECKING:
     def njit(**options: Any) -> Callable[[_F], _F]:
         """numba's ``njit`` with options, as the type checker sees it."""
 else:
-    from numba import njit  # noqa: E402  (after the cache directory is set)
+    from numba import njit
 
 __all__ = ["njit"]

@@ -25,6 +25,7 @@ from estimator.errors import EstimatorError
 from estimator.fleet.cluster import dask_client
 from estimator.fleet.inputs import expand, group
 from estimator.fleet.tasks import WORKER_ENV
+from estimator.units import UM_PER_M, US_PER_S
 
 MODES = ("per-injector", "per-lot")
 MIN_INJECTIONS = 3
@@ -73,9 +74,9 @@ def calibrate_group(key: str, paths: tuple[str, ...], params_path: str | None, t
                 "rms_before_v": res.rms_before_v, "rms_after_v": res.rms_after_v,
                 "factors": {n: float(f) for n, f in zip(res.names, res.factors)},
                 "sigma_rel": {n: float(s) for n, s in zip(res.names, res.sigma_rel)},
-                "chain_us": {n: getattr(res.params.chain, n) * 1e6 for n in res.chain_sigma_us},
+                "chain_us": {n: getattr(res.params.chain, n) * US_PER_S for n in res.chain_sigma_us},
                 "nu_rel_sigma": res.params.calibration.nu_rel_sigma,
-                "lh_sigma_um": res.params.calibration.lh_sigma_m * 1e6,
+                "lh_sigma_um": res.params.calibration.lh_sigma_m * UM_PER_M,
                 "weak": res.weak, "warnings": res.warnings,
                 "toml": res.params.to_toml(f"electrical calibration of {key} from {len(injections)} injections "
                                            f"(python -m estimator fleet --calibrate); RMS voltage residual "

@@ -18,7 +18,7 @@ from estimator.io.mdf import MDF_SUFFIXES
 from estimator.io.traces import csv_head, injector_key
 from estimator.pipeline.estimates import is_capture_header
 
-TRACE_SUFFIXES = (".csv",) + MDF_SUFFIXES
+TRACE_SUFFIXES = (".csv", *MDF_SUFFIXES)
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,7 @@ The default cluster is a local one on this machine (``workers`` processes, one t
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
 import time
@@ -22,7 +23,7 @@ from estimator.ident.status import ESTIMATED_WORDS
 from estimator.pipeline.config import EstimatorConfig
 from estimator.pipeline.estimates import FIELDS
 
-COLUMNS = FIELDS + ("injector_key",)
+COLUMNS = (*FIELDS, "injector_key")
 MAX_GROUPS_PER_TASK = 64   # groups (an injector's traces, or one input) sent to a worker in one Dask task at most
 TASKS_PER_WORKER = 4       # each task takes at most 1/(this x workers) of the groups not yet given out
 OUTLIER_MADS = 4.0      # |x - lot median| beyond this many robust sigmas (1.4826 MAD) is flagged
@@ -196,10 +197,8 @@ def write(res: FleetResult, out: Path) -> list[Path]:
     report = out.with_name(out.stem + "-report.txt")
     report.write_text(format_report(res) + "\n")
     files += [summary, report]
-    try:
+    with contextlib.suppress(EstimatorError):
         files.append(plot_lot(res, out.with_name(out.stem + "-lot.png")))
-    except EstimatorError:
-        pass
     return files
 
 

@@ -14,6 +14,7 @@ from estimator.ident.cost import CostModel, noise_sigma_v
 from estimator.ident.measurement import Injection
 from estimator.ident.search import Box, line_search
 from estimator.model.fast_sim import FastSimulator
+from estimator.units import UM_PER_M
 
 NO_CONTACT_LH_M = 1.0   # an idle stroke of 1 m: the stack never reaches a piston
 
@@ -46,12 +47,12 @@ def adapt_nu(injection: Injection, sim: FastSimulator | None = None, window_s: f
     grid = np.linspace(lo, hi, 25)
     j = model(grid, NO_CONTACT_LH_M)
     x0 = grid[int(np.argmin(j))]
-    box = Box(np.array([lo, NO_CONTACT_LH_M * 1e6]), np.array([hi, NO_CONTACT_LH_M * 1e6]))
+    box = Box(np.array([lo, NO_CONTACT_LH_M * UM_PER_M]), np.array([hi, NO_CONTACT_LH_M * UM_PER_M]))
 
     def f(x: np.ndarray) -> np.ndarray:
         return model(x[:, 0], NO_CONTACT_LH_M)
 
-    x = np.array([x0, NO_CONTACT_LH_M * 1e6])
+    x = np.array([x0, NO_CONTACT_LH_M * UM_PER_M])
     step = grid[1] - grid[0]
     for _ in range(12):
         lr = line_search(f, x, np.array([1.0, 0.0]), step, box)

@@ -23,6 +23,7 @@ from estimator.ident.measurement import Injection
 from estimator.model.drive import sample_count
 from estimator.model.parameters import InjectorParameters, load_nominal
 from estimator.model.psa_lti import simulate_psa
+from estimator.units import MEGA, PER_MICRO, US_PER_S
 
 DEFAULT_GAMMA_V_PER_M = 1e6   # 1 µm of displacement error weighs like 1 V of voltage error
 
@@ -78,7 +79,7 @@ def calibrate(traces: list[CalibrationTrace], base: InjectorParameters | None = 
     if len({float(t.temperature_c) for t in traces}) < 2:
         raise ValueError("calibration needs traces at two or more different temperatures (eq. 25's laws N_u(T), R(T))")
     if not (math.isfinite(window_s) and 20e-6 <= window_s <= 2e-3):
-        raise ValueError(f"window {window_s * 1e6:g} µs must be within 20..2000 µs")
+        raise ValueError(f"window {window_s * US_PER_S:g} µs must be within 20..2000 µs")
     if not (math.isfinite(gamma_v_per_m) and gamma_v_per_m > 0):
         raise ValueError(f"gamma {gamma_v_per_m!r} V/m must be a positive number")
     base = base or load_nominal()
@@ -151,11 +152,11 @@ def to_toml(result: CalibrationResult, base: InjectorParameters) -> str:
 def report(result: CalibrationResult) -> str:
     """Human-readable summary, like Table 1 plus the per-temperature values of Fig. 6."""
     lines = ["calibration (eq. 25)",
-             f"  k_p = {result.kp_n_per_m / 1e6:.3f} 10^6 N/m   k_s = {result.ks_n_per_m / 1e6:.3f} 10^6 N/m   "
+             f"  k_p = {result.kp_n_per_m / MEGA:.3f} 10^6 N/m   k_s = {result.ks_n_per_m / MEGA:.3f} 10^6 N/m   "
              f"R_b = {result.rb_v2s_per_mn:.4f} V^2 s/(m N)",
              f"  R(N_u) = {result.r0a_ohm:.2f} Ohm * exp(-{result.r0b_v_per_n:.4f} V/N * N_u)",
              f"  N_u(T) = {result.nu_of_t[0]:.4f} + {result.nu_of_t[1]:.5f} T   R(T) = {result.r_of_t[0]:.4f} exp({result.r_of_t[1]:.5f} T)",
-             f"  cost {result.cost * 1e6:.2f} µV·s over all traces, {result.evaluations} simulations",
+             f"  cost {result.cost * PER_MICRO:.2f} µV·s over all traces, {result.evaluations} simulations",
              f"  {'T [degC]':>9} {'N_u [N/V]':>10} {'R [Ohm]':>9}"]
     for t, nu, r in zip(result.temperature_c, result.nu_n_per_v, result.r_ohm):
         lines.append(f"  {t:>9.1f} {nu:>10.4f} {r:>9.4f}")

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from estimator.choices import Choice, ColdStart, Norm, Robust
 from estimator.ident.adequacy import EXCESS_Z_THRESHOLD, STRUCTURE_THRESHOLD
 from estimator.model.parameters import InjectorParameters
+from estimator.units import UM_PER_M
 
 # the search's margin beyond the parameters' N_u range: an injector at 20.99 N/V whose noise puts its
 # estimate at 21.01 is not "at a bound" (the laws of eqs. 21-22 are smooth there)
@@ -111,7 +112,7 @@ class IdentConfig:
         """The L_h search range in µm: the configured one, else the parameters' (Table 2's -2..10 µm)."""
         if self.lh_bounds_um is not None:
             return self.lh_bounds_um
-        return params.valve.lh_min_m * 1e6, params.valve.lh_max_m * 1e6
+        return params.valve.lh_min_m * UM_PER_M, params.valve.lh_max_m * UM_PER_M
         if min(self.grid) < 3 or self.zoom_points < 3 or self.zooms < 0 or self.max_cycles < 1:
             raise ValueError("grid needs >= 3 points per axis, zoom_points >= 3, zooms >= 0, max_cycles >= 1")
 

@@ -1,7 +1,8 @@
 """The one coordinate type of the (N_u, L_h) plane: N_u in N/V, L_h in µm (searches, filter, JSON).
 
 SI metres appear only at the boundary to the simulator (``lh_m``) and in :class:`Estimate`'s SI
-fields; every conversion goes through here.
+fields; every conversion of the plane goes through here (the factors themselves are
+:mod:`estimator.units`').
 """
 
 from __future__ import annotations
@@ -10,7 +11,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-UM_PER_M = 1e6
+from estimator.units import UM_PER_M
+
+__all__ = ["TO_SI", "UM_PER_M", "NuLh", "cov_from_si", "cov_to_si"]
 
 
 class NuLh(NamedTuple):

@@ -38,7 +38,7 @@ from estimator.model.kernel import KernelModel
 NUISANCE_THRESHOLDS = (0.04, 0.10, 0.25, 0.50)   # fractions of the window's final charge
 MAD_PER_SIGMA = 0.6744897501960817   # median absolute deviation of a unit normal
 NOISE_FLOOR_V = 1e-3   # 1 mV: far below any amplifier ADC step; keeps noise-free (simulated) traces sane
-NUISANCE_NAMES = ("I", "Q") + tuple(f"max(Q-{r:.2f}Qend,0)" for r in NUISANCE_THRESHOLDS)
+NUISANCE_NAMES = ("I", "Q", *tuple(f"max(Q-{r:.2f}Qend,0)" for r in NUISANCE_THRESHOLDS))
 
 
 def charge_c(current_a: np.ndarray, dt_s: float) -> np.ndarray:

@@ -36,8 +36,8 @@ from estimator.ident.tracker import Tracker, TrackResult
 from estimator.model.drive import STANDARD_AMPLITUDE_A, StandardDrive
 from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
 from estimator.model.parameters import NOMINAL_PRELOAD_N
+from estimator.units import US_PER_S
 
-US_PER_S = 1e6
 N_PER_KN = 1e3
 NOMINAL_NU_N_PER_V = 16.4      # Table 3's N_u at room temperature (the nominal injector of the default target)
 NOMINAL_LH_UM = 3.0            # and its idle stroke
@@ -164,7 +164,7 @@ def linearise(sim: FastSimulator, scale: float, nu: float, lh_um: float, f_open_
 
     def diff(other: tuple[float, float], step: float) -> tuple[float, float]:
         return ((other[0] - base[0]) / step, (other[1] - base[1]) / step)
-    lo_nu, hi_nu = sim.nu_range
+    _lo_nu, hi_nu = sim.nu_range
     dnu = STEP_NU if nu + STEP_NU <= hi_nu else -STEP_NU
     return Response(base[0], base[1],
                     diff(respond(sim, scale + STEP_SCALE, nu, lh_um, f_open_n), STEP_SCALE),

@@ -49,6 +49,7 @@ from estimator.ident.measurement import Injection
 from estimator.model.chain import MeasurementChain, lowpass, shift
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import STRUCTURAL, CalibrationUncertainty, InjectorParameters, load_nominal, scaled
+from estimator.units import M_PER_UM, S_PER_US, UM_PER_M, US_PER_S
 
 WINDOW_S = 200e-6          # the Fisher analysis behind this module used 0-200 µs of the charge
 FD_THETA = 1e-3            # relative step of a structural factor's finite difference
@@ -126,7 +127,7 @@ class ElectricalCalibration:
                 "rms_before_v": self.rms_before_v, "rms_after_v": self.rms_after_v,
                 "parameters": {n: {"factor": float(f), "sigma_rel": float(sd)}
                                for n, f, sd in zip(self.names, self.factors, self.sigma_rel)},
-                "chain_us": {n: getattr(self.params.chain, n) * 1e6 for n in self.chain_sigma_us},
+                "chain_us": {n: getattr(self.params.chain, n) * US_PER_S for n in self.chain_sigma_us},
                 "chain_sigma_us": dict(self.chain_sigma_us), "weak": list(self.weak), "warnings": list(self.warnings),
                 "injections": [{"nu_n_per_v": float(nu), "lh_um": float(lh)} for nu, lh in zip(self.nu_n_per_v, self.lh_um)]}
 
@@ -139,9 +140,9 @@ class ElectricalCalibration:
             lines.append(f"  {n:<22} {f:8.4f} {100 * s:7.2f}{'  (weakly informed: stays near the prior)' if n in self.weak else ''}")
         cal = self.params.calibration
         lines.append(f"  uncertainty left in every estimate with these parameters: N_u {100 * cal.nu_rel_sigma:.3f} %, "
-                     f"L_h {cal.lh_sigma_m * 1e6:.3f} µm (1 sigma; in the parameter file's [calibration])")
+                     f"L_h {cal.lh_sigma_m * UM_PER_M:.3f} µm (1 sigma; in the parameter file's [calibration])")
         for n, sd in self.chain_sigma_us.items():
-            lines.append(f"  chain.{n:<16} {getattr(self.params.chain, n) * 1e6:8.3f} µs, sd {sd:.3f} µs")
+            lines.append(f"  chain.{n:<16} {getattr(self.params.chain, n) * US_PER_S:8.3f} µs, sd {sd:.3f} µs")
         for a, b, c in self.correlated:
             lines.append(f"  correlation {a} / {b}: {c:+.2f}")
         lines += [f"  injection {k}: N_u {nu:.4f} N/V, L_h {lh:.3f} µm"
@@ -190,7 +191,7 @@ def _batch(injections: list[Injection], base: InjectorParameters, names: tuple[s
     if not (isinstance(tolerance, (int, float)) and 0.0 < tolerance <= 1.0):
         raise ValueError(f"tolerance {tolerance!r} must be a relative standard deviation in (0, 1]")
     if not (20e-6 <= window_s <= 2e-3):
-        raise ValueError(f"window {window_s * 1e6:.1f} µs must be within 20..2000 µs")
+        raise ValueError(f"window {window_s * US_PER_S:.1f} µs must be within 20..2000 µs")
     known = {f"psa.{f.name}" for f in fields(base.psa)} | {f"valve.{f.name}" for f in fields(base.valve)}
     unknown = [n for n in names if n not in known]
     if unknown:
@@ -224,7 +225,7 @@ class _Problem:
         self.chain_names = CHAIN_NAMES if batch.fit_chain else ()
         self.nc = len(self.chain_names)
         self.p = self.k + self.nc
-        self.c_base = np.array([getattr(batch.chain, n) * 1e6 for n in self.chain_names])
+        self.c_base = np.array([getattr(batch.chain, n) * US_PER_S for n in self.chain_names])
         self.sims = _Simulators(replace(base, chain=MeasurementChain()), names, batch.dt_s)
         self.ident = IdentConfig()
         self.sigma = np.ones(self.b)
@@ -238,16 +239,16 @@ class _Problem:
         self.prior = np.concatenate([np.full(k, prior_sd), np.full(self.nc, CHAIN_PRIOR_SD_US)])
         self.prior_centre = np.concatenate([np.zeros(k), self.c_base])
         self.lo = np.concatenate([np.full(k, -BOUND_SDS * prior_sd), [CHAIN_BOUNDS_US[n][0] for n in self.chain_names],
-                                  np.tile([nu_range[0] - 0.1, base.valve.lh_min_m * 1e6], b)])
+                                  np.tile([nu_range[0] - 0.1, base.valve.lh_min_m * UM_PER_M], b)])
         self.hi = np.concatenate([np.full(k, BOUND_SDS * prior_sd), [CHAIN_BOUNDS_US[n][1] for n in self.chain_names],
-                                  np.tile([nu_range[1] + 0.1, base.valve.lh_max_m * 1e6], b)])
+                                  np.tile([nu_range[1] + 0.1, base.valve.lh_max_m * UM_PER_M], b)])
         for name, (f_lo, f_hi) in (limits or {}).items():
             i = list(names).index(name)
             self.lo[i], self.hi[i] = max(self.lo[i], math.log(f_lo)), min(self.hi[i], math.log(f_hi))
 
     def chain_of(self, c: np.ndarray) -> MeasurementChain:
         """The measurement chain of the chain parameters ``c`` (µs)."""
-        return replace(self.batch.chain, **{n: float(v) * 1e-6 for n, v in zip(self.chain_names, c)})
+        return replace(self.batch.chain, **{n: float(v) * S_PER_US for n, v in zip(self.chain_names, c)})
 
     def per_injection(self, theta: np.ndarray, chain: MeasurementChain) -> tuple[np.ndarray, list[np.ndarray]]:
         """Each injection's (N_u, L_h) from its own cold start on the structure ``theta`` behind
@@ -260,7 +261,7 @@ class _Problem:
             est = identify(inj, start_sim, self.ident)
             self.evaluations += est.evaluations
             nu = est.nu_n_per_v if math.isfinite(est.nu_n_per_v) else self.ident.start_point[0]
-            lh = est.lh_m * 1e6 if math.isfinite(est.lh_m) else self.ident.start_point[1]
+            lh = est.lh_m * UM_PER_M if math.isfinite(est.lh_m) else self.ident.start_point[1]
             out[2 * j:2 * j + 2] = nu, lh
             resid.append(measured_voltage(sim, inj, np.array([nu]), np.array([lh]), chain)[0] - inj.voltage_v)
         return out, resid
@@ -322,7 +323,7 @@ class _Problem:
 
     def voltage_residuals(self, f: LeastSquaresResult) -> list[np.ndarray]:
         """Each injection's voltage residual (V) at the solution ``f``."""
-        edges = np.cumsum([0] + self.n_win)
+        edges = np.cumsum([0, *self.n_win])
         return [f.fun[edges[j]:edges[j + 1]] * self.sigma[j] for j in range(self.b)]
 
     def misfit_z(self, f: LeastSquaresResult) -> float:
@@ -396,7 +397,7 @@ class _Problem:
             nu_rel.append(math.sqrt(max(shared_part[0, 0], 0.0)) / fit.x[idx[0]])
             lh_sd.append(math.sqrt(max(shared_part[1, 1], 0.0)))
         return CalibrationUncertainty(min(float(np.sqrt(np.mean(np.square(nu_rel)))) if nu_rel else 0.0, 0.1),
-                                      min(float(np.sqrt(np.mean(np.square(lh_sd)))) * 1e-6 if lh_sd else 0.0, 10e-6))
+                                      min(float(np.sqrt(np.mean(np.square(lh_sd)))) * M_PER_UM if lh_sd else 0.0, 10e-6))
 
 
 def calibrate_electrical(injections: list[Injection], base: InjectorParameters | None = None,
@@ -533,6 +534,6 @@ def measured_voltage(sim: FastSimulator, inj: Injection, nu: np.ndarray | float,
     chain = sim.params.chain if chain is None else chain
     cur = chain.actuator_current(inj.current_a, inj.dt_s)
     u = sim.simulate(cur, np.atleast_1d(np.asarray(nu, dtype=float)),
-                     np.atleast_1d(np.asarray(lh_um, dtype=float)) * 1e-6, inj.f_open_n).voltage_v
+                     np.atleast_1d(np.asarray(lh_um, dtype=float)) * M_PER_UM, inj.f_open_n).voltage_v
     u = np.where(np.isfinite(u), u, 1e3)
     return lowpass(u, chain.u_filter_tau_s, inj.dt_s) if chain.u_filter_tau_s > 0 else u

@@ -10,6 +10,7 @@ import numpy as np
 
 from estimator.ident.coords import NuLh, cov_from_si
 from estimator.ident.status import Status
+from estimator.units import PER_MICRO, UM_PER_M, US_PER_S
 
 
 @dataclass
@@ -78,10 +79,10 @@ class Estimate:
         def num(v: float, scale: float = 1.0, nd: int = 6) -> float | None:
             return None if not math.isfinite(v) else round(v * scale, nd)
         return {
-            "nu_n_per_v": num(self.nu_n_per_v), "lh_um": num(self.lh_m, 1e6),
-            "sigma_nu_n_per_v": num(self.sigma_nu), "sigma_lh_um": num(self.sigma_lh_m, 1e6),
-            "cost_uvs": num(self.cost_vs, 1e6, 3), "t_contact_us": num(self.t_contact_s, 1e6, 3),
-            "t_open_us": num(self.t_open_s, 1e6, 3), "stroke_um": num(self.stroke_m, 1e6, 4),
+            "nu_n_per_v": num(self.nu_n_per_v), "lh_um": num(self.lh_m, UM_PER_M),
+            "sigma_nu_n_per_v": num(self.sigma_nu), "sigma_lh_um": num(self.sigma_lh_m, UM_PER_M),
+            "cost_uvs": num(self.cost_vs, PER_MICRO, 3), "t_contact_us": num(self.t_contact_s, US_PER_S, 3),
+            "t_open_us": num(self.t_open_s, US_PER_S, 3), "stroke_um": num(self.stroke_m, UM_PER_M, 4),
             "status": self.status.value, "message": self.message, "evaluations": self.evaluations,
             "robust": self.robust, "model_error_stat": num(self.model_error_stat, 1.0, 2),
             "noise_sigma_v": num(self.noise_sigma_v, 1.0, 4), "structure_chi2": num(self.structure_chi2, 1.0, 1),

@@ -16,6 +16,7 @@ used.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -38,6 +39,7 @@ from estimator.ident.estimate import Estimate, rejected
 from estimator.ident.local_fit import LocalFit
 from estimator.ident.measurement import Injection
 from estimator.ident.mismatch import (
+    PreloadCheck,
     current_noise_cov,
     model_error_cov,
     plain_adequacy,
@@ -51,6 +53,7 @@ from estimator.ident.status import Status
 from estimator.model import dynamics as dyn
 from estimator.model.drive import SAMPLE_PERIOD_REL_TOL, sampled_samples
 from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
+from estimator.units import US_PER_S
 
 ROBUST_START_SD = 4.0   # the automatic cold start's robust fit: first trust region in standard deviations
 FLIP_MARGIN = 16.0      # chi-square units: the fit not chosen is ringed too where the statistic is this close to the threshold
@@ -89,10 +92,10 @@ def screen(injection: Injection, config: IdentConfig) -> str | None:
     if problem:
         return problem
     if injection.duration_s < config.window_s - 1e-12:
-        return f"too short ({injection.duration_s * 1e6:.1f} µs < window {config.window_s * 1e6:.0f} µs)"
+        return f"too short ({injection.duration_s * US_PER_S:.1f} µs < window {config.window_s * US_PER_S:.0f} µs)"
     if config.window_s / injection.dt_s < MIN_WINDOW_SAMPLES - 1e-9:
-        return (f"sampled too coarsely ({injection.dt_s * 1e6:.2f} µs: fewer than {MIN_WINDOW_SAMPLES} samples in "
-                f"the {config.window_s * 1e6:.0f} µs window)")
+        return (f"sampled too coarsely ({injection.dt_s * US_PER_S:.2f} µs: fewer than {MIN_WINDOW_SAMPLES} samples in "
+                f"the {config.window_s * US_PER_S:.0f} µs window)")
     return None
 
 
@@ -102,8 +105,8 @@ def check_injection(injection: Injection, sim: FastSimulator, config: IdentConfi
     if problem:
         return problem
     if abs(sim.dt_s - injection.dt_s) > SAMPLE_PERIOD_REL_TOL * injection.dt_s:
-        return (f"sample period {injection.dt_s * 1e6:.3f} µs does not match the simulator's "
-                f"{sim.dt_s * 1e6:.3f} µs")
+        return (f"sample period {injection.dt_s * US_PER_S:.3f} µs does not match the simulator's "
+                f"{sim.dt_s * US_PER_S:.3f} µs")
     return None
 
 
@@ -153,8 +156,8 @@ def identify(injection: Injection, sim: FastSimulator | None = None, config: Ide
         other, extra = None, 0
         if fit.success and (robust or not adequacy.adequate):   # type: ignore[union-attr]
             other, extra = complement_fit(sim, injection, config, box, model, fit)
-        return finish(sim, injection, fit, converged, model.evaluations + extra, box, robust, float("nan"), config,
-                      adequacy=adequacy, other=other, model=model, check_preload=True)
+        return finish(Fitted(sim, injection, fit, converged, model.evaluations + extra, box, robust, float("nan"), config),
+                      Evidence(adequacy=adequacy, other=other, model=model, check_preload=True))
     m_plain, m_rob = _cost_model(sim, injection, config, False), _cost_model(sim, injection, config, True)
     m_plain.share_basis(m_rob)
     if local:
@@ -169,10 +172,10 @@ def identify(injection: Injection, sim: FastSimulator | None = None, config: Ide
     stat = likelihood_ratio(m_plain, f_plain, m_rob, f_rob)
     adequacy = plain_adequacy(m_plain, f_plain, config) if f_plain.success else None
     if prefers_robust(stat, config.model_error_threshold):
-        return finish(sim, injection, f_rob, c_rob, evaluations, box, True, stat, config, adequacy=adequacy,
-                      other=f_plain.x if f_plain.success else None, model=m_rob)
-    return finish(sim, injection, f_plain, c_plain, evaluations, box, False, stat, config, adequacy=adequacy,
-                  other=f_rob.x if f_rob.success else None, model=m_plain, check_preload=True)
+        return finish(Fitted(sim, injection, f_rob, c_rob, evaluations, box, True, stat, config),
+                      Evidence(adequacy=adequacy, other=f_plain.x if f_plain.success else None, model=m_rob))
+    return finish(Fitted(sim, injection, f_plain, c_plain, evaluations, box, False, stat, config),
+                  Evidence(adequacy=adequacy, other=f_rob.x if f_rob.success else None, model=m_plain, check_preload=True))
 
 
 def _local_first_auto(sim: FastSimulator, injection: Injection, m_plain: CostModel, m_rob: CostModel,
@@ -212,9 +215,9 @@ def _local_first_auto(sim: FastSimulator, injection: Injection, m_plain: CostMod
     model, fit = models[int(robust)], fits[int(robust)]
     if not excess_residual_z(model, fit) <= config.local_accept_z:
         return None
-    return finish(sim, injection, fit, True, m_plain.evaluations + m_rob.evaluations, box, robust, stat, config,
-                  adequacy=plain_adequacy(m_plain, fits[0], config), other=fits[1 - int(robust)].x, model=model,
-                  check_preload=True)
+    return finish(Fitted(sim, injection, fit, True, m_plain.evaluations + m_rob.evaluations, box, robust, stat, config),
+                  Evidence(adequacy=plain_adequacy(m_plain, fits[0], config), other=fits[1 - int(robust)].x,
+                           model=model, check_preload=True))
 
 
 def complement_fit(sim: FastSimulator, injection: Injection, config: IdentConfig, box: Box, model: CostModel,
@@ -227,86 +230,160 @@ def complement_fit(sim: FastSimulator, injection: Injection, config: IdentConfig
         other.share_basis(model)
     start_sd = ROBUST_START_SD if other.robust else 0.0
     radius = sd_radius(fit, ROBUST_START_SD) if other.robust else None
-    f, converged = unchecked_fit(other, fit.x, box, config, radius, start_sd)
+    f, _converged = unchecked_fit(other, fit.x, box, config, radius, start_sd)
     return (f.x if f.success else None), other.evaluations
 
 
-def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: bool, evaluations: int, box: Box,
-           robust: bool, stat: float, config: IdentConfig, predict: bool = True, adequacy: Adequacy | None = None,
-           other: np.ndarray | None = None, model: CostModel | None = None, structure: float | None = None,
-           check_preload: bool = False, preload_shift: np.ndarray | None = None,
-           preload_wrong: bool = False, current_cov: np.ndarray | None = None) -> Estimate:
+@dataclass(frozen=True)
+class Fitted:
+    """A local fit of one injection (N/V, µm) and how it was reached: on ``sim``, within ``box``,
+    ``converged`` or not, after ``evaluations`` simulations, with the ``robust`` or the plain cost;
+    ``stat`` the likelihood ratio of the two costs (NaN where not computed)."""
+
+    sim: FastSimulator
+    injection: Injection
+    fit: LocalFit
+    converged: bool
+    evaluations: int
+    box: Box
+    robust: bool
+    stat: float
+    config: IdentConfig
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """What else is known about a fit.
+
+    ``adequacy`` is the plain model's test on these samples; ``other`` the other cost's estimate
+    (see :mod:`estimator.ident.mismatch`); ``structure`` the plain residual's statistic where
+    ``adequacy`` was not tested now. ``model``: the fit's cost model, for the preload force's
+    uncertainty and (``check_preload``) the test of the header's preload force
+    (:func:`~estimator.ident.mismatch.preload_check`); ``preload_shift`` (N/V, µm) and
+    ``preload_wrong`` are that move and verdict as a recent test of this injector found them, where it
+    was not tested now; ``current_cov`` (N/V, µm) the measured current's noise as a recent estimate of
+    this injector sized it."""
+
+    adequacy: Adequacy | None = None
+    other: np.ndarray | None = None
+    model: CostModel | None = None
+    structure: float | None = None
+    check_preload: bool = False
+    preload_shift: np.ndarray | None = None
+    preload_wrong: bool = False
+    current_cov: np.ndarray | None = None
+
+
+@dataclass
+class _Judged:
+    """What :func:`finish` works out before the status: mismatch and its kinds, the preload test, the
+    covariance (N/V, µm) with the bias part on its own."""
+
+    mismatch: bool
+    disagrees: bool
+    wrong_preload: bool
+    check: PreloadCheck | None
+    preload_shift: np.ndarray | None
+    structure: float
+    bias: np.ndarray
+    cov_x: np.ndarray
+    current_cov: np.ndarray | None
+    evaluations: int
+
+
+def finish(f: Fitted, ev: Evidence = Evidence(), predict: bool = True) -> Estimate:
     """Turn a local fit into an Estimate with status and (``predict``) the plateau stroke.
 
-    ``adequacy`` is the plain model's test on these samples; a robust fit, or a plain one that fails
-    it, is a ``model_mismatch`` whose covariance includes the model error (``other``: the other
-    cost's estimate, see :mod:`estimator.ident.mismatch`; ``structure`` the plain residual's statistic
-    where ``adequacy`` was not tested now). ``model``: the fit's cost model, for the
-    preload force's uncertainty and (``check_preload``) the test of the header's preload force
-    (:func:`~estimator.ident.mismatch.preload_check`): a plain fit whose samples point to another
-    force is a ``model_mismatch`` too, its covariance widened by the move that force implies (also
-    where the force is only suspect, without the status); ``preload_shift`` (N/V, µm) and
-    ``preload_wrong`` are that move and verdict as a recent test of this injector found them, where it
-    was not tested now. Where the preload force's sensitivity is simulated, the measured current's
-    noise is sized too (:func:`~estimator.ident.mismatch.current_noise_cov`) and enters the covariance;
-    elsewhere ``current_cov`` (N/V, µm), as a recent estimate of this injector sized it, does. Contact
-    and opening times are those of the fitted window; the stroke needs one more, longer simulation
-    (see :func:`predict_valve`)."""
-    if not fit.success:
-        return rejected("simulation failed at the optimum", evaluations)
-    x = fit.x
-    mismatch = robust or (adequacy is not None and not adequacy.adequate)
+    A robust fit, or a plain one that fails the adequacy test, is a ``model_mismatch`` whose covariance
+    includes the model error; so is a plain fit whose samples point to another preload force, its
+    covariance widened by the move that force implies (also where the force is only suspect, without
+    the status). Where the preload force's sensitivity is simulated, the measured current's noise is
+    sized too (:func:`~estimator.ident.mismatch.current_noise_cov`) and enters the covariance; elsewhere
+    ``ev.current_cov`` does. Contact and opening times are those of the fitted window; the stroke needs
+    one more, longer simulation (see :func:`predict_valve`)."""
+    if not f.fit.success:
+        return rejected("simulation failed at the optimum", f.evaluations)
+    j = _judge(f, ev)
+    status, msg, cov_x = _verdict(f, ev, j)
+    fit, x = f.fit, f.fit.x
+    tc, to, stroke = fit.t_contact_s, fit.t_open_s, float("nan")
+    if predict:
+        tc, to, stroke = predict_valve(f.sim, f.injection, x[0], x[1] / UM_PER_M)
+    d, _ = fit.directions
+    other = ev.other
+    diff = x - other if j.mismatch and other is not None and np.all(np.isfinite(other)) else np.zeros(2)
+    excess = excess_residual_z(ev.model, fit) if j.mismatch and ev.model is not None else float("nan")
+    check = j.check
+    return Estimate(float(x[0]), float(x[1] / UM_PER_M), cov_to_si(cov_x), fit.paper_cost_vs, fit.criterion,
+                    j.evaluations + 1, status, msg, f.robust, f.stat, fit.sigma_v, tc, to, stroke, fit.jtj, d,
+                    j.structure, j.bias, diff, j.mismatch, excess, check.chi2 if check is not None else float("nan"),
+                    check.delta_f_n if check is not None else float("nan"),
+                    None if j.preload_shift is None else np.array(j.preload_shift, dtype=float), j.wrong_preload,
+                    j.current_cov)
+
+
+def _judge(f: Fitted, ev: Evidence) -> _Judged:
+    """Mismatch, the preload force's test and the covariance of a successful fit."""
+    config, model, x, evaluations = f.config, ev.model, f.fit.x, f.evaluations
+    mismatch = f.robust or (ev.adequacy is not None and not ev.adequacy.adequate)
     # the robust fit of the longer window explains the plain window much worse than the plain fit: the
     # samples after the plain window pull the estimate elsewhere, which no noise does
-    disagrees = (not robust and model is not None and config.window_disagreement_chi2 > 0 and math.isfinite(stat)
-                 and stat < -config.window_disagreement_chi2)
+    disagrees = (not f.robust and model is not None and config.window_disagreement_chi2 > 0 and math.isfinite(f.stat)
+                 and f.stat < -config.window_disagreement_chi2)
     mismatch = mismatch or disagrees
     check = None
+    preload_shift, preload_wrong, current_cov = ev.preload_shift, ev.preload_wrong, ev.current_cov
     # the preload force's sensitivity (four simulations) serves its uncertainty and its test alike
-    checking = check_preload and not mismatch and model is not None and config.preload_check_chi2 > 0
+    checking = ev.check_preload and not mismatch and model is not None and config.preload_check_chi2 > 0
     sens = None
     if model is not None and (checking or config.preload_rel_sigma > 0):
-        sens = preload_sensitivity(model, fit)
+        sens = preload_sensitivity(model, f.fit)
         evaluations += 4
-        fresh = current_noise_cov(model, fit, sens)
+        fresh = current_noise_cov(model, f.fit, sens)
         if fresh is not None:
             current_cov, evaluations = fresh, evaluations + 1
     if checking and model is not None:
-        check = preload_check(sens, fit, model.n, config.preload_check_chi2)
+        check = preload_check(sens, f.fit, model.n, config.preload_check_chi2)
         preload_shift = check.shift if check is not None and check.suspect else None
         preload_wrong = check is not None and check.inconsistent
-    if robust:        # the robust cost's own model error covers it
+    if f.robust:        # the robust cost's own model error covers it
         preload_shift, preload_wrong = None, False
     wrong_preload = preload_wrong and preload_shift is not None
     mismatch = mismatch or wrong_preload
-    if adequacy is not None:
-        structure = adequacy.structure
+    structure = ev.adequacy.structure if ev.adequacy is not None else ev.structure
     structure = float("nan") if structure is None else structure
-    bias = model_error_cov(x, other, config, structure) if mismatch else np.zeros((2, 2))
+    bias = model_error_cov(x, ev.other, config, structure) if mismatch else np.zeros((2, 2))
     if preload_shift is not None:    # the move the samples' own preload force implies: a bias
         bias = bias + np.outer(preload_shift, preload_shift)
-    if not sim.params.calibration.zero:   # what a calibrated parameter set leaves uncertain: a bias too
-        bias = bias + sim.params.calibration.cov(float(x[0]))
-    cov_x = fit.cov_x + bias
+    if not f.sim.params.calibration.zero:   # what a calibrated parameter set leaves uncertain: a bias too
+        bias = bias + f.sim.params.calibration.cov(float(x[0]))
+    cov_x = f.fit.cov_x + bias
     if current_cov is not None:   # the measured current's noise: noise, not a bias
         cov_x = cov_x + current_cov
     if config.preload_rel_sigma > 0:
-        cov_x = cov_x + preload_cov(sens, injection.f_open_n, config.preload_rel_sigma)
-    if box.at_bound(x, bound_tolerance(config)):
+        cov_x = cov_x + preload_cov(sens, f.injection.f_open_n, config.preload_rel_sigma)
+    return _Judged(mismatch, disagrees, wrong_preload, check, preload_shift, structure, bias, cov_x, current_cov,
+                   evaluations)
+
+
+def _verdict(f: Fitted, ev: Evidence, j: _Judged) -> tuple[Status, str, np.ndarray]:
+    """The status, its message and the covariance (widened over the box for a mismatch at a bound)."""
+    config, cov_x = f.config, j.cov_x
+    if f.box.at_bound(f.fit.x, bound_tolerance(config)):
         status, msg = Status.AT_BOUND, "estimate at a search bound"
-        if mismatch:   # the truth may lie anywhere beyond the bound: sigma of a uniform over the range
-            cov_x = cov_x + np.diag(np.square(box.hi - box.lo) / 12.0)
-    elif not converged:
+        if j.mismatch:   # the truth may lie anywhere beyond the bound: sigma of a uniform over the range
+            cov_x = cov_x + np.diag(np.square(f.box.hi - f.box.lo) / 12.0)
+    elif not f.converged:
         status, msg = Status.NOT_CONVERGED, "line searches did not converge"
-    elif mismatch:
+    elif j.mismatch:
         status = Status.MODEL_MISMATCH
-        if adequacy is not None and not adequacy.adequate:
-            msg = adequacy.reason
-        elif disagrees and model is not None:
-            msg = (f"the samples after the {1e6 * model.window_s:.0f} µs window disagree with the fit (likelihood "
-                   f"ratio {stat:.0f}): model cannot explain the whole trace")
-        elif wrong_preload:
-            msg = check.reason(injection.f_open_n) if check is not None else (
+        if ev.adequacy is not None and not ev.adequacy.adequate:
+            msg = ev.adequacy.reason
+        elif j.disagrees and ev.model is not None:
+            msg = (f"the samples after the {US_PER_S * ev.model.window_s:.0f} µs window disagree with the fit (likelihood "
+                   f"ratio {f.stat:.0f}): model cannot explain the whole trace")
+        elif j.wrong_preload:
+            msg = j.check.reason(f.injection.f_open_n) if j.check is not None else (
                 "the header's preload force disagrees with this injector's samples (as last tested)")
         else:
             msg = "model cannot explain the samples (robust cost: model error in the nuisance span)"
@@ -315,15 +392,4 @@ def finish(sim: FastSimulator, injection: Injection, fit: LocalFit, converged: b
                                          f"{config.sigma_limit_lh_um:.2f} µm")
     else:
         status, msg = Status.OK, ""
-    tc, to, stroke = fit.t_contact_s, fit.t_open_s, float("nan")
-    if predict:
-        tc, to, stroke = predict_valve(sim, injection, x[0], x[1] / UM_PER_M)
-    d, _ = fit.directions
-    diff = x - other if mismatch and other is not None and np.all(np.isfinite(other)) else np.zeros(2)
-    excess = excess_residual_z(model, fit) if mismatch and model is not None else float("nan")
-    return Estimate(float(x[0]), float(x[1] / UM_PER_M), cov_to_si(cov_x), fit.paper_cost_vs, fit.criterion,
-                    evaluations + 1, status, msg, robust, stat, fit.sigma_v, tc, to, stroke, fit.jtj, d, structure, bias,
-                    diff, mismatch, excess, check.chi2 if check is not None else float("nan"),
-                    check.delta_f_n if check is not None else float("nan"),
-                    None if preload_shift is None else np.array(preload_shift, dtype=float), wrong_preload,
-                    current_cov)
+    return status, msg, cov_x

@@ -133,9 +133,9 @@ class Learner:
             window.add(inj, nu)
         elif evidence == 0.0:
             self._windows.pop(iid, None)
-            if state == Learning.MONITORING and not st.refined and c.refine_window:
-                if self._refined(iid, st, inj, nu, served):
-                    return
+            if state == Learning.MONITORING and not st.refined and c.refine_window \
+                    and self._refined(iid, st, inj, nu, served):
+                return
         if evidence >= c.monitor_limit:
             self._refine.pop(iid, None)
             self._set(iid, replace(st, state=Learning.RELEARNING, evidence=evidence, served=served,
@@ -281,9 +281,7 @@ class Learner:
         """Set a status; a change of state or progress is reported (``quiet``: the monitor's own
         bookkeeping is not a change anyone needs on the bus)."""
         old = self.status.get(iid)
-        if not quiet and old != status:
-            self._changed.add(iid)
-        elif old is not None and (old.state, old.batch) != (status.state, status.batch):
+        if (not quiet and old != status) or (old is not None and (old.state, old.batch) != (status.state, status.batch)):
             self._changed.add(iid)
         self.status[iid] = status
 

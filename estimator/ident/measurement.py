@@ -16,6 +16,7 @@ from estimator.errors import TraceError
 from estimator.model.chain import MeasurementChain
 from estimator.model.drive import SAMPLE_PERIOD_REL_TOL, TableDrive, sample_count
 from estimator.model.parameters import NOMINAL_PRELOAD_N
+from estimator.units import US_PER_S
 
 MIN_WINDOW_S = 40e-6          # shorter windows hold too little of the charging phase to identify anything
 MAX_ABS_CURRENT_A = 100.0     # beyond any injector amplifier
@@ -121,7 +122,7 @@ class Injection:
         if not math.isfinite(self.f_open_n) or not (0.0 <= self.f_open_n <= 5000.0):
             return "preload force out of range"
         if self.duration_s < MIN_WINDOW_S - 1e-12:
-            return f"too short ({self.duration_s * 1e6:.1f} µs < {MIN_WINDOW_S * 1e6:.0f} µs)"
+            return f"too short ({self.duration_s * US_PER_S:.1f} µs < {MIN_WINDOW_S * US_PER_S:.0f} µs)"
         if max(i_max, -i_min) > MAX_ABS_CURRENT_A or max(u_max, -u_min) > MAX_ABS_VOLTAGE_V:
             return "sample values out of range"
         if i_max < MIN_PEAK_CURRENT_A or i_max - i_min < MIN_PEAK_CURRENT_A:
@@ -148,6 +149,6 @@ class Injection:
         if dt <= 0 or np.max(np.abs(d - dt)) > max(SAMPLE_PERIOD_REL_TOL * dt, 1e-12):
             raise TraceError("wrong sampling: sample times are not uniform")
         if abs(t[0]) > 1e-3 * dt:
-            raise TraceError(f"wrong sampling: first sample at {t[0] * 1e6:.3f} µs, expected 0")
+            raise TraceError(f"wrong sampling: first sample at {t[0] * US_PER_S:.3f} µs, expected 0")
         return cls(np.asarray(current_a, dtype=float), np.asarray(voltage_v, dtype=float), dt,
                    float(f_open_n), **kw)  # type: ignore[arg-type]

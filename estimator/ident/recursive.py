@@ -30,6 +30,7 @@ Per injection (:func:`update`, pure: state in, state out):
 
 from __future__ import annotations
 
+import contextlib
 import math
 import weakref
 from dataclasses import dataclass, replace
@@ -46,6 +47,8 @@ from estimator.ident.coords import NuLh
 from estimator.ident.cost import CostModel, plain_model_error
 from estimator.ident.estimate import Estimate, rejected
 from estimator.ident.idle_stroke import (
+    Evidence,
+    Fitted,
     check_injection,
     complement_fit,
     effective_window_s,
@@ -67,6 +70,7 @@ from estimator.ident.tracker_state import (
     state_bounds,
 )
 from estimator.model.fast_sim import FastSimulator, remember
+from estimator.units import UM_PER_M, US_PER_S
 
 LOCAL_ACCEPT_MARGIN = 3.0      # a mismatched injector's re-acquisition keeps a local fit within 3x its usual residual excess
 ROBUST_CHECK_EVERY = 8         # in robust mode, every 8th injection also fits the plain model (model-error test)
@@ -104,10 +108,10 @@ class TrackResult:
         def f(v: float, s: float = 1.0) -> float | None:
             return None if not math.isfinite(v) else round(v * s, 6)
 
-        return {"nu_n_per_v": f(self.nu_n_per_v), "lh_um": f(self.lh_m, 1e6),
-                "sigma_nu_n_per_v": f(self.sigma_nu), "sigma_lh_um": f(self.sigma_lh_m, 1e6),
-                "status": self.status.value, "reason": self.reason, "t_contact_us": f(self.t_contact_s, 1e6),
-                "t_open_us": f(self.t_open_s, 1e6), "stroke_um": f(self.stroke_m, 1e6),
+        return {"nu_n_per_v": f(self.nu_n_per_v), "lh_um": f(self.lh_m, UM_PER_M),
+                "sigma_nu_n_per_v": f(self.sigma_nu), "sigma_lh_um": f(self.sigma_lh_m, UM_PER_M),
+                "status": self.status.value, "reason": self.reason, "t_contact_us": f(self.t_contact_s, US_PER_S),
+                "t_open_us": f(self.t_open_s, US_PER_S), "stroke_um": f(self.stroke_m, UM_PER_M),
                 "rate_n_per_v_per_s": f(self.rate_n_per_v_s), "slope_n_per_v_per_degc": f(self.slope_n_per_v_degc)}
 
 
@@ -160,10 +164,10 @@ def _warm_estimate(state: TrackerState, x0: np.ndarray, inj: Injection, sim: Fas
     check = not state.robust and state.updates % PRELOAD_CHECK_EVERY == 0
     held = None if check or state.preload_shift is None else np.array(state.preload_shift)
     held_current = None if check or state.current_noise_cov is None else np.array(state.current_noise_cov)
-    return finish(sim, inj, fit, converged, model.evaluations + extra, box, state.robust, stat, ic, predict=False,
-                  adequacy=adequacy, other=other, model=model, structure=state.model_error_structure,
-                  check_preload=check, preload_shift=held, preload_wrong=state.preload_wrong and not check,
-                  current_cov=held_current)
+    return finish(Fitted(sim, inj, fit, converged, model.evaluations + extra, box, state.robust, stat, ic),
+                  Evidence(adequacy=adequacy, other=other, model=model, structure=state.model_error_structure,
+                           check_preload=check, preload_shift=held, preload_wrong=state.preload_wrong and not check,
+                           current_cov=held_current), predict=False)
 
 
 def _cold_estimate(state: TrackerState, inj: Injection, sim: FastSimulator, config: TrackerConfig) -> Estimate:
@@ -239,12 +243,11 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
     inj = inj.through_chain(sim.params.chain)   # once: the cold start and the valve prediction see it too
 
     cold = not (st.initialized and math.isfinite(st.x[0]) and math.isfinite(st.x[1]))   # a prior counts
-    x0 = held[0][:2] if held is not None else None
     if cold:
         raw = _cold_estimate(st, inj, sim, config)
     else:
-        assert x0 is not None   # initialized: the filter holds a state
-        raw = _warm_estimate(st, x0, inj, sim, config, box)
+        assert held is not None   # initialized: the filter holds a state
+        raw = _warm_estimate(st, held[0][:2], inj, sim, config, box)
     if raw.status == Status.REJECTED:
         st.rejected += 1
         return st, publish(_widen(held, st, config, sim), raw, Status.REJECTED, raw.message, sim, inj, predict=False)
@@ -252,7 +255,6 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
         # the warm searches ran out of cycles (the injector moved more than expected), or the plain
         # model ran into a bound, which is how it absorbs a model error: decide afresh
         raw = _cold_estimate(st, inj, sim, config)
-
     # the hysteresis sees a cold estimate too: one that chose the robust cost switches the mode at once
     restart = _robust_hysteresis(st, raw, config, cold) or cold
     if restart and raw.robust != st.robust:
@@ -264,13 +266,29 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
     if not all(map(math.isfinite, r.ravel().tolist() + z.tolist())):
         st.rejected += 1
         return st, publish(_widen(held, st, config, sim), raw, Status.REJECTED, "no curvature at the optimum", sim, inj, predict=False)
-
     if restart:
         _restart(st, z, r, now, temp, config)
         reason = "" if cold else "restarted (model-error mode changed)"
         return _accepted(st, raw, r, sim, inj, config, reason)
-
     assert held is not None   # not cold: the filter holds a state
+    return _filtered(st, raw, z, r, held, Moment(now, temp), inj, sim, config, noise)
+
+
+@dataclass(frozen=True)
+class Moment:
+    """When an injection was (s, None if unknown) and at what fuel temperature (degC, None if unknown)."""
+
+    time_s: float | None
+    temperature_c: float | None
+
+
+def _filtered(st: TrackerState, raw: Estimate, z: np.ndarray, r: np.ndarray, held: tuple[np.ndarray, np.ndarray],
+              at: Moment, inj: Injection, sim: FastSimulator, config: TrackerConfig,
+              noise: kalman.ProcessNoise) -> tuple[TrackerState, TrackResult]:
+    """The raw estimate ``z`` (covariance ``r``) against the filter's prediction ``held``: inside the
+    gate it updates the filter; outside, a glitch the model cannot explain is rejected, otherwise the
+    injection is in doubt (:func:`_in_doubt`)."""
+    now, temp = at.time_s, at.temperature_c
     x_pred, p_pred = held
     inn = kalman.innovation(x_pred, p_pred, z, r)
     if not (st.mismatch or st.robust) and raw.mismatch and inn.d2 > config.gate_chi2:
@@ -282,7 +300,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
         reason = (f"outlier (innovation chi2 {inn.d2:.1f} > {config.gate_chi2:.1f}, the model mismatched "
                   f"on this injection only)")
         return st, publish(_widen(held, st, config, sim), raw, Status.REJECTED, reason, sim, inj, predict=True,
-                            outliers=1)
+                           outliers=1)
     if inn.d2 <= config.gate_chi2:
         outliers = 0
         if st.pending is not None:     # the injection in doubt was not confirmed: an outlier
@@ -292,7 +310,6 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
         x, p = kalman.update(x_pred, p_pred, z, r)
         _store(st, x, p, now, temp, config)
         return _accepted(st, raw, r, sim, inj, config, "", outliers)
-
     if not st.robust and (raw.robust or (math.isfinite(raw.model_error_stat) and
                                          raw.model_error_stat > config.ident.model_error_threshold)):
         # the plain model cannot explain this injection and it disagrees with the filter: a glitch
@@ -301,7 +318,17 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
         reason = (f"outlier (innovation chi2 {inn.d2:.1f} > {config.gate_chi2:.1f}, model error "
                   f"{raw.model_error_stat:.0f})")
         return st, publish(_widen(held, st, config, sim), raw, Status.REJECTED, reason, sim, inj, predict=True, outliers=1)
+    return _in_doubt(st, raw, z, r, held, inn.d2, at, inj, sim, config, noise)
 
+
+def _in_doubt(st: TrackerState, raw: Estimate, z: np.ndarray, r: np.ndarray, held: tuple[np.ndarray, np.ndarray],
+              d2: float, at: Moment, inj: Injection, sim: FastSimulator, config: TrackerConfig,
+              noise: kalman.ProcessNoise) -> tuple[TrackerState, TrackResult]:
+    """An injection outside the gate (innovation chi-square ``d2``) that the model explains: with an
+    earlier one in doubt, a jump both confirm is taken (or the earlier one was an outlier); too many
+    doubts in a row re-acquire; otherwise it is kept pending and published ``unconfirmed``."""
+    now, temp = at.time_s, at.temperature_c
+    x_pred, p_pred = held
     if st.pending is not None:
         taken = _confirm_jump(st, z, r, now, temp, config, noise)
         if taken is not None:
@@ -318,12 +345,12 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
         return _accepted(st, raw, r, sim, inj, config, f"re-acquired after {st.doubts} injections in doubt",
                          outliers)
     st.pending = Pending(z.tolist(), r.tolist(), now, temp, inj.counter)
-    if inn.d2 > config.raw_publish_chi2:
+    if d2 > config.raw_publish_chi2:
         # beyond anything noise does: a change (or a glitch the model fits); its own estimate is the best guess
         best, whose = (np.concatenate([z, x_pred[2:]]), _embed(r, p_pred)), "this injection's own estimate"
     else:   # marginal: as likely a noise tail as a small change: the filter updated with it (not committed)
         best, whose = kalman.update(x_pred, p_pred, z, r), "the filter's estimate with it"
-    reason = f"in doubt (innovation chi2 {inn.d2:.1f} > {config.gate_chi2:.1f}): {whose}"
+    reason = f"in doubt (innovation chi2 {d2:.1f} > {config.gate_chi2:.1f}): {whose}"
     return st, publish(_widen(best, st, config, sim), raw, Status.UNCONFIRMED, reason, sim, inj, predict=True, outliers=outliers)
 
 
@@ -547,9 +574,7 @@ def publish(filt: tuple[np.ndarray, np.ndarray] | None, raw: Estimate, status: S
         # a cold start's own prediction (only a predicted Estimate has a finite stroke), at this very point
         tc, to, stroke = raw.t_contact_s, raw.t_open_s, raw.stroke_m
     elif predict and sim is not None and math.isfinite(pt.nu_n_per_v) and math.isfinite(pt.lh_um):
-        try:
+        with contextlib.suppress(EstimatorError):   # e.g. a prior outside the simulator's N_u range: no prediction
             tc, to, stroke = predict_valve(sim, inj, pt.nu_n_per_v, pt.lh_m)
-        except EstimatorError:   # e.g. a prior outside the simulator's N_u range: no prediction
-            pass
     return TrackResult(raw, pt.nu_n_per_v, pt.lh_m, sig.nu_n_per_v, sig.lh_m, status, reason,
                        raw.evaluations, tc, to, stroke, outliers, float(x[kalman.RATE]), float(x[kalman.SLOPE]))

@@ -36,6 +36,7 @@ from estimator.ident.measurement import Injection
 from estimator.ident.status import CALIBRATION_STATES, Learning
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import InjectorParameters
+from estimator.units import UM_PER_M
 
 STATES = CALIBRATION_STATES
 NU_SCALE_N_PER_V = 1.0       # operating-point distance: 1 N/V of N_u ...
@@ -60,7 +61,7 @@ class SelfCalConfig:
     refine_window: int = 24        # once monitoring: one more calibration over this many injections (0: none)
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.window, int) and isinstance(self.held_out, int) and 1 <= self.held_out
+        if not (isinstance(self.window, int) and isinstance(self.held_out, int) and self.held_out >= 1
                 and self.window >= self.held_out + 3):
             raise ValueError(f"self-calibration window {self.window!r} must hold held_out {self.held_out!r} "
                              "injections and at least three more")
@@ -229,7 +230,7 @@ def _held_out_residual(sim: FastSimulator, inj: Injection) -> np.ndarray:
     est = identify(inj, sim, IdentConfig())
     if not (math.isfinite(est.nu_n_per_v) and math.isfinite(est.lh_m)):
         return np.full(inj.voltage_v.size, 1e3)
-    result: np.ndarray = measured_voltage(sim, inj, est.nu_n_per_v, est.lh_m * 1e6)[0] - inj.voltage_v
+    result: np.ndarray = measured_voltage(sim, inj, est.nu_n_per_v, est.lh_m * UM_PER_M)[0] - inj.voltage_v
     return result
 
 

@@ -113,4 +113,4 @@ def rearmed(guards: np.ndarray, open_index: np.ndarray, r: int, z: np.ndarray, s
 @njit(cache=True, nogil=True, inline="always")
 def in_contact(mode: int) -> bool:
     """True for the modes in which piston and actuator touch (Σ2 and Σ3)."""
-    return mode == MODE_CONTACT or mode == MODE_OPEN
+    return mode in (MODE_CONTACT, MODE_OPEN)

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimator.errors import ParameterError
+from estimator.units import US_PER_S
 
 MAX_TAU_S = 20e-6     # a filter slower than 8 kHz would not be an anti-aliasing filter of a 2 MHz ADC
 MAX_SKEW_S = 5e-6
@@ -51,7 +52,7 @@ class MeasurementChain:
                 raise ParameterError(f"{name} = {v!r} s must be a finite number")
             low = -limit if name == "i_skew_s" else 0.0
             if not low <= v <= limit:
-                raise ParameterError(f"{name} = {v * 1e6:g} µs must be within {low * 1e6:g}..{limit * 1e6:g} µs")
+                raise ParameterError(f"{name} = {v * US_PER_S:g} µs must be within {low * US_PER_S:g}..{limit * US_PER_S:g} µs")
 
     @classmethod
     def from_cutoffs(cls, u_cutoff_hz: float = 0.0, i_cutoff_hz: float = 0.0, i_skew_s: float = 0.0) -> MeasurementChain:

@@ -57,6 +57,7 @@ import numpy as np
 from estimator._compiled import njit
 from estimator.errors import InfeasibleError
 from estimator.model.parameters import InjectorParameters, contact_force
+from estimator.units import UM_PER_M
 
 # indices into the augmented state z
 S1, V1, S2, V2, S3, V3, Q, S4, V4, ZI, ZID, ZL, ZF, Z1 = range(14)
@@ -338,7 +339,7 @@ def initial_state(p: InjectorParameters, nu: float, lh_m: float, f_open_n: float
                                 np.array([float(f_open_n)]), np.ones(NZ), z0, region0)[0]:
         _, force = precompressed_state(p, nu, lh_m)
         raise InfeasibleError(
-            f"L_h = {lh_m * 1e6:.3f} µm pre-compresses the piston with {force:.2f} N >= F_open = "
+            f"L_h = {lh_m * UM_PER_M:.3f} µm pre-compresses the piston with {force:.2f} N >= F_open = "
             f"{f_open_n:.2f} N: the valve would start open (Σ3), which the model excludes")
     z = z0[0]
     z[ZI], z[ZID] = current0_a, didt0_a_per_s

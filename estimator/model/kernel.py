@@ -36,6 +36,7 @@ from estimator.model.dynamics import (
     output_row_into,
     precompressed_starts,
 )
+from estimator.units import M_PER_UM, S_PER_US
 
 MAX_EVENTS_PER_SAMPLE = 12
 # the sample step in simulate_kernel is written out for these nine physical states, the plunger last
@@ -660,10 +661,10 @@ def run_batch(model: KernelModel, aut: Automaton, src: np.ndarray, stencil: bool
                 s3[b, k] = np.nan
                 s4[b, k] = np.nan
         for k in range(n):
-            s3[b, k] *= 1e-6
-            s4[b, k] *= 1e-6
-        tc[b] *= 1e-6
-        to[b] *= 1e-6
+            s3[b, k] *= M_PER_UM
+            s4[b, k] *= M_PER_UM
+        tc[b] *= S_PER_US
+        to[b] *= S_PER_US
         success[b] = status[b] == STATUS_OK
     return u, s3, s4, mode, tc, to, status, success
 

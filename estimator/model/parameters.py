@@ -23,6 +23,7 @@ import numpy as np
 from estimator._compiled import njit
 from estimator.errors import ParameterError
 from estimator.model.chain import NO_CHAIN, MeasurementChain
+from estimator.units import UM_PER_M
 
 NOMINAL_FILE = Path(__file__).with_name("parameters.toml")
 
@@ -35,7 +36,7 @@ NU_EXTRAPOLATION_N_PER_V = 0.1
 def check_nu_in(nu_n_per_v: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """``nu_n_per_v`` (N/V, 1-D) if every value is finite and within [lo, hi], else ParameterError
     naming the first offending value. The one N_u range check of the package."""
-    if nu_n_per_v.size == 0 or np.isfinite(nu_n_per_v.sum()) and nu_n_per_v.min() >= lo and nu_n_per_v.max() <= hi:
+    if nu_n_per_v.size == 0 or (np.isfinite(nu_n_per_v.sum()) and nu_n_per_v.min() >= lo and nu_n_per_v.max() <= hi):
         return nu_n_per_v
     bad = ~np.isfinite(nu_n_per_v) | (nu_n_per_v < lo) | (nu_n_per_v > hi)
     raise ParameterError(f"N_u = {float(nu_n_per_v[bad][0])!r} N/V is outside [{lo}, {hi}] N/V")
@@ -213,7 +214,7 @@ class CalibrationUncertainty:
 
     def cov(self, nu_n_per_v: float) -> np.ndarray:
         """The covariance it adds to an estimate at ``nu_n_per_v``, in (N/V, µm)."""
-        return np.diag([(nu_n_per_v * self.nu_rel_sigma) ** 2, (self.lh_sigma_m * 1e6) ** 2])
+        return np.diag([(nu_n_per_v * self.nu_rel_sigma) ** 2, (self.lh_sigma_m * UM_PER_M) ** 2])
 
 
 @dataclass(frozen=True)

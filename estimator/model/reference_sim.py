@@ -19,6 +19,7 @@ from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.model.dynamics import MODE_OPEN, STATUS_EVENT_CAP, STATUS_INFEASIBLE, STATUS_OK
 from estimator.model.fast_sim import BatchResult
 from estimator.model.parameters import InjectorParameters, check_nu_in, load_nominal
+from estimator.units import UM_PER_M
 
 _INSTANT_TOL = 1e-9      # guard value (scaled, normalised) above which a new region's guard fires at once
 _MAX_EVENTS = 10_000
@@ -66,8 +67,8 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
 
         return BatchResult(
             t_s=t_us / dyn.TIME_SCALE, current_a=cur, nu_n_per_v=one(nu_n_per_v), lh_m=one(lh_m),
-            f_open_n=one(f_open), voltage_v=out["u"][None], s3_m=out["s3"][None] / 1e6,
-            s4_m=out["s4"][None] / 1e6, mode=mode[None], t_contact_s=one(t_contact / dyn.TIME_SCALE),
+            f_open_n=one(f_open), voltage_v=out["u"][None], s3_m=out["s3"][None] / UM_PER_M,
+            s4_m=out["s4"][None] / UM_PER_M, mode=mode[None], t_contact_s=one(t_contact / dyn.TIME_SCALE),
             t_open_s=one(t_open / dyn.TIME_SCALE), success=np.array([status == STATUS_OK]),
             status=np.array([status]))
 

@@ -17,6 +17,7 @@ next version.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import sys
@@ -37,6 +38,7 @@ from estimator.ident.config import IdentConfig, TrackerConfig
 from estimator.ident.drive_correction import DriveTarget
 from estimator.ident.selfcal import SelfCalConfig
 from estimator.pipeline.processor import COMMAND_POLICIES
+from estimator.units import US_PER_S
 
 Check = Callable[[Any], "str | None"]
 C = TypeVar("C", bound="EstimatorConfig")
@@ -199,16 +201,14 @@ class EstimatorConfig:
                 raise ConfigError(f"{key} = {_show(v)}: must be a path (a string)")
         seeds = values.get("injector_params")
         if isinstance(seeds, dict):
-            try:
+            with contextlib.suppress(ValueError):   # the rule names what the table must be
                 values["injector_params"] = {int(k): Path(p) if isinstance(p, str) else p for k, p in seeds.items()}
-            except ValueError:
-                pass   # the rule names what the table must be
         if isinstance(values.get("sample_periods_ns"), list):
             values["sample_periods_ns"] = tuple(values["sample_periods_ns"])
 
     def check_files(self) -> None:
         """Fail fast on a parameter file that cannot be used (the DBC is checked when it is loaded)."""
-        from estimator.model.parameters import InjectorParameters  # noqa: PLC0415 (only when configured)
+        from estimator.model.parameters import InjectorParameters
         if self.params is not None:
             try:
                 InjectorParameters.from_toml(self.params)
@@ -341,7 +341,7 @@ def _same(value: Any, section: dict[str, Any]) -> Any:
 
 def _us_to_s(value: Any, section: dict[str, Any]) -> Any:
     ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-    return value / 1e6 if ok else value
+    return value / US_PER_S if ok else value
 
 
 #: flat [estimator] keys of earlier versions -> (table, key there, conversion)

@@ -28,7 +28,7 @@ from estimator.pipeline.config import EstimatorConfig
 from estimator.pipeline.processor import ROW_FIELDS, result_row
 from estimator.pipeline.replay import iter_capture
 
-FIELDS = ("source",) + ROW_FIELDS
+FIELDS = ("source", *ROW_FIELDS)
 CAPTURE_CSV_HEADER = "timestamp,arbitration_id"   # python-can's CSV logger
 
 

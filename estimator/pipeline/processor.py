@@ -35,6 +35,7 @@ from estimator.ident.selfcal import CalibrationStatus
 from estimator.ident.status import Learning, Status
 from estimator.ident.tracker import Tracker, TrackResult
 from estimator.pipeline.ratelimit import RateLimitedLog
+from estimator.units import PER_MICRO, UM_PER_M, US_PER_S
 
 log = logging.getLogger(__name__)
 COMMAND_POLICIES = ("off", "reset-only", "all")   # who may steer the estimator over the bus (config key commands)
@@ -83,10 +84,10 @@ def output_frames(codec: Codec, injector_id: int, counter: int, res: TrackResult
     status = codec.status_code(res.status if have else Status.NO_ESTIMATE)
     enc = codec.encode
     return [
-        enc(EstimateState(injector_id, counter, res.nu_n_per_v, res.lh_m * 1e6, status)),
-        enc(EstimateQuality(injector_id, counter, res.raw.cost_vs * 1e6, res.sigma_nu, res.sigma_lh_m * 1e6,
+        enc(EstimateState(injector_id, counter, res.nu_n_per_v, res.lh_m * UM_PER_M, status)),
+        enc(EstimateQuality(injector_id, counter, res.raw.cost_vs * PER_MICRO, res.sigma_nu, res.sigma_lh_m * UM_PER_M,
                             res.evaluations, int(res.raw.robust))),
-        enc(ValvePrediction(injector_id, counter, res.t_contact_s * 1e6, res.t_open_s * 1e6, res.stroke_m * 1e6)),
+        enc(ValvePrediction(injector_id, counter, res.t_contact_s * US_PER_S, res.t_open_s * US_PER_S, res.stroke_m * UM_PER_M)),
     ]
 
 

@@ -18,6 +18,7 @@ with the reason) and is replaced at the next submission.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing
 import os
@@ -61,10 +62,8 @@ def _lower_priority(increment: int) -> None:
     under ``SCHED_IDLE`` (it gets a core only where nothing else wants it; a niced process still
     takes a share of a busy one); elsewhere, or where that is refused, it is niced by ``increment``."""
     if not _run_when_idle():
-        try:
+        with contextlib.suppress(OSError):   # pragma: no cover - a platform without nice
             os.nice(increment)
-        except OSError:   # pragma: no cover - a platform without nice
-            pass
     from estimator.model.drive import SAMPLE_PERIOD_S, StandardDrive
     from estimator.model.fast_sim import FastSimulator
 
@@ -112,7 +111,7 @@ class BackgroundCalibrator:
     def _finish(self, injector_id: int, fut: Future) -> None:
         try:
             status, params, tables = fut.result()
-        except Exception as exc:   # noqa: BLE001 - whatever killed the calibration, the daemon goes on
+        except Exception as exc:
             if isinstance(exc, BrokenProcessPool):
                 self._executor = None
             log.warning("injector %d: self-calibration failed: %s", injector_id, exc)
@@ -122,7 +121,7 @@ class BackgroundCalibrator:
         if params is not None and self.prepare is not None:
             try:
                 prepared = self.prepare(params, tables)
-            except Exception as exc:   # noqa: BLE001 - adopted without a prepared pool: built on first use
+            except Exception as exc:
                 log.warning("injector %d: preparing the calibrated model failed: %s", injector_id, exc)
         with self._lock:
             self._running.discard(injector_id)

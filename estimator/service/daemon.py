@@ -41,6 +41,7 @@ from estimator.service.fair_queue import FairQueue
 from estimator.service.latency import Stats
 from estimator.service.sdnotify import SdNotify
 from estimator.service.state_store import keep_rejected, load_all, lock_state_dir, save_states
+from estimator.units import US_PER_S
 
 log = logging.getLogger(__name__)
 STATE_FILE = "estimator-state.json"
@@ -378,7 +379,7 @@ class Daemon:
         logging.getLogger().setLevel(new.log_level_number)
         self.cfg = new
         log.info("configuration reloaded (commands %s, window %.0f µs, log level %s)", new.commands,
-                 new.ident.window_s * 1e6, new.log_level)
+                 new.ident.window_s * US_PER_S, new.log_level)
         self._tell(f"READY=1\nSTATUS=running on {self.bus_name} (configuration reloaded)")
 
     def _tell(self, state: str) -> None:

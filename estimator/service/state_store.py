@@ -7,6 +7,7 @@ its learning stands (``learning``: the lifecycle state, the refusals and the dia
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import json
@@ -90,10 +91,8 @@ def save_states(path: Path, states: dict[int, TrackerState],
         finally:
             os.close(dfd)
     except BaseException:
-        try:
+        with contextlib.suppress(OSError):
             os.unlink(tmp)
-        except OSError:
-            pass
         raise
 
 

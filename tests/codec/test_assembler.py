@@ -48,9 +48,9 @@ def _corrupt_sample(f: Frame) -> Frame:
 
 FAULTS = {
     "drop a block": (lambda fr: fr[:3] + fr[4:], "missing"),
-    "duplicate a block": (lambda fr: fr[:3] + [fr[2]] + fr[3:], "duplicate"),
-    "swap two blocks": (lambda fr: fr[:2] + [fr[3], fr[2]] + fr[4:], "order"),
-    "corrupt a sample": (lambda fr: fr[:2] + [_corrupt_sample(fr[2])] + fr[3:], "crc"),
+    "duplicate a block": (lambda fr: [*fr[:3], fr[2], *fr[3:]], "duplicate"),
+    "swap two blocks": (lambda fr: [*fr[:2], fr[3], fr[2], *fr[4:]], "order"),
+    "corrupt a sample": (lambda fr: [*fr[:2], _corrupt_sample(fr[2]), *fr[3:]], "crc"),
     "drop the header": (lambda fr: fr[1:], "missing"),
 }
 
@@ -88,11 +88,11 @@ def test_counter_and_sample_count_mismatch(codec):
     assert [e.reason for e in ev if isinstance(e, Rejected)] == ["counter"]
     data, _, _ = frames(codec, cnt=7, n=201)      # 14 blocks
     fewer, _, _ = frames(codec, cnt=7, n=180)     # a header announcing 12 blocks
-    ev = run(ing, [fewer[0]] + data[1:])
+    ev = run(ing, [fewer[0], *data[1:]])
     assert [e.reason for e in ev if isinstance(e, Rejected)] == ["invalid"]
     more, _, _ = frames(codec, cnt=8, n=205)      # a header announcing 205 samples, 201 sent
     data, _, _ = frames(codec, cnt=8, n=201)
-    ev = run(ing, [more[0]] + data[1:], t0=2.0)
+    ev = run(ing, [more[0], *data[1:]], t0=2.0)
     assert [e.reason for e in ev if isinstance(e, Rejected)] == ["crc"]   # the trailer's CRC covers 201
     assert ing.counters.rejected_missing == 1 and ing.counters.rejected_invalid == 1
 

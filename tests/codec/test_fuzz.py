@@ -35,13 +35,13 @@ def _recount(codec: Codec, f: Frame) -> Frame:
 
 FAULTS = {   # name -> (mutation of the injection's frame list, expected reason, extra malformed frames)
     "drop_block": (lambda fr, r, c: fr[:2] + fr[3:], "missing", 0),
-    "duplicate_block": (lambda fr, r, c: fr[:3] + [fr[2]] + fr[3:], "duplicate", 0),
-    "swap_blocks": (lambda fr, r, c: fr[:2] + [fr[3], fr[2]] + fr[4:], "order", 0),
-    "corrupt_sample": (lambda fr, r, c: fr[:4] + [_flip(fr[4], r)] + fr[5:], "crc", 0),
+    "duplicate_block": (lambda fr, r, c: [*fr[:3], fr[2], *fr[3:]], "duplicate", 0),
+    "swap_blocks": (lambda fr, r, c: [*fr[:2], fr[3], fr[2], *fr[4:]], "order", 0),
+    "corrupt_sample": (lambda fr, r, c: [*fr[:4], _flip(fr[4], r), *fr[5:]], "crc", 0),
     "drop_header": (lambda fr, r, c: fr[1:], "missing", 0),
-    "truncate_block": (lambda fr, r, c: fr[:5] + [Frame(fr[5].arbitration_id, fr[5].data[:20], True)] + fr[6:],
+    "truncate_block": (lambda fr, r, c: [*fr[:5], Frame(fr[5].arbitration_id, fr[5].data[:20], True), *fr[6:]],
                        "missing", 1),
-    "wrong_counter": (lambda fr, r, c: fr[:6] + [_recount(c, fr[6])] + fr[7:], "counter", 0),
+    "wrong_counter": (lambda fr, r, c: [*fr[:6], _recount(c, fr[6]), *fr[7:]], "counter", 0),
     "drop_trailer": (lambda fr, r, c: fr[:-1], "missing_or_timeout", 0),
 }
 
@@ -67,7 +67,7 @@ def test_fuzz_100k_frames():
             valid += 1
         else:
             name = rng.choice(sorted(FAULTS))
-            mutate, reason, _ = FAULTS[name]
+            mutate, _reason, _ = FAULTS[name]
             streams[inj].append((name, mutate(fr, rng, codec)))
     # the injection streams interleaved at random, injections of one injector in order
     queues = {i: [f for _, fr in streams[i] for f in fr] for i in injectors}

@@ -54,7 +54,7 @@ def _dbc_with_new_message(tmp_path):
 
 
 def test_a_new_message_needs_the_dbc_and_one_class(tmp_path):
-    registry = REGISTRY + (InjectorHealth,)
+    registry = (*REGISTRY, InjectorHealth)
     codec = Codec(load_database(_dbc_with_new_message(tmp_path)), registry=registry)
     frame = codec.encode(InjectorHealth(3, -1.25))
     assert frame.arbitration_id == 560 and codec.decode(frame) == InjectorHealth(3, -1.25)

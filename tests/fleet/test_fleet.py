@@ -111,7 +111,7 @@ def test_groups_per_task_keep_every_worker_busy_and_tasks_few():
     assert task_sizes(100, 2)[:3] == [13, 11, 10]       # still about four tasks per worker's share
     groups = list(range(10))
     assert [len(c) for c in task_chunks(groups, 2, 3)] == [3, 3, 3, 1]
-    assert sum(task_chunks(groups, 2), []) == groups    # every group once, in order
+    assert [g for chunk in task_chunks(groups, 2) for g in chunk] == groups    # every group once, in order
     with pytest.raises(EstimatorError):
         task_chunks(groups, 2, 0)
 

@@ -193,7 +193,7 @@ def test_a_gauss_newton_point_that_confirms_the_minimum_ends_the_warm_refinement
 
     def run_cycle(model, x, d, st, box):
         calls.append(x.copy())
-        return _cycle(x + [1.0, 1.0], 10.0, (0.1, 0.3) if len(calls) == 1 else (0.0, 0.0))
+        return _cycle(x + 1.0, 10.0, (0.1, 0.3) if len(calls) == 1 else (0.0, 0.0))
 
     def forward_fit(model, x, steps, box):
         return _cycle(x, 10.5, gn_fit_sigmas)            # dearer than the vertex: not taken

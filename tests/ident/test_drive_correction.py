@@ -109,7 +109,7 @@ def test_a_swapped_part_holds_its_correction_until_it_is_learned_again():
     rows, last = [], None
     for k in range(110):
         scale_for = (lambda f, c=last: c.at(f)[0]) if last is not None and last.valid else None
-        m, truth = life.measure(k, 110, rng, scale_for, walk[k])
+        m, _truth = life.measure(k, 110, rng, scale_for, walk[k])
         pub = processor.estimate(Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n, 1, k, math.nan, float(k)),
                                  walk[k + 1])
         c = pub.correction

@@ -37,7 +37,7 @@ def test_a_batch_at_several_preload_forces_recovers_the_part_and_its_idle_stroke
     from estimator.ident.idle_stroke import identify
     from estimator.model.fast_sim import FastSimulator
 
-    part, plant, rng = _part_and_plant(5)
+    _part, plant, rng = _part_and_plant(5)
     injections = []
     for f, nu in BATCH:
         m = plant.measure(nu, LH_UM * 1e-6, f, rng)
@@ -55,7 +55,7 @@ def test_a_batch_at_several_preload_forces_recovers_the_part_and_its_idle_stroke
 
 
 def test_a_batch_at_one_preload_force_is_reported_as_weak():
-    part, plant, rng = _part_and_plant(3)
+    _part, plant, rng = _part_and_plant(3)
     injections = []
     for nu in (15.5, 18.0, 20.5):
         m = plant.measure(nu, LH_UM * 1e-6, 28.0, rng)
@@ -84,7 +84,7 @@ def test_the_written_parameter_file_loads_and_keeps_the_chain(tmp_path):
 @pytest.mark.slow
 def test_cli_calibrate_electrical_then_identify_with_the_result(tmp_path):
     """As a calibration engineer runs it: traces in, a parameter file out, loaded by identify."""
-    part, plant, rng = _part_and_plant(5)
+    _part, plant, rng = _part_and_plant(5)
     paths = []
     for k, (f, nu) in enumerate(BATCH):
         m = plant.measure(nu, LH_UM * 1e-6, f, rng)

@@ -121,7 +121,7 @@ def test_the_sample_period_median_is_numpys_to_the_bit():
     from estimator.ident.measurement import median
 
     rng = np.random.default_rng(5)
-    for n in list(range(1, 12)) + [200, 201, 1999]:
+    for n in [*list(range(1, 12)), 200, 201, 1999]:
         for scale in (5e-7, 1.0, 3e4):
             x = rng.normal(size=n) * scale
             x[rng.random(n) < 0.3] = x[0]   # ties

@@ -55,7 +55,7 @@ def test_every_drive_is_a_drive():
     np.testing.assert_array_equal(StandardDrive().samples(100e-6), standard_drive(sample_times(100e-6)))
     with pytest.raises(ValueError, match="twice"):
         drv.register_drive("standard", StandardDrive)
-    with pytest.raises(ValueError, match="unknown drive 'no-such'.*standard"):
+    with pytest.raises(ValueError, match=r"unknown drive 'no-such'.*standard"):
         drv.named_drive("no-such")
 
 

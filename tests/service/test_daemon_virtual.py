@@ -72,7 +72,7 @@ def wait_for(bus, cond, timeout=10.0) -> bool:
 
 
 def test_injections_in_estimates_out_match_the_core(running):
-    d, bus, state_dir = running
+    _d, bus, state_dir = running
     codec = Codec()
     reference = Tracker()
     expected = []

@@ -33,7 +33,7 @@ def test_journal_priorities_when_stderr_is_the_journal_stream(tmp_path):
 
 
 def test_json_log_lines(tmp_path):
-    r, err = run_track(tmp_path, "--log-format", "json")
+    _r, err = run_track(tmp_path, "--log-format", "json")
     docs = [json.loads(x) for x in err.splitlines() if x.startswith("{")]
     assert docs and docs[0]["level"] == "WARNING" and docs[0]["priority"] == 4 and docs[0]["logger"] == "estimator"
     assert "cannot read trace" in docs[0]["message"] and isinstance(docs[0]["time"], float)

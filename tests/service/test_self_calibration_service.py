@@ -169,7 +169,7 @@ def test_the_daemon_calibrates_a_mismatched_injector_in_the_background_and_keeps
     explain goes learning -> calibrating -> adopted on the bus (ModelCalibration) while the
     daemon keeps answering every injection; its estimates are then ok and within 0.15 µm; the
     adopted parameters are in the state file, and a restarted daemon uses them at once."""
-    part, injections = _series_injections(5, 40)
+    _part, injections = _series_injections(5, 40)
     codec = Codec()
 
     def start():

@@ -40,7 +40,7 @@ def test_bus_spec_and_fd_mtu_check(tmp_path):
     with pytest.raises(BusSetupError, match="use INTERFACE:CHANNEL"):
         BusSpec.parse("vcan0")
     assert BusSpec.parse("pcan:PCAN_USBBUS1", bitrate=500000) == BusSpec("pcan", "PCAN_USBBUS1", bitrate=500000)
-    with pytest.raises(BusSetupError, match="python-can supports: .*kvaser.*socketcan"):
+    with pytest.raises(BusSetupError, match=r"python-can supports: .*kvaser.*socketcan"):
         BusSpec.parse("pcann:PCAN_USBBUS1")
     (tmp_path / "vcan9").mkdir()
     (tmp_path / "vcan9" / "mtu").write_text("16\n")
@@ -54,7 +54,7 @@ def test_bus_spec_and_fd_mtu_check(tmp_path):
         check_socketcan("can0", tmp_path)          # real hardware gets real-hardware advice
     (tmp_path / "can1").mkdir()
     (tmp_path / "can1" / "mtu").write_text("16\n")
-    with pytest.raises(BusSetupError, match="type can bitrate .* fd on"):
+    with pytest.raises(BusSetupError, match=r"type can bitrate .* fd on"):
         check_socketcan("can1", tmp_path)
 
 

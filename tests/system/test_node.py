@@ -21,7 +21,7 @@ def test_frames_decode_to_the_plant_trace(codec):
     node = InjectorNode(lambda f: None, scenarios.get("nominal"), seed=3, codec=codec)
     ref = InjectorNode(lambda f: None, scenarios.get("nominal"), seed=3, codec=codec)
     frames = node.frames_for(1, 0, 0.0)
-    m, temp = ref.source.measure(1, 0, 0.0)
+    m, _temp = ref.source.measure(1, 0, 0.0)
     ing = Ingest(codec)
     events = [e for f in frames for e in ing.feed(f, 0.0)]
     done = [e for e in events if isinstance(e, Completed)]
@@ -112,7 +112,7 @@ def test_the_node_drives_an_injector_with_its_published_correction(codec):
     sc = scenarios.get("nominal", injectors=2)
 
     def truth_of(node, injector):
-        return [codec.decode(f) for f in node.frames_for(injector, 0, 0.0) if codec.decode(f).__class__ is SimTruth][0]
+        return next(codec.decode(f) for f in node.frames_for(injector, 0, 0.0) if codec.decode(f).__class__ is SimTruth)
     plain = truth_of(InjectorNode(lambda f: None, sc, 5, codec), 1)
     node = InjectorNode(lambda f: None, sc, 5, codec)
     node.take_correction(DriveCorrection(1, 0, 1.2, -10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 28.0, 1, 0))
