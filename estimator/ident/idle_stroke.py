@@ -234,7 +234,7 @@ def complement_fit(sim: FastSimulator, injection: Injection, config: IdentConfig
     return (f.x if f.success else None), other.evaluations
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class Fitted:
     """A local fit of one injection (N/V, µm) and how it was reached: on ``sim``, within ``box``,
     ``converged`` or not, after ``evaluations`` simulations, with the ``robust`` or the plain cost;
@@ -251,7 +251,7 @@ class Fitted:
     config: IdentConfig
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class Evidence:
     """What else is known about a fit.
 
@@ -274,7 +274,7 @@ class Evidence:
     current_cov: np.ndarray | None = None
 
 
-@dataclass
+@dataclass(slots=True)
 class _Judged:
     """What :func:`finish` works out before the status: mismatch and its kinds, the preload test, the
     covariance (N/V, µm) with the bias part on its own."""
@@ -291,7 +291,7 @@ class _Judged:
     evaluations: int
 
 
-def finish(f: Fitted, ev: Evidence = Evidence(), predict: bool = True) -> Estimate:
+def finish(f: Fitted, ev: Evidence | None = None, predict: bool = True) -> Estimate:
     """Turn a local fit into an Estimate with status and (``predict``) the plateau stroke.
 
     A robust fit, or a plain one that fails the adequacy test, is a ``model_mismatch`` whose covariance
@@ -303,6 +303,7 @@ def finish(f: Fitted, ev: Evidence = Evidence(), predict: bool = True) -> Estima
     one more, longer simulation (see :func:`predict_valve`)."""
     if not f.fit.success:
         return rejected("simulation failed at the optimum", f.evaluations)
+    ev = ev if ev is not None else Evidence()
     j = _judge(f, ev)
     status, msg, cov_x = _verdict(f, ev, j)
     fit, x = f.fit, f.fit.x

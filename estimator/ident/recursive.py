@@ -274,7 +274,7 @@ def update(state: TrackerState, inj: Injection, sim: FastSimulator,
     return _filtered(st, raw, z, r, held, Moment(now, temp), inj, sim, config, noise)
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class Moment:
     """When an injection was (s, None if unknown) and at what fuel temperature (degC, None if unknown)."""
 
