@@ -17,6 +17,7 @@ import time
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -174,7 +175,7 @@ def score(rows: list[dict], status: EstimatorStatus | None, scenario: str) -> di
     e_st = [r["stroke_um"] - r["stroke_true_um"] for r in settled if r["stroke_true_um"] > 0]
     lat = [r["latency_ms"] for r in rows if math.isfinite(r.get("latency_ms", float("nan")))]
     lat_settled = [r["latency_ms"] for r in rows if r.get("k", 0) > sc.settle and math.isfinite(r.get("latency_ms", float("nan")))]
-    s = {
+    s: dict[str, Any] = {
         "scenario": scenario, "estimates": len(rows), "settled": len(settled),
         "max_abs_lh_um": float(np.max(np.abs(e_lh))) if e_lh else float("nan"), "rms_lh_um": _rms(e_lh),
         "max_abs_nu_pct": float(np.max(np.abs(e_nu))) if e_nu else float("nan"), "rms_nu_pct": _rms(e_nu),

@@ -18,7 +18,6 @@ from typing import Any
 import numpy as np
 
 from estimator.codec.assembler import Completed
-from estimator.codec.frame import Frame
 from estimator.codec.ingest import Ingest
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateState, EstimatorStatus, ModelCalibration
@@ -28,15 +27,16 @@ from estimator.service.bus import open_bus
 from estimator.service.latency import STAGES, WINDOW_S
 from sim_bench import series_part
 from sim_bench.bench import resolve_bus
-from sim_bench.plant import Plant, PlantConfig
+from sim_bench.plant import Measurement, Plant, PlantConfig
 from sim_bench.procs import DaemonProcess, rss_mb
 
 SERIES_PRELOADS_N = (NOMINAL_PRELOAD_N, 60.0, 100.0, 150.0, 220.0, 300.0)   # the rail pressure cycling (series pool)
 
 
 def injection_pool(codec: Codec, injectors: int = 4, per_injector: int = 32, seed: int = 7,
-                   series: bool = False) -> list[list[Frame]]:
-    """Frames of precomputed injections, injectors interleaved; counters filled in at send time.
+                   series: bool = False) -> list[tuple[int, Measurement]]:
+    """Precomputed injections (injector id, the plant's measurement), injectors interleaved; frames and
+    counters are made at send time.
     ``series``: each injector a seeded series part (structure ±10 %, which the nominal model cannot
     explain), 200 µs sent, the preload force cycling through 28-300 N: what makes the daemon's
     self-calibration collect and calibrate."""
@@ -191,10 +191,10 @@ def _phase(b: Any, codec: Codec, pool: list, rate: float, seconds: float, w: _Wa
         "daemon_latency_p99_ms": st.latency_p99_ms if st else math.nan,
         "daemon_stage_p99_ms": {k: getattr(st, f"{k}_p99_ms") if st else math.nan for k in STAGES},
         "external_latency_ms": [round(float(v), 4) for v in lat],
-        "frames_dropped": (st.frames_dropped - st0.frames_dropped) if st else 0,
+        "frames_dropped": (st.frames_dropped - st0.frames_dropped) if st and st0 else 0,
         "rejected": ((st.rejected_missing + st.rejected_timeout + st.rejected_crc + st.rejected_invalid)
                      - (st0.rejected_missing + st0.rejected_timeout + st0.rejected_crc
-                        + st0.rejected_invalid)) if st else 0,
+                        + st0.rejected_invalid)) if st and st0 else 0,
         "queue_depth_end": st.queue_depth if st else 0, "daemon_rss_peak_mb": peak,
         "daemon_alive": d.alive(),
         "calibration_states": [codec.calibration_state(c.state) for t, c in w.calibrations if t >= t_phase],

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -70,7 +71,7 @@ def accuracy(n: int = 60, seed: int = 1, mismatch: bool = False, window_s: float
     icfg = IdentConfig(window_s=window_s)
     rng = np.random.default_rng(seed)
     sigma = effective_noise_v(cfg)
-    rows = []
+    rows: list[dict[str, Any]] = []
     for i in range(n):
         nu = float(rng.uniform(*NU_RANGE))
         if sweep == "near-edge":   # the near-edge ranges: 15.02..15.3 and 20.7..20.95 N/V
@@ -103,7 +104,7 @@ def accuracy(n: int = 60, seed: int = 1, mismatch: bool = False, window_s: float
     abs_lh = np.abs(np.array(e_lh))
     e_to = [r["t_open_us"] - r["t_open_true_us"] for r in rows]
     e_st = [r["stroke_um"] - r["stroke_true_um"] for r in rows]
-    summary = {
+    summary: dict[str, Any] = {
         "n": n, "mismatch": mismatch, "plant": PLANT_LABELS.get(sweep), "window_us": window_s * 1e6, "noise_v": sigma, "sweep": sweep,
         "max_abs_nu_pct": float(np.nanmax(np.abs(e_nu))), "beyond_3_sigma": int(np.sum(np.abs(z) > 3)),
         "beyond_0p3_where_sigma_le_0p1": int(np.sum((sig <= 0.1) & (abs_lh > 0.3))),
@@ -211,7 +212,7 @@ def table3(seed: int = 3, mismatch: bool = True, actuators: int = 10) -> dict:
     plant = Plant(cfg)
     sim = FastSimulator()
     rng = np.random.default_rng(seed)
-    rows = []
+    rows: list[dict[str, Any]] = []
     for a in range(1, actuators + 1):
         nu = float(rng.normal(*TABLE3_NU))
         for j, lh0 in enumerate(TABLE3_LH_UM[0]):
@@ -224,7 +225,7 @@ def table3(seed: int = 3, mismatch: bool = True, actuators: int = 10) -> dict:
                          "status": est.status, "robust": est.robust})
     d_lh = [r["lh_um"] - r["lh_true_um"] for r in rows]
     d_st = [r["stroke_model_um"] - r["stroke_plant_um"] for r in rows]
-    summary = {"mismatch": mismatch, "rmse_lh_um": _rms(d_lh), "max_abs_lh_um": float(np.max(np.abs(d_lh))),
+    summary: dict[str, Any] = {"mismatch": mismatch, "rmse_lh_um": _rms(d_lh), "max_abs_lh_um": float(np.max(np.abs(d_lh))),
                "stroke_error_range_um": [float(np.min(d_st)), float(np.max(d_st))]}
     return {"benchmark": "table3", "seed": seed, "summary": summary, "rows": rows}
 

@@ -68,7 +68,7 @@ def make_lot(out: Path, injectors: int, injections: int = 1, seed: int = 11, win
                 for k in range(injections):
                     f_open = NOMINAL_PRELOAD_N + float(rng.uniform(0, 10))
                     m = plants[mismatch].measure(nu, lh * 1e-6, f_open, rng)
-                    if writer is not None:
+                    if writer is not None and codec is not None:
                         frames = injection_frames(codec, i % CAPTURE_SLOTS, k, m.dt_s, m.current_a, m.voltage_v,
                                                   preload_force_n=f_open)
                         t_bus = 1000.0 + k                          # s; then a frame every 0.2 ms

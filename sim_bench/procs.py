@@ -50,7 +50,7 @@ def spawn(args: list[str], log_path: Path | None = None, env: dict[str, str] | N
                                 env=dict(os.environ, PYTHONUNBUFFERED="1", **(env or {})),
                                 preexec_fn=_die_with_parent if sys.platform == "linux" else None, text=True)
     finally:
-        if log_path is not None:
+        if not isinstance(err, int):
             err.close()
 
 
@@ -156,7 +156,7 @@ class BusMonitor(threading.Thread):
         if isinstance(rec, EstimatorStatus):
             self.heartbeats.append((now, rec))
 
-    def wait_for(self, predicate: Callable[[BusMonitor], bool], timeout: float,
+    def wait_for(self, predicate: Callable[[BusMonitor], object], timeout: float,
                  alive: Callable[[], bool] = lambda: True) -> bool:
         """Until ``predicate(self)`` holds (True), ``alive()`` turns False, or ``timeout`` s pass (False)."""
         t_end = time.monotonic() + timeout

@@ -18,6 +18,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import can
@@ -69,6 +70,16 @@ STALL_CONFIG = "[estimator]\nassembly_timeout_ms = 1000.0\nsilent_bus_s = 5.0\ns
 STALL_S = 1.5
 
 
+def _handled_at_least(n: int) -> Callable[[BusMonitor], bool]:
+    """A monitor predicate: the heartbeat counts ``n`` injections handled."""
+    return lambda m: bool(m.heartbeats) and _handled(_hb(m)) >= n
+
+
+def _taken_at_least(n: int) -> Callable[[BusMonitor], bool]:
+    """A monitor predicate: the heartbeat counts ``n`` injections accepted or timed out."""
+    return lambda m: bool(m.heartbeats) and _hb(m).accepted + _hb(m).rejected_timeout >= n
+
+
 def stalled_injection(bus: can.BusABC, daemon: DaemonProcess, mon: BusMonitor, codec: Codec, frames: list,
                       marks: int, stop_s: float = STALL_S) -> None:
     """Header and blocks, then the marker; once the heartbeat shows the daemon took them (``marks``
@@ -99,7 +110,7 @@ def periods(bus_spec: str, out: Path, n: int = 300) -> dict:
             for k in range(n):
                 _send(bus, codec, k % 8, k % 256, inj, (500 + k) * 1e-9)
                 if k % 8 == 7:
-                    mon.wait_for(lambda m, k=k: m.heartbeats and _handled(_hb(m)) >= k - 8, 120, d.alive)
+                    mon.wait_for(_handled_at_least(k - 8), 120, d.alive)
                     rss.append(rss_mb(d.pid))
             mon.wait_for(lambda m: len(m.of_type(EstimateState)) >= n, 120, d.alive)
         t = np.array([t for t, _ in mon.heartbeats])
@@ -120,7 +131,7 @@ def stall(bus_spec: str, out: Path, n: int = 10, stop_s: float = STALL_S) -> dic
             for k, inj in enumerate(_injections(n, 2)):
                 frames = injection_frames(codec, 3, k, inj.dt_s, inj.current_a, inj.voltage_v)
                 stalled_injection(bus, d, mon, codec, frames, k + 1, stop_s)
-                mon.wait_for(lambda m, k=k: m.heartbeats and _hb(m).accepted + _hb(m).rejected_timeout >= k + 1, 60, d.alive)
+                mon.wait_for(_taken_at_least(k + 1), 60, d.alive)
         live = _hb(mon)
         code = d.stop()
     jl = out / "stall-replay.jsonl"
@@ -436,7 +447,7 @@ def state_dir_hazards(bus_spec: str, out: Path) -> dict:
     return {"fault": "state-directory hazards", "hazards": results}
 
 
-ROWS = {"periods": periods, "stall": stall, "flood": flood, "poisoned-state": poisoned_state, "commands": commands,
+ROWS: dict[str, Callable[[str, Path], dict]] = {"periods": periods, "stall": stall, "flood": flood, "poisoned-state": poisoned_state, "commands": commands,
         "state-dir": state_dir_hazards, "period-flood": period_flood, "full-flood": full_flood,
         "sighup-burst": sighup_burst, "command-flood": command_flood}
 ATTACKS = ("period-flood", "full-flood", "sighup-burst", "command-flood")   # rows of :func:`under_attack`

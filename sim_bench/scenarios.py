@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
-from typing import Generic, NamedTuple, TypeVar
+from typing import Generic, NamedTuple, Protocol, TypeVar
 
 import numpy as np
 
@@ -44,7 +44,14 @@ class Truth(NamedTuple):
     temperature_c: float
 
 
-S = TypeVar("S")
+class _Named(Protocol):
+    """What a registry keeps: a scenario with a name (and its targets)."""
+
+    @property
+    def name(self) -> str: ...
+
+
+S = TypeVar("S", bound=_Named)
 
 
 class Registry(Generic[S]):

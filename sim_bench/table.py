@@ -18,7 +18,10 @@ class Column:
     value: Callable[[dict], Any]
 
     def head(self, text: str) -> str:
-        align, width = re.match(r"([<>]?)(\d+)", self.spec).groups()
+        m = re.match(r"([<>]?)(\d+)", self.spec)
+        if m is None:
+            raise ValueError(f"column spec {self.spec!r} must start with an alignment and a width")
+        align, width = m.groups()
         return f"{text:{align or '>'}{width}}"
 
 

@@ -16,11 +16,15 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from estimator.errors import EstimatorError, TraceError
 from estimator.io.traces import Trace
+
+if TYPE_CHECKING:
+    from estimator.ident.measurement import Injection
 
 MDF_SUFFIXES = (".mf4", ".mdf")
 
@@ -94,12 +98,12 @@ class Injections:
     """What :func:`read_injections` found: the usable injections, and one line (``path: why``) per file
     that could not be read and per trace that cannot be used."""
 
-    injections: list = field(default_factory=list)
+    injections: list[Injection] = field(default_factory=list)
     unreadable: list[str] = field(default_factory=list)
     unusable: list[str] = field(default_factory=list)
 
 
-def read_injections(paths: list, current_channel: str | None = None, voltage_channel: str | None = None,
+def read_injections(paths: list[Path] | list[str], current_channel: str | None = None, voltage_channel: str | None = None,
                     sample_period_s: float | None = None, meta: dict[str, str] | None = None,
                     serial: str | None = None) -> Injections:
     """Injections from trace files (CSV or MDF4, :func:`read_any_trace`), those of injector ``serial``

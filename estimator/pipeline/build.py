@@ -18,6 +18,7 @@ from estimator.pipeline.config import EstimatorConfig
 from estimator.pipeline.processor import Processor
 
 SILENT_BUS_S = 1.0   # s: the bus clock's guard unless the daemon's configuration says otherwise
+Pipeline = tuple[Codec, Ingest, Processor, BusClock]   # what build_pipeline returns
 
 
 def build_pool(cfg: EstimatorConfig) -> SimulatorPool:
@@ -51,7 +52,7 @@ def build_codec(cfg: EstimatorConfig) -> Codec:
 
 def build_pipeline(cfg: EstimatorConfig, pool: SimulatorPool | None = None, codec: Codec | None = None,
                    calibrator: Calibrator | None = None,
-                   silent_bus_s: float = SILENT_BUS_S) -> tuple[Codec, Ingest, Processor, BusClock]:
+                   silent_bus_s: float = SILENT_BUS_S) -> Pipeline:
     """Codec, ingest, processor and bus clock: the same in the live daemon and in the replay. ``pool``
     and ``codec`` (built from ``cfg`` when not given) hold no state of a run: a fleet worker shares them
     between its inputs (the simulator tables and the DBC parse cost ≈ 35 ms each). ``silent_bus_s``:

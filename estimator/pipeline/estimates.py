@@ -23,7 +23,7 @@ from estimator.ident.tracker import Tracker
 from estimator.io.captures import CAPTURE_SUFFIXES
 from estimator.io.mdf import is_mdf, read_any_trace
 from estimator.io.traces import csv_head, injection_from_trace
-from estimator.pipeline.build import build_pipeline, build_tracker
+from estimator.pipeline.build import Pipeline, build_pipeline, build_tracker
 from estimator.pipeline.config import EstimatorConfig
 from estimator.pipeline.processor import ROW_FIELDS, result_row
 from estimator.pipeline.replay import iter_capture
@@ -49,7 +49,7 @@ def source_kind(path: Path) -> str:
 
 def iter_estimates(source: Path, cfg: EstimatorConfig | None = None, *, kind: str | None = None,
                    trace_options: dict[str, Any] | None = None, tracker: Tracker | None = None,
-                   pipeline: tuple | None = None) -> Iterator[dict]:
+                   pipeline: Pipeline | None = None) -> Iterator[dict[str, Any]]:
     """Rows for every injection in ``source``. ``tracker`` / ``pipeline`` carry state across sources of
     one injector (traces / captures). Raises OSError/ValueError/EstimatorError for unreadable files."""
     cfg = cfg or EstimatorConfig()
@@ -68,7 +68,7 @@ def iter_estimates(source: Path, cfg: EstimatorConfig | None = None, *, kind: st
     yield {"source": str(source), **result_row(res, inj.injector_id, counter, t, tracker.calibration.get(inj.injector_id))}
 
 
-def new_pipeline(cfg: EstimatorConfig | None = None, pool: SimulatorPool | None = None, codec: Codec | None = None) -> tuple:
+def new_pipeline(cfg: EstimatorConfig | None = None, pool: SimulatorPool | None = None, codec: Codec | None = None) -> Pipeline:
     """A fresh pipeline for :func:`iter_estimates` (captures of one injector in time order), on
     ``pool`` and ``codec`` if given (shared, stateless parts: see :func:`build_pipeline`)."""
     return build_pipeline(cfg or EstimatorConfig(), pool, codec)

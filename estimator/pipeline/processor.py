@@ -14,6 +14,7 @@ from functools import cached_property
 from typing import Any
 
 from estimator.codec.assembler import Completed, Rejected, RejectReason
+from estimator.codec.frame import Frame
 from estimator.codec.ingest import Counters, Event, Malformed
 from estimator.codec.records import (
     HEARTBEAT_COUNTERS,
@@ -47,7 +48,7 @@ ROW_FIELDS = ("time_s", "injector_id", "counter", "status", "nu_n_per_v", "lh_um
 
 
 def result_row(res: TrackResult, injector_id: int, counter: int, time_s: float,
-               learning: CalibrationStatus | None = None, correction: Correction | None = None) -> dict:
+               learning: CalibrationStatus | None = None, correction: Correction | None = None) -> dict[str, Any]:
     """One injection as a flat row (``ROW_FIELDS``): filtered and raw estimate, prediction, status, the
     injector's learning state and the parameters its last calibration found out of tolerance
     (``;``-separated), the drive correction (scale, offset µs, ``valid``/``held``/``none``); units in
@@ -68,7 +69,7 @@ def result_row(res: TrackResult, injector_id: int, counter: int, time_s: float,
     return row
 
 
-def correction_frame(codec: Codec, injector_id: int, counter: int, c: Correction):
+def correction_frame(codec: Codec, injector_id: int, counter: int, c: Correction) -> Frame:
     """The DriveCorrection frame of one injector's correction (NaN has no wire form: 0 with State none)."""
     def v(x: float) -> float:
         return x if math.isfinite(x) else 0.0
@@ -78,7 +79,7 @@ def correction_frame(codec: Codec, injector_id: int, counter: int, c: Correction
                                         int(c.at_limit)))
 
 
-def output_frames(codec: Codec, injector_id: int, counter: int, res: TrackResult) -> list:
+def output_frames(codec: Codec, injector_id: int, counter: int, res: TrackResult) -> list[Frame]:
     """EstimateState, EstimateQuality and ValvePrediction of one result (the frames the daemon sends)."""
     have = math.isfinite(res.nu_n_per_v) and math.isfinite(res.lh_m)
     status = codec.status_code(res.status if have else Status.NO_ESTIMATE)
@@ -91,7 +92,7 @@ def output_frames(codec: Codec, injector_id: int, counter: int, res: TrackResult
     ]
 
 
-def calibration_frame(codec: Codec, injector_id: int, status: CalibrationStatus):
+def calibration_frame(codec: Codec, injector_id: int, status: CalibrationStatus) -> Frame:
     """The ModelCalibration frame of one injector's self-calibration status."""
     return codec.encode(ModelCalibration(injector_id, codec.calibration_code(status.state), status.batch, status.rms_before_v,
                                          status.rms_after_v, status.calibrations & 0xFF, status.preload_span,
@@ -112,7 +113,7 @@ class Published:
     correction: Correction | None = None   # the injector's drive correction (None: drive correction off)
 
     @cached_property
-    def frames(self) -> list:
+    def frames(self) -> list[Frame]:
         """The output frames (:func:`output_frames`), encoded when first asked for: the daemon and a
         replay with an output log send them; rows (``replay --csv``, the fleet) do not need them
         (≈ 0.2 ms an injection)."""
@@ -127,11 +128,11 @@ class Published:
         reason = f"published {age_s * 1e3:.0f} ms after the injection's last frame (estimator behind)"
         return replace(self, result=replace(self.result, status=Status.STALE, reason=reason))
 
-    def to_row(self, time_s: float) -> dict:
+    def to_row(self, time_s: float) -> dict[str, Any]:
         """One table row (replay ``--csv``, fleet): see :func:`result_row`."""
         return result_row(self.result, self.injector_id, self.counter, time_s, self.learning, self.correction)
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """JSON-ready line (replay output)."""
         f = self.result.filtered_dict()
         out = {"injector_id": self.injector_id, "counter": self.counter, "status": self.result.status,
@@ -267,7 +268,7 @@ class Processor:
         return correction_after(self.compensator, self.tracker, inj, res, preload_n)
 
     def status_frame(self, queue_depth: int, latency_p99_ms: float, uptime_s: float,
-                     stage_p99_ms: dict[str, float] | None = None):
+                     stage_p99_ms: dict[str, float] | None = None) -> Frame:
         """The EstimatorStatus heartbeat frame (``stage_p99_ms``: p99 per latency stage, keys queue,
         assembly, estimation, send, in ms)."""
         counts: dict[str, Any] = {name: getattr(self.counters, name) & self._masks[name] for name in HEARTBEAT_COUNTERS}
@@ -275,7 +276,7 @@ class Processor:
         return self.codec.encode(EstimatorStatus(**counts, queue_depth=queue_depth, latency_p99_ms=latency_p99_ms,
                                                  uptime_s=int(uptime_s), **stages))
 
-    def health_frame(self, pending_injections: int):
+    def health_frame(self, pending_injections: int) -> Frame:
         """The EstimatorHealth frame: commands applied, stale estimates, shed injections, the simulators
         built, evicted and refused by the build budget (the shared pool's and the injectors' own), worker
         errors; ``pending_injections``: complete injections waiting for the worker."""

@@ -22,7 +22,7 @@ from typing import TextIO
 
 from estimator.codec.ingest import Counters
 from estimator.io.captures import open_writer, read_capture, to_frame, to_message
-from estimator.pipeline.build import build_pipeline
+from estimator.pipeline.build import Pipeline, build_pipeline
 from estimator.pipeline.config import EstimatorConfig
 from estimator.pipeline.processor import ROW_FIELDS, Published
 
@@ -48,7 +48,7 @@ class ReplayResult:
 
 
 def iter_capture(capture: Path, cfg: EstimatorConfig, result: ReplayResult | None = None,
-                 pipeline: tuple | None = None) -> Iterator[tuple[Published, float]]:
+                 pipeline: Pipeline | None = None) -> Iterator[tuple[Published, float]]:
     """The daemon's pipeline over a capture: (published injection, its bus time in s), in order.
 
     ``result`` (optional) collects counters, frame counts and bad lines; ``pipeline`` is a

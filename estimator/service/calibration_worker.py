@@ -108,7 +108,7 @@ class BackgroundCalibrator:
             self._running.add(injector_id)
         fut.add_done_callback(lambda f: self._finish(injector_id, f))
 
-    def _finish(self, injector_id: int, fut: Future) -> None:
+    def _finish(self, injector_id: int, fut: Future[Any]) -> None:
         try:
             status, params, tables = fut.result()
         except Exception as exc:

@@ -48,7 +48,7 @@ STATE_FILE = "estimator-state.json"
 STATUS_LINE_PERIOD_S = 5.0   # sd_notify STATUS= with live counters (systemctl status)
 
 
-class QueueListener(can.Listener):
+class QueueListener(can.Listener):  # type: ignore[misc]  # python-can is not followed: its Listener is Any here
     """Notifier callback: frames into a bounded deque (drop-oldest, counted); errors handled here.
 
     Each entry is (frame, monotonic arrival time). ``on_error`` counts the error, logs it rate-limited

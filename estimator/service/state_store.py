@@ -108,7 +108,7 @@ def load_states(path: Path) -> tuple[dict[int, TrackerState], str | None]:
     return _states_of(doc, path)
 
 
-def _entries_of(doc: dict, path: Path, key: str, parse: Callable[[Any], T], what: str,
+def _entries_of(doc: dict[str, Any], path: Path, key: str, parse: Callable[[Any], T], what: str,
                 errors: tuple[type[BaseException], ...] = (ValueError, TypeError, RecursionError)
                 ) -> tuple[dict[int, T], str | None]:
     """The per-injector entries under ``key`` of a state document, each parsed by ``parse``; a bad
@@ -126,7 +126,7 @@ def _entries_of(doc: dict, path: Path, key: str, parse: Callable[[Any], T], what
     return out, ("; ".join(problems) if problems else None)
 
 
-def _states_of(doc: dict, path: Path) -> tuple[dict[int, TrackerState], str | None]:
+def _states_of(doc: dict[str, Any], path: Path) -> tuple[dict[int, TrackerState], str | None]:
     return _entries_of(doc, path, "injectors", TrackerState.from_dict, "")
 
 
@@ -139,7 +139,7 @@ def load_calibrations(path: Path) -> tuple[dict[int, InjectorParameters], str | 
     return _calibrations_of(doc, path)
 
 
-def _calibrations_of(doc: dict, path: Path) -> tuple[dict[int, InjectorParameters], str | None]:
+def _calibrations_of(doc: dict[str, Any], path: Path) -> tuple[dict[int, InjectorParameters], str | None]:
     return _entries_of(doc, path, "calibrations", InjectorParameters.from_mapping, "calibration of ",
                        (ValueError, TypeError, RecursionError, EstimatorError))
 
@@ -153,7 +153,7 @@ def load_learning(path: Path) -> tuple[dict[int, CalibrationStatus], str | None]
     return _learning_of(doc, path)
 
 
-def _learning_of(doc: dict, path: Path) -> tuple[dict[int, CalibrationStatus], str | None]:
+def _learning_of(doc: dict[str, Any], path: Path) -> tuple[dict[int, CalibrationStatus], str | None]:
     return _entries_of(doc, path, "learning", CalibrationStatus.from_dict, "learning of ")
 
 
@@ -206,7 +206,7 @@ def read_regular(path: Path, max_bytes: int = MAX_BYTES) -> bytes:
         os.close(fd)
 
 
-def _read(path: Path) -> tuple[dict | None, str | None]:
+def _read(path: Path) -> tuple[dict[str, Any] | None, str | None]:
     """The state document, or None and why (None, None: no file)."""
     try:
         doc = json.loads(read_regular(path).decode("utf-8"))
