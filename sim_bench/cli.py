@@ -16,6 +16,7 @@ from estimator.io.traces import read_trace, write_trace
 from estimator.model.drive import DRIVES, Drive, named_drive
 from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench import scenarios, tracking_bench
+from sim_bench.targets import TARGETS, missed
 
 log = logging.getLogger("sim_bench")
 DEFAULT_OUT = Path("bench-results")
@@ -85,9 +86,12 @@ def cmd_speed_sim(args: argparse.Namespace) -> int:
     from sim_bench import speed
 
     report = speed.measure(tuple(args.batch), seconds=args.seconds, drive=_drive(args))
+    report["failures"] = missed("speed-sim", {f"candidates_per_s_{r['batch']}": r["candidates_per_s"]
+                                              for r in report["results"]})
     print(speed.format_table(report))
+    print("PASS" if not report["failures"] else "FAIL: " + "; ".join(report["failures"]))
     _write_json(args.json_out, report)
-    return 0
+    return 1 if report["failures"] else 0
 
 
 def cmd_table3(args: argparse.Namespace) -> int:
@@ -163,7 +167,7 @@ def cmd_speed(args: argparse.Namespace) -> int:
     from sim_bench import ident_bench
 
     rep = ident_bench.speed(args.seed, args.injections, drive=_drive(args))
-    rep["targets_ms"] = ident_bench.SPEED_TARGETS_MS
+    rep["targets"] = [t._asdict() for t in TARGETS["speed"]]
     rep["failures"] = ident_bench.speed_failures(rep)
     print(ident_bench.format_speed(rep))
     print("PASS" if not rep["failures"] else "FAIL: " + "; ".join(rep["failures"]))
@@ -289,9 +293,11 @@ def cmd_daemon_bench(args: argparse.Namespace) -> int:
 
     ing = daemon_bench.ingest_rate()
     rep = daemon_bench.run_latency_and_overload(args.out, args.rate, args.seconds, 2.0, args.bus, args.self_calibration)
+    failures = daemon_bench.failures(ing, rep)
     print(daemon_bench.format_report(ing, rep))
-    _write_json(args.json_out, {"benchmark": "daemon", "ingest": ing, **rep})
-    return 0
+    print("PASS" if not failures else "FAIL: " + "; ".join(failures))
+    _write_json(args.json_out, {"benchmark": "daemon", "ingest": ing, **rep, "failures": failures})
+    return 1 if failures else 0
 
 
 def cmd_reliability(args: argparse.Namespace) -> int:

@@ -29,6 +29,7 @@ from estimator.ident.measurement import Injection
 from estimator.ident.status import Learning, Status
 from estimator.pipeline.config import EstimatorConfig
 from sim_bench.series_life import LotSpec, draw_lot
+from sim_bench.targets import TARGETS, limit
 
 INJECTORS = 8              # a lot: an engine's injectors
 LOTS = 3                   # lots (seeds seed, seed + 1, ...): whether σ covers a part's bias is judged over all their parts
@@ -36,8 +37,7 @@ INJECTIONS = 150           # per injector
 SETTLED = 60               # the last injections of the life, where learning is over
 SETTLE_UM = 0.15           # |stroke - target| within this (half the lot spread target), or within 2σ of the
                            # predicted stroke, counts as on target
-Z_RMS = (0.5, 1.5)        # RMS(error/σ) of the predicted stroke
-TARGETS: dict[str, float] = {"opening_spread_us": 1.0, "stroke_spread_um": 0.3, "settle_injections": 10}
+Z_RMS = (limit("compensation", "z_rms_min"), limit("compensation", "z_rms_max"))   # RMS(error/σ) of the predictions
 
 
 @dataclass
@@ -171,7 +171,7 @@ def run(seed: int = 1, injectors: int = INJECTORS, injections: int = INJECTIONS,
     target = DriveCompensator().target_at(SimulatorPool().get(0.5e-6))
     rep: dict = {"benchmark": "compensation", "seed": seed, "lots": [], "injectors": injectors,
                  "injections": injections, "target_stroke_um": target[0], "target_opening_us": target[1],
-                 "targets": {**TARGETS, "z_rms": list(Z_RMS)}}
+                 "targets": [t._asdict() for t in TARGETS["compensation"]]}
     for n in range(lots):
         runs = {"open": run_loop(False, seed + n, injectors, injections),
                 "closed": run_loop(True, seed + n, injectors, injections),
@@ -202,12 +202,12 @@ def failures(rep: dict) -> list[str]:
     out = []
     for lot in rep["lots"]:
         c, where = lot["closed"], f"lot {lot['seed']}"
-        if c["opening_spread_us"]["settled_median"] > TARGETS["opening_spread_us"]:
+        if c["opening_spread_us"]["settled_median"] > limit("compensation", "opening_spread_us"):
             out.append(f"{where}: opening spread {c['opening_spread_us']['settled_median']:.2f} µs")
-        if c["stroke_spread_um"]["settled_median"] > TARGETS["stroke_spread_um"]:
+        if c["stroke_spread_um"]["settled_median"] > limit("compensation", "stroke_spread_um"):
             out.append(f"{where}: stroke spread {c['stroke_spread_um']['settled_median']:.3f} µm")
         for p in c["injectors"]:
-            if p["settle_injections"] is None or p["settle_injections"] > TARGETS["settle_injections"]:
+            if p["settle_injections"] is None or p["settle_injections"] > limit("compensation", "settle_injections"):
                 out.append(f"{where}: injector {p['injector']} settled after {p['settle_injections']} injections")
             if p["overshoots"]:
                 out.append(f"{where}: injector {p['injector']}: {p['overshoots']} overshoots beyond 2σ")

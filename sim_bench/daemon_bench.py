@@ -29,6 +29,7 @@ from sim_bench import series_part
 from sim_bench.bench import resolve_bus
 from sim_bench.plant import Measurement, Plant, PlantConfig
 from sim_bench.procs import DaemonProcess, rss_mb
+from sim_bench.targets import missed
 
 SERIES_PRELOADS_N = (NOMINAL_PRELOAD_N, 60.0, 100.0, 150.0, 220.0, 300.0)   # the rail pressure cycling (series pool)
 
@@ -201,6 +202,19 @@ def _phase(b: Any, codec: Codec, pool: list, rate: float, seconds: float, w: _Wa
         "adopted_injectors": sorted({c.injector_id for _, c in w.calibrations
                                      if codec.calibration_state(c.state) == "adopted"}),
     }
+
+
+def failures(ing: dict, rep: dict) -> list[str]:
+    """The targets missed (``daemon-bench`` or ``daemon-bench --self-calibration`` in
+    :data:`sim_bench.targets.TARGETS`): at the rate asked for, not in the overload phase."""
+    if rep.get("self_calibration"):
+        return missed("daemon-bench --self-calibration", {
+            "ingest_frames_per_s": ing["frames_per_s"],
+            "learning_p99_ms": rep["nominal"]["daemon_latency_p99_ms"],
+            "adopted_p99_ms": rep.get("adopted", {}).get("daemon_latency_p99_ms", math.nan)})
+    return missed("daemon-bench", {"ingest_frames_per_s": ing["frames_per_s"],
+                                   "daemon_p99_ms": rep["nominal"]["daemon_latency_p99_ms"],
+                                   "external_p99_ms": rep["nominal"]["external_latency_p99_ms"]})
 
 
 def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float = 10.0,

@@ -20,7 +20,7 @@ from estimator.ident.tracker import Tracker
 from estimator.model.drive import Drive
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import NOMINAL_PRELOAD_N, load_nominal
-from sim_bench import series_part
+from sim_bench import series_part, targets
 from sim_bench.plant import AdcConfig, Measurement, Plant, PlantConfig
 from sim_bench.table import Column, keyed, plant, render
 
@@ -303,14 +303,11 @@ def speed(seed: int = 4, injections: int = 300, drive: Drive | None = None) -> d
 
 #: what ``speed`` must reach (ms): the warm update's median, the drive correction's addition to it, the
 #: cold start's median
-SPEED_TARGETS_MS = {"warm_median_ms": 0.3, "correction_added_ms": 0.1, "cold_median_ms": 2.0}
-
-
 def speed_failures(rep: dict) -> list[str]:
-    """The speed targets missed (:data:`SPEED_TARGETS_MS`)."""
+    """The speed targets missed (``speed`` in :data:`sim_bench.targets.TARGETS`)."""
     got = {"warm_median_ms": rep["warm_median_ms"], "cold_median_ms": rep["cold_median_ms"],
            "correction_added_ms": rep["warm_with_correction_median_ms"] - rep["warm_median_ms"]}
-    return [f"{k} {got[k]:.3f} > {limit}" for k, limit in SPEED_TARGETS_MS.items() if not got[k] <= limit]
+    return targets.missed("speed", got)
 
 
 def format_speed(rep: dict) -> str:

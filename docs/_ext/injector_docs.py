@@ -6,6 +6,8 @@
 ``status-table``
     The estimate statuses: word (JSON, CSV), wire code (``EstimateState.Status``) and the DBC's own
     description of the code.
+``bench-targets``
+    The benches' headline targets, from :data:`sim_bench.targets.TARGETS` (what each bench exits on).
 """
 
 from __future__ import annotations
@@ -111,7 +113,20 @@ def sim_bench_parser() -> argparse.ArgumentParser:
     return _literal_backticks(build_parser())
 
 
+class BenchTargets(SphinxDirective):
+    """Every bench's headline targets, as the benches judge them."""
+
+    def run(self) -> list[nodes.Node]:
+        from sim_bench.targets import TARGETS  # noqa: PLC0415
+
+        rows = [[f"``{bench}``", t.what, f"``{t.figure}``", f"{t.op} {t.limit:g} {t.unit}".strip()]
+                for bench, targets in TARGETS.items() for t in targets]
+        return _parse(self, _list_table("Headline targets (sim_bench/targets.py)", ["bench", "figure", "key", "target"],
+                                        rows, "18 52 18 12"))
+
+
 def setup(app: Sphinx) -> dict[str, Any]:
     app.add_directive("dbc-reference", DbcReference)
     app.add_directive("status-table", StatusTable)
+    app.add_directive("bench-targets", BenchTargets)
     return {"version": "1", "parallel_read_safe": True, "parallel_write_safe": True}

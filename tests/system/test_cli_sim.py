@@ -78,10 +78,32 @@ def test_estimator_entry_point():
 
 def test_speed_judges_its_own_targets():
     """``speed`` exits on its targets: the failures come from the measured figures, not a constant."""
-    from sim_bench.ident_bench import SPEED_TARGETS_MS, speed_failures
+    from sim_bench.ident_bench import speed_failures
+    from sim_bench.targets import limit
 
     good = {"warm_median_ms": 0.2, "warm_with_correction_median_ms": 0.29, "cold_median_ms": 0.9}
     assert speed_failures(good) == []
-    slow = dict(good, warm_with_correction_median_ms=0.2 + SPEED_TARGETS_MS["correction_added_ms"] + 0.05)
+    slow = dict(good, warm_with_correction_median_ms=0.2 + limit("speed", "correction_added_ms") + 0.05)
     assert [f.split()[0] for f in speed_failures(slow)] == ["correction_added_ms"]
     assert len(speed_failures(dict(good, warm_median_ms=float("nan")))) == 2   # NaN is a miss, never a pass
+
+
+def test_one_table_of_targets_that_the_benches_judge_with():
+    """sim_bench.targets holds each bench's headline targets; a missing, NaN or out-of-bound figure is a
+    miss; daemon-bench judges the phase at the rate asked for, learning or not."""
+    from sim_bench.daemon_bench import failures
+    from sim_bench.targets import TARGETS, limit, missed
+
+    for bench, targets in TARGETS.items():
+        assert len({t.figure for t in targets}) == len(targets) and {t.op for t in targets} <= {"<=", ">="}, bench
+    assert missed("speed-sim", {"candidates_per_s_256": 25_000.0}) == []
+    assert missed("speed-sim", {"candidates_per_s_256": 19_999.0})[0].startswith("candidates_per_s_256")
+    assert missed("speed-sim", {"candidates_per_s_256": float("nan")}) and missed("speed-sim", {"candidates_per_s_256": None})
+    ing = {"frames_per_s": 200_000.0}
+    nominal = {"daemon_latency_p99_ms": 2.0, "external_latency_p99_ms": 3.0}
+    assert failures(ing, {"nominal": nominal}) == []
+    slow = {"nominal": dict(nominal, daemon_latency_p99_ms=limit("daemon-bench", "daemon_p99_ms") + 1)}
+    assert [f.split()[0] for f in failures(ing, slow)] == ["daemon_p99_ms"]
+    learning = {"self_calibration": True, "nominal": dict(nominal, daemon_latency_p99_ms=9.0),
+                "adopted": {"daemon_latency_p99_ms": 6.0}}
+    assert [f.split()[0] for f in failures(ing, learning)] == ["adopted_p99_ms"]
