@@ -68,6 +68,12 @@ def plot_identification(inj: Injection, out_dir: Path, config: IdentConfig | Non
     cs = ax.contourf(g_nu, g_lh, np.where(finite, j, np.nan), levels=30, cmap="viridis")
     fig.colorbar(cs, label="J = ∫|U_m - U_sim| dt [µV·s]" + (" (projected)" if est.robust else ""))
     ax.plot(est.nu_n_per_v, est.lh_m * UM_PER_M, "r+", ms=14, mew=2, label="minimum")
+    cov = np.asarray(est.cov_um, dtype=float)
+    if np.all(np.isfinite(cov)):   # the estimate's 2σ ellipse (N/V, µm): the valley's direction and width
+        w, v = np.linalg.eigh(cov)
+        a = np.linspace(0.0, 2.0 * np.pi, 100)
+        ring = v @ (2.0 * np.sqrt(np.clip(w, 0.0, None))[:, None] * np.vstack([np.cos(a), np.sin(a)]))
+        ax.plot(est.nu_n_per_v + ring[0], est.lh_m * UM_PER_M + ring[1], "r-", lw=1.0, label="2σ")
     ax.set_xlabel("N_u [N/V]")
     ax.set_ylabel("L_h [µm]")
     ax.legend()
