@@ -355,9 +355,11 @@ def cmd_fleet_bench(args: argparse.Namespace) -> int:
                               args.captures)
     except ValueError as exc:    # make_lot's own check of --injectors and --injections, as in `lot`
         raise EstimatorError(str(exc)) from None
+    rep["failures"] = [f"{r['workers']} worker(s): {f}" for r in rep["runs"] for f in missed("fleet-bench", r)]
     print(fleet_bench.format_report(rep))
+    print("PASS" if not rep["failures"] else "FAIL: " + "; ".join(rep["failures"]))
     _write_json(args.json_out, rep)
-    return 0
+    return 1 if rep["failures"] else 0
 
 
 def cmd_lot(args: argparse.Namespace) -> int:

@@ -47,6 +47,11 @@ TARGETS: dict[str, tuple[Target, ...]] = {
                                                      "≤ 10 ms as the median of five)"),
         Target("adopted_p99_ms", "<=", 5.0, "ms", "daemon p99 once they have adopted their models"),
     ),
+    "fleet-bench": (
+        Target("rms_lh_um", "<=", 0.1, "µm", "the lot's L_h error against its truth, RMS, every worker count"),
+        Target("good_flagged", "<=", 0, "injectors", "good injectors flagged as outliers"),
+        Target("errors", "<=", 0, "inputs", "inputs that could not be processed"),
+    ),
     "compensation": (
         Target("opening_spread_us", "<=", 1.0, "µs", "true opening-instant spread across a lot, closed loop, settled"),
         Target("stroke_spread_um", "<=", 0.3, "µm", "true plateau-stroke spread across a lot, closed loop, settled"),
