@@ -122,38 +122,31 @@ def cmd_track(args: argparse.Namespace) -> int:
     from estimator.ident.estimate import rejected
     from estimator.ident.selfcal import SelfCalConfig
     from estimator.ident.status import Status
-    from estimator.ident.tracker import TrackResult
     from estimator.pipeline.build import build_tracker
     from estimator.pipeline.config import EstimatorConfig
+    from estimator.pipeline.processor import Published
 
     selfcal = SelfCalConfig() if args.self_calibrate else None
     cfg = EstimatorConfig(params=getattr(args, "params", None), tracker=TrackerConfig(ident=_config(args)),
                           self_calibration=selfcal)
     tracker = build_tracker(cfg)
     compensator = DriveCompensator(cfg.drive_correction)
-    nan = float("nan")
     bad = 0
     for path in args.traces:
-        inj = None
         try:
             inj = _load(path, args)
-            res = tracker.update(inj)
         except TraceError as exc:   # unreadable or not a trace: reported in its line, the batch goes on
             bad += 1
             log.warning("%s", exc)
-            res = TrackResult(rejected(str(exc)), nan, nan, nan, nan, Status.REJECTED, str(exc), 0)
-        filt = res.filtered_dict()
-        out = {"file": str(path), "raw": res.raw.to_dict(),
-               "filtered": {k: filt[k] for k in ("nu_n_per_v", "lh_um", "sigma_nu_n_per_v", "sigma_lh_um",
-                                                 "rate_n_per_v_per_s", "slope_n_per_v_per_degc")},
-               "status": res.status.value, "reason": res.reason, "outliers": res.outliers,
-               "prediction": {k: filt[k] for k in ("t_contact_us", "t_open_us", "stroke_um")}}
-        if selfcal is not None:
-            status = tracker.calibration.get(inj.injector_id) if inj is not None else None
-            out["self_calibration"] = status.to_dict() if status is not None else None
-        if inj is not None:   # the drive that makes this injector's valve open as the nominal one does
-            out["drive_correction"] = correction_after(compensator, tracker, inj, res).to_dict()
-        print(json.dumps(out), flush=True)
+            print(json.dumps({"file": str(path), "injector_id": None, "status": Status.REJECTED.value,
+                              "reason": str(exc), "raw": rejected(str(exc)).to_dict()}), flush=True)
+            continue
+        res = tracker.update(inj)
+        # the drive that makes this injector's valve open as the nominal one does
+        pub = Published(inj.injector_id, inj.counter, inj.time_s, res,
+                        learning=tracker.calibration.get(inj.injector_id) if selfcal is not None else None,
+                        correction=correction_after(compensator, tracker, inj, res))
+        print(json.dumps({"file": str(path), **pub.to_dict()}), flush=True)
     if bad:
         print(f"error: {bad} of {len(args.traces)} file(s) could not be read (see their lines)", file=sys.stderr)
     return 1 if bad else 0

@@ -25,7 +25,7 @@ from estimator.io.mdf import is_mdf, read_any_trace
 from estimator.io.traces import csv_head, injection_from_trace
 from estimator.pipeline.build import Pipeline, build_pipeline, build_tracker
 from estimator.pipeline.config import EstimatorConfig
-from estimator.pipeline.processor import ROW_FIELDS, result_row
+from estimator.pipeline.processor import ROW_FIELDS, Published
 from estimator.pipeline.replay import iter_capture
 
 FIELDS = ("source", *ROW_FIELDS)
@@ -65,7 +65,8 @@ def iter_estimates(source: Path, cfg: EstimatorConfig | None = None, *, kind: st
     res = tracker.update(inj)
     counter = int(trace.meta_float("counter", 0.0) or 0)
     t = inj.time_s if math.isfinite(inj.time_s) else float("nan")
-    yield {"source": str(source), **result_row(res, inj.injector_id, counter, t, tracker.calibration.get(inj.injector_id))}
+    pub = Published(inj.injector_id, counter, t, res, learning=tracker.calibration.get(inj.injector_id))
+    yield {"source": str(source), **pub.to_row(t)}
 
 
 def new_pipeline(cfg: EstimatorConfig | None = None, pool: SimulatorPool | None = None, codec: Codec | None = None) -> Pipeline:

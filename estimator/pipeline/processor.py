@@ -101,13 +101,17 @@ def calibration_frame(codec: Codec, injector_id: int, status: CalibrationStatus)
 
 @dataclass(frozen=True)
 class Published:
-    """One processed injection: its identification, the result and the frames sent for it."""
+    """One published estimate: the injection's identification, the tracker's result, the injector's
+    learning and drive correction. The one record every output renders: the JSON lines
+    (:meth:`to_dict`: ``replay --json``, ``track``), the table rows (:meth:`to_row`: ``replay --csv``,
+    the fleet, :func:`~estimator.pipeline.estimates.iter_estimates`) and the CAN frames
+    (:attr:`frames`: the daemon, ``replay --out``; needs the ``codec``)."""
 
     injector_id: int
     counter: int
     t_last: float
     result: TrackResult
-    codec: Codec = field(repr=False, compare=False)
+    codec: Codec | None = field(default=None, repr=False, compare=False)
     calibrations: tuple[tuple[int, CalibrationStatus], ...] = ()   # self-calibration changes (injector, status)
     learning: CalibrationStatus | None = None   # where this injector's learning stands (None: learning off)
     correction: Correction | None = None   # the injector's drive correction (None: drive correction off)
@@ -117,10 +121,13 @@ class Published:
         """The output frames (:func:`output_frames`), encoded when first asked for: the daemon and a
         replay with an output log send them; rows (``replay --csv``, the fleet) do not need them
         (≈ 0.2 ms an injection)."""
-        out = output_frames(self.codec, self.injector_id, self.counter, self.result)
+        codec = self.codec
+        if codec is None:
+            raise ValueError("a published estimate without a codec has no frames")
+        out = output_frames(codec, self.injector_id, self.counter, self.result)
         if self.correction is not None:
-            out.append(correction_frame(self.codec, self.injector_id, self.counter, self.correction))
-        return out + [calibration_frame(self.codec, i, st) for i, st in self.calibrations]
+            out.append(correction_frame(codec, self.injector_id, self.counter, self.correction))
+        return out + [calibration_frame(codec, i, st) for i, st in self.calibrations]
 
     def stale(self, age_s: float) -> Published:
         """This injection published as ``stale`` (it is ``age_s`` s after its last frame: the estimator is
@@ -133,10 +140,16 @@ class Published:
         return result_row(self.result, self.injector_id, self.counter, time_s, self.learning, self.correction)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready line (replay output)."""
+        """The JSON line (``replay --json``, ``track``): the published (``filtered``: the estimate, its
+        σ, drift rate and valve prediction) and the raw estimate, the status and its reason, the
+        outliers this injection decided, the injector's learning (None: off) and drive correction
+        (absent: off), and the learning changes it brought (``self_calibration``, ModelCalibration
+        frames)."""
         f = self.result.filtered_dict()
-        out = {"injector_id": self.injector_id, "counter": self.counter, "status": self.result.status,
-               "reason": self.result.reason, "filtered": f, "raw": self.result.raw.to_dict()}
+        out = {"injector_id": self.injector_id, "counter": self.counter, "status": self.result.status.value,
+               "reason": self.result.reason, "outliers": self.result.outliers, "filtered": f,
+               "raw": self.result.raw.to_dict(),
+               "learning": self.learning.to_dict() if self.learning is not None else None}
         if self.calibrations:   # self-calibration changes with this injection (ModelCalibration frames)
             out["self_calibration"] = {str(i): st.to_dict() for i, st in self.calibrations}
         if self.correction is not None:

@@ -189,7 +189,7 @@ def test_cli_track_self_calibrate(tmp_path):
                        capture_output=True, text=True, timeout=300, cwd=REPO)
     assert r.returncode == 0, r.stderr
     lines = [json.loads(line) for line in r.stdout.splitlines()]
-    states = [line["self_calibration"]["state"] for line in lines]
+    states = [line["learning"]["state"] for line in lines]
     assert states[0] == "learning" and states[-1] == "adopted", states
     assert lines[-1]["status"] in ("ok", "unconfirmed") and abs(lines[-1]["filtered"]["lh_um"] - LH_UM) < 0.1
 
