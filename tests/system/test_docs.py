@@ -117,3 +117,25 @@ def test_the_readme_headline_figures_are_the_performance_pages():
     assert len(rows) >= 15
     stale = {row[0]: [n for n in number.findall(row[1]) if n.replace(",", "") not in page] for row in rows}
     assert not {k: v for k, v in stale.items() if v}, stale
+
+
+def test_the_readme_targets_are_the_benches_own():
+    """The target the README states for a bench with headline targets is one of that bench's own
+    (sim_bench.targets, which the bench exits on and the performance page renders)."""
+    from sim_bench.targets import TARGETS
+
+    number = re.compile(r"\d[\d,]*(?:\.\d+)?")
+    bench = None
+    checked = 0
+    for what, _current, target, command in (row[:4] for row in _headline_rows()):
+        if command != "same":
+            words = command.strip("`").split()
+            bench = " ".join(words[3:5]) if "--self-calibration" in words else (words[3] if len(words) > 3 else None)
+        if bench not in TARGETS:
+            continue
+        known = {float(t.limit) for t in TARGETS[bench]}
+        known |= {float(n.replace(",", "")) for t in TARGETS[bench] for n in number.findall(t.what)}
+        stated = {float(n.replace(",", "")) for n in number.findall(target)}
+        assert stated <= known, (what, bench, sorted(stated - known))
+        checked += 1
+    assert checked >= 5
