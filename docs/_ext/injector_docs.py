@@ -117,7 +117,7 @@ class BenchTargets(SphinxDirective):
     """Every bench's headline targets, as the benches judge them."""
 
     def run(self) -> list[nodes.Node]:
-        from sim_bench.targets import TARGETS  # noqa: PLC0415
+        from sim_bench.targets import TARGETS
 
         rows = [[f"``{bench}``", t.what, f"``{t.figure}``", f"{t.op} {t.limit:g} {t.unit}".strip()]
                 for bench, targets in TARGETS.items() for t in targets]
