@@ -49,7 +49,7 @@ class ConfigError(EstimatorError):
 
 
 # ---- one checker per kind of value: each returns what the value must be, or None if it is fine ----
-def _number(lo: float, hi: float, lo_open: bool = False) -> Callable[[Any], str | None]:
+def number(lo: float, hi: float, lo_open: bool = False) -> Callable[[Any], str | None]:
     def check(v: Any) -> str | None:
         ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and (
             (v > lo if lo_open else v >= lo) and v <= hi)
@@ -57,61 +57,61 @@ def _number(lo: float, hi: float, lo_open: bool = False) -> Callable[[Any], str 
     return check
 
 
-def _whole(lo: int, hi: int) -> Callable[[Any], str | None]:
+def whole(lo: int, hi: int) -> Callable[[Any], str | None]:
     def check(v: Any) -> str | None:
         ok = isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi
         return None if ok else f"must be a whole number in [{lo}, {hi}]"
     return check
 
 
-def _choice(*options: str) -> Callable[[Any], str | None]:
+def choice(*options: str) -> Callable[[Any], str | None]:
     def check(v: Any) -> str | None:
         return None if v in options else f"must be one of {', '.join(repr(o) for o in options)}"
     return check
 
 
-def _text_or_none(v: Any) -> str | None:
+def text_or_none(v: Any) -> str | None:
     return None if v is None or (isinstance(v, str) and v) else "must be a non-empty string"
 
 
-def _rate_or_none(v: Any) -> str | None:
+def rate_or_none(v: Any) -> str | None:
     ok = v is None or (isinstance(v, int) and not isinstance(v, bool) and 10_000 <= v <= 15_000_000)
     return None if ok else "must be a whole number of bit/s in [10000, 15000000]"
 
 
-def _flag(v: Any) -> str | None:
+def flag(v: Any) -> str | None:
     return None if isinstance(v, bool) else "must be true or false"
 
 
-def _options(v: Any) -> str | None:
+def options(v: Any) -> str | None:
     ok = isinstance(v, dict) and all(isinstance(k, str) and k for k in v) and len(v) <= 64
     return None if ok else "must be a table of python-can keyword arguments"
 
 
-def _path_or_none(v: Any) -> str | None:
+def path_or_none(v: Any) -> str | None:
     return None if v is None or isinstance(v, Path) else "must be a path (a string)"
 
 
-def _seeds(v: Any) -> str | None:
+def seeds(v: Any) -> str | None:
     ok = isinstance(v, dict) and all(isinstance(k, int) and 0 <= k <= 7 and isinstance(p, Path) for k, p in v.items())
     return None if ok else 'must be a table of injector ids 0..7 and parameter files ("3" = "eol/3.toml")'
 
 
-def _periods(v: Any) -> str | None:
+def periods(v: Any) -> str | None:
     ok = isinstance(v, tuple) and len(v) <= 64 and all(
         isinstance(x, int) and not isinstance(x, bool) and 1 <= x <= MAX_SAMPLE_PERIOD_NS for x in v)
     return None if ok else f"must be a list of at most 64 whole numbers in [1, {MAX_SAMPLE_PERIOD_NS}] (ns)"
 
 
 ESTIMATOR_RULES: dict[str, Check] = {
-    "dbc": _path_or_none,
-    "params": _path_or_none,
-    "injector_params": _seeds,
-    "assembly_timeout_ms": _number(1.0, 10_000.0),
-    "max_injectors": _whole(1, 8),
-    "sample_periods_ns": _periods,
-    "max_sample_periods": _whole(1, 64),
-    "commands": _choice(*COMMAND_POLICIES),
+    "dbc": path_or_none,
+    "params": path_or_none,
+    "injector_params": seeds,
+    "assembly_timeout_ms": number(1.0, 10_000.0),
+    "max_injectors": whole(1, 8),
+    "sample_periods_ns": periods,
+    "max_sample_periods": whole(1, 64),
+    "commands": choice(*COMMAND_POLICIES),
 }
 SECTIONS = ("ident", "tracker", "self_calibration", "drive_correction")   # the sub-tables, each a dataclass validating its keys
 
@@ -136,19 +136,21 @@ class EstimatorConfig:
 
     #: the checks of the plain keys (a subclass adds its own)
     RULES: ClassVar[dict[str, Check]] = ESTIMATOR_RULES
+    #: the keys that hold a path (TOML gives a string)
+    PATH_KEYS: ClassVar[tuple[str, ...]] = ("dbc", "params")
 
     def __post_init__(self) -> None:
         for name, check in self.RULES.items():
             value = getattr(self, name)
             problem = check(value)
             if problem:
-                raise ConfigError(f"{name} = {_show(value)}: {problem}")
+                raise ConfigError(f"{name} = {show(value)}: {problem}")
         if not isinstance(self.tracker, TrackerConfig):
-            raise ConfigError(f"tracker = {_show(self.tracker)}: must be a TrackerConfig")
+            raise ConfigError(f"tracker = {show(self.tracker)}: must be a TrackerConfig")
         if self.self_calibration is not None and not isinstance(self.self_calibration, SelfCalConfig):
-            raise ConfigError(f"self_calibration = {_show(self.self_calibration)}: must be a SelfCalConfig or None")
+            raise ConfigError(f"self_calibration = {show(self.self_calibration)}: must be a SelfCalConfig or None")
         if self.drive_correction is not None and not isinstance(self.drive_correction, DriveTarget):
-            raise ConfigError(f"drive_correction = {_show(self.drive_correction)}: must be a DriveTarget or None")
+            raise ConfigError(f"drive_correction = {show(self.drive_correction)}: must be a DriveTarget or None")
 
     def estimator_config(self) -> EstimatorConfig:
         """The estimator's part alone (of a subclass: without its own keys)."""
@@ -193,12 +195,12 @@ class EstimatorConfig:
     @classmethod
     def _convert(cls, values: dict[str, Any]) -> None:
         """TOML's strings and lists made the fields' paths and tuples, in place (the rules then check them)."""
-        for key in ("dbc", "params"):
+        for key in cls.PATH_KEYS:
             v = values.get(key)
             if isinstance(v, str) and v:
                 values[key] = Path(v)
             elif v is not None and not isinstance(v, Path):
-                raise ConfigError(f"{key} = {_show(v)}: must be a path (a string)")
+                raise ConfigError(f"{key} = {show(v)}: must be a path (a string)")
         seeds = values.get("injector_params")
         if isinstance(seeds, dict):
             with contextlib.suppress(ValueError):   # the rule names what the table must be
@@ -232,7 +234,7 @@ def _sections(values: dict[str, Any], where: str) -> dict[str, Any]:
         sections.setdefault(name, {})
     for name, sub in sections.items():
         if not isinstance(sub, dict):
-            raise ConfigError(f"[estimator.{name}]: must be a table, not {_show(sub)}")
+            raise ConfigError(f"[estimator.{name}]: must be a table, not {show(sub)}")
         sections[name] = dict(sub)
     for key in [k for k in values if k in DEPRECATED]:
         section, new_key, convert = DEPRECATED[key]
@@ -255,7 +257,7 @@ def _switched(cls: Any, section: str, table: dict[str, Any]) -> Any:
     table = dict(table)
     mode = table.pop("mode", Switch.ON.value)
     if mode not in Switch.words():
-        raise ConfigError(f"[estimator.{section}] mode = {_show(mode)}: must be one of "
+        raise ConfigError(f"[estimator.{section}] mode = {show(mode)}: must be one of "
                           f"{', '.join(repr(w) for w in Switch.words())}")
     settings = build_section(cls, section, table)
     return settings if mode == Switch.ON else None
@@ -291,7 +293,7 @@ def build_section(cls: Any, section: str, table: dict[str, Any]) -> Any:
             default = 0.0
         problem = _kind_problem(value, default)
         if problem:
-            raise ConfigError(f"[estimator.{section}] {key} = {_show(value)}: {problem}")
+            raise ConfigError(f"[estimator.{section}] {key} = {show(value)}: {problem}")
         values[key] = tuple(value) if isinstance(value, list) else value
     try:
         return cls(**values)
@@ -320,7 +322,7 @@ def _kind_problem(value: Any, default: Any) -> str | None:
     return None   # a nested dataclass: built by the caller
 
 
-def _show(v: Any) -> str:
+def show(v: Any) -> str:
     text = repr(str(v)) if isinstance(v, Path) else repr(v)
     return text if len(text) <= 60 else text[:57] + "..."
 

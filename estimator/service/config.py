@@ -22,16 +22,16 @@ from estimator.pipeline.config import (
     Check,
     ConfigError,
     EstimatorConfig,
-    _choice,
-    _flag,
-    _number,
-    _options,
-    _path_or_none,
-    _rate_or_none,
-    _show,
-    _text_or_none,
-    _whole,
+    choice,
+    flag,
+    number,
+    options,
+    path_or_none,
+    rate_or_none,
     read_table,
+    show,
+    text_or_none,
+    whole,
 )
 from estimator.service.bus import BusSetupError, BusSpec
 
@@ -40,18 +40,18 @@ __all__ = ["DEPRECATED", "SECTIONS", "ConfigError", "DaemonConfig", "read_table"
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
 
 SERVICE_RULES: dict[str, Check] = {
-    "bus": _text_or_none,
-    "bitrate": _rate_or_none,
-    "data_bitrate": _rate_or_none,
-    "fd": _flag,
-    "bus_options": _options,
-    "state_dir": _path_or_none,
-    "queue_frames": _whole(16, 1_000_000),
-    "silent_bus_s": _number(0.05, 3600.0),
-    "stale_after_ms": _number(1.0, 3_600_000.0),
-    "status_period_s": _number(0.01, 60.0),
-    "persist_period_s": _number(0.05, 86_400.0),
-    "log_level": _choice(*LOG_LEVELS),
+    "bus": text_or_none,
+    "bitrate": rate_or_none,
+    "data_bitrate": rate_or_none,
+    "fd": flag,
+    "bus_options": options,
+    "state_dir": path_or_none,
+    "queue_frames": whole(16, 1_000_000),
+    "silent_bus_s": number(0.05, 3600.0),
+    "stale_after_ms": number(1.0, 3_600_000.0),
+    "status_period_s": number(0.01, 60.0),
+    "persist_period_s": number(0.05, 86_400.0),
+    "log_level": choice(*LOG_LEVELS),
 }
 
 
@@ -74,13 +74,14 @@ class DaemonConfig(EstimatorConfig):
     log_level: str = "INFO"
 
     RULES: ClassVar[dict[str, Check]] = {**ESTIMATOR_RULES, **SERVICE_RULES}
+    PATH_KEYS: ClassVar[tuple[str, ...]] = (*EstimatorConfig.PATH_KEYS, "state_dir")
 
     def __post_init__(self) -> None:
         super().__post_init__()
         try:
             self.bus_spec()
         except BusSetupError as exc:
-            raise ConfigError(f"bus = {_show(self.bus)}: {exc}") from None
+            raise ConfigError(f"bus = {show(self.bus)}: {exc}") from None
 
     def bus_spec(self) -> BusSpec:
         """The bus as python-can opens it (see :mod:`estimator.service.bus`)."""
@@ -97,14 +98,9 @@ class DaemonConfig(EstimatorConfig):
 
     @classmethod
     def _convert(cls, values: dict[str, Any]) -> None:
-        super()._convert(values)
         if "state_dir" not in values and os.environ.get("STATE_DIRECTORY"):
             values["state_dir"] = os.environ["STATE_DIRECTORY"].split(":")[0]
-        v = values.get("state_dir")
-        if isinstance(v, str) and v:
-            values["state_dir"] = Path(v)
-        elif v is not None and not isinstance(v, Path):
-            raise ConfigError(f"state_dir = {_show(v)}: must be a path (a string)")
+        super()._convert(values)
         if isinstance(values.get("log_level"), str):
             values["log_level"] = values["log_level"].upper()
 
