@@ -69,6 +69,18 @@ def result_row(res: TrackResult, injector_id: int, counter: int, time_s: float,
     return row
 
 
+#: EstimatorHealth's rolling counters (the rest are gauges)
+HEALTH_COUNTERS = ("commands_applied", "stale", "injections_shed", "simulators_built", "simulators_evicted",
+                   "builds_refused", "worker_errors")
+
+
+def _wrap_masks(codec: Codec, record: type[EstimatorStatus] | type[EstimatorHealth],
+                names: tuple[str, ...]) -> dict[str, int]:
+    """Each rolling counter's mask: it wraps at its signal's width in the DBC."""
+    msg = codec.messages[record]
+    return {name: (1 << msg.get_signal_by_name(record.SIGNALS[name]).length) - 1 for name in names}
+
+
 def correction_frame(codec: Codec, injector_id: int, counter: int, c: Correction) -> Frame:
     """The DriveCorrection frame of one injector's correction (NaN has no wire form: 0 with State none)."""
     def v(x: float) -> float:
@@ -171,10 +183,9 @@ class Processor:
         self.compensator = compensator      # per-injector drive corrections (None: off)
         self.rlog = RateLimitedLog(log)
         self._logged: dict[int, str] = {}   # the learning state last logged per injector (progress is not logged)
-        status = codec.messages[EstimatorStatus]
         # rolling counters: each wraps at its signal's width (32 or 16 bits)
-        self._masks = {name: (1 << status.get_signal_by_name(EstimatorStatus.SIGNALS[name]).length) - 1
-                       for name in HEARTBEAT_COUNTERS}
+        self._masks = _wrap_masks(codec, EstimatorStatus, HEARTBEAT_COUNTERS)
+        self._health_masks = _wrap_masks(codec, EstimatorHealth, HEALTH_COUNTERS)
         self._handlers: dict[type, Callable[[Any], Published | None]] = {
             Completed: self._estimate, Rejected: self._log_reject, Malformed: self._log_malformed,
             EstimatorCommand: self._command}
@@ -296,9 +307,9 @@ class Processor:
         c = self.counters
         pools = [self.tracker.pool, *list(self.tracker.own_pools.values())]   # list(): one atomic copy
         built = sum(p.built for p in pools)
-        wrap = 0xFFFFFFFF
+        counts = {"commands_applied": c.commands_applied, "stale": c.stale, "injections_shed": c.injections_shed,
+                  "simulators_built": built, "simulators_evicted": built - sum(len(p) for p in pools),
+                  "builds_refused": sum(p.over_budget for p in pools), "worker_errors": c.worker_errors}
         return self.codec.encode(EstimatorHealth(
-            commands_applied=c.commands_applied & wrap, stale=c.stale & wrap, injections_shed=c.injections_shed & wrap,
-            simulators_built=built & wrap, simulators_evicted=(built - sum(len(p) for p in pools)) & wrap,
-            builds_refused=sum(p.over_budget for p in pools) & wrap, worker_errors=c.worker_errors & wrap,
+            **{k: v & self._health_masks[k] for k, v in counts.items()},
             pending_injections=min(pending_injections, 0xFFFF), injectors=min(len(self.tracker.states), 255)))
