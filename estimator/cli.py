@@ -164,17 +164,17 @@ def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     for line in found.unreadable + found.unusable:   # a corrupt trace is named and skipped, the others calibrate
         print(f"skipped {line}", file=sys.stderr)
     injections, bad = found.injections, len(found.unreadable)
+    window_s = (200.0 if args.window_us is None else args.window_us) * S_PER_US
+    base = _params(args)
     try:
-        res = calibrate_electrical(injections, _params(args), tolerance=args.tolerance,
-                                   window_s=(200.0 if args.window_us is None else args.window_us) * S_PER_US)
+        res = calibrate_electrical(injections, base, tolerance=args.tolerance, window_s=window_s)
     except ValueError as exc:
         raise EstimatorError(str(exc)) from None
     header = (f"parameters calibrated electrically (python -m estimator calibrate --electrical) from "
               f"{len(injections)} injections;\nRMS voltage residual {res.rms_before_v * 1e3:.1f} mV before, "
               f"{res.rms_after_v * 1e3:.1f} mV after; SI units.")
-    flagged = confirmed_out_of_tolerance(injections, _params(args), res, args.part_tolerance, tolerance=args.tolerance,
-                                         window_s=(200.0 if args.window_us is None else args.window_us) * S_PER_US) \
-        if res.adequate else []
+    flagged = confirmed_out_of_tolerance(injections, base, res, args.part_tolerance, tolerance=args.tolerance,
+                                         window_s=window_s) if res.adequate else []
     if res.adequate:
         toml = res.params.to_toml(header)
         if args.out:
