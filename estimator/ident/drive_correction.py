@@ -15,7 +15,8 @@ Newton step from the last correction, with derivatives refreshed every ``refresh
 when the model changes, reaches the target in one simulation an injection. The correction carries
 its own sensitivities to the preload force (per kN) so that an amplifier applies it at the next
 injection's rail pressure, and the σ of the stroke and the opening instant it will give, propagated
-from the estimate's covariance.
+from the estimate's covariance; for a calibrated model that states what its own uncertainty leaves in
+the valve's motion, that statement in place of the calibration's share of the covariance.
 
 Only an ``ok`` estimate yields a correction; otherwise the last valid one is repeated and marked
 ``held`` (never a correction from a mismatched or uncertain estimate). Pure: no clocks, no I/O.
@@ -303,8 +304,11 @@ class DriveCompensator:
         do_df = -(r.d_f[1] + r.d_scale[1] * ds_df)
         js = np.array([r.d_nu[0], r.d_lh[0]])
         jo = np.array([r.d_nu[1], r.d_lh[1]])
-        return Correction(scale, offset, stroke, offset + opening, math.sqrt(max(float(js @ cov @ js), 0.0)),
-                               math.sqrt(max(float(jo @ cov @ jo), 0.0)), target_stroke, target_opening,
+        cal = sim.params.calibration   # what the model's own uncertainty leaves in the motion (0: in cov)
+        var_s = float(js @ cov @ js) + (cal.stroke_rel_sigma * stroke) ** 2
+        var_o = float(jo @ cov @ jo) + (cal.opening_sigma_s * US_PER_S) ** 2
+        return Correction(scale, offset, stroke, offset + opening, math.sqrt(max(var_s, 0.0)),
+                          math.sqrt(max(var_o, 0.0)), target_stroke, target_opening,
                                ds_df * N_PER_KN, do_df * N_PER_KN, f_open_n, True, False, at_limit)
 
 
@@ -313,16 +317,36 @@ def correction_after(compensator: DriveCompensator, tracker: Tracker, inj: Injec
     """The injector's drive correction after the tracker's result ``res`` for ``inj``: from an ``ok``
     estimate with the model the injector is estimated with, at ``preload_n`` (N; default this
     injection's preload force), its covariance the published σ (which may cover a bias) with the
-    filter's correlation; otherwise the last one, held."""
+    filter's correlation; otherwise the last one, held. Where the injector's calibrated model states
+    the uncertainty it leaves in the valve's motion and that model is validated (:func:`_validated`),
+    that replaces the share of N_u's and L_h's covariance the calibration put there (the motion keeps
+    less of a structural error than they do)."""
     iid = inj.injector_id
     st = tracker.states.get(iid)
     ok = res.status == Status.OK
+    sim = tracker.model_simulator(iid, inj.dt_s)
     cov = None
     if st is not None and ok:
         p = np.asarray(st.p, dtype=float)[:2, :2]
         s_nu, s_lh = res.sigma_nu, res.sigma_lh_m * UM_PER_M
         rho = float(p[0, 1] / math.sqrt(p[0, 0] * p[1, 1])) if p[0, 0] > 0 and p[1, 1] > 0 else 0.0
         cov = np.array([[s_nu ** 2, rho * s_nu * s_lh], [rho * s_nu * s_lh, s_lh ** 2]])
-    return compensator.update(iid, ok, tracker.model_simulator(iid, inj.dt_s), res.nu_n_per_v, res.lh_m * UM_PER_M,
+        cal = sim.params.calibration if sim is not None else None
+        if cal is not None and cal.has_response and _validated(tracker, iid):
+            share = np.diag(cal.cov(res.nu_n_per_v))
+            cov = cov.copy()
+            cov[0, 0], cov[1, 1] = max(cov[0, 0] - share[0], p[0, 0]), max(cov[1, 1] - share[1], p[1, 1])
+            cov[0, 1] = cov[1, 0] = rho * math.sqrt(cov[0, 0] * cov[1, 1])
+    return compensator.update(iid, ok, sim, res.nu_n_per_v, res.lh_m * UM_PER_M,
                               cov, inj.f_open_n if preload_n is None else preload_n,
                               tracker.nominal_simulator(inj.dt_s), res.rate_n_per_v_s, inj.time_s)
+
+
+def _validated(tracker: Tracker, injector_id: int) -> bool:
+    """Whether the injector's model may be trusted with its own statement of the motion's uncertainty:
+    a model learned from a first window of twelve injections only once its refinement over a larger
+    window agreed with it or replaced it (that window left one part of 24 with N_u four of its stated
+    σ off); a parameter file's model, or one used without learning, as it is."""
+    status = tracker.calibration.get(injector_id)
+    return status is None or status.source != "learned" or status.refined
+

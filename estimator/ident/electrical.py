@@ -41,9 +41,10 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
+from estimator.errors import EstimatorError
 from estimator.ident.adequacy import SMOOTH_COLUMNS, assess, current_noise_a, noise_level_v
 from estimator.ident.config import IdentConfig
-from estimator.ident.idle_stroke import identify
+from estimator.ident.idle_stroke import identify, predict_valve
 from estimator.ident.levenberg_marquardt import LeastSquaresResult, least_squares_lm
 from estimator.ident.measurement import Injection
 from estimator.model.chain import MeasurementChain, lowpass, shift
@@ -69,6 +70,8 @@ CHAIN_NAMES = ("u_filter_tau_s", "i_skew_s")   # the measurement chain's paramet
 CHAIN_PRIOR_SD_US = 1.0    # prior standard deviation of each (µs), at the base chain's value
 CHAIN_BOUNDS_US = {"u_filter_tau_s": (0.0, 3.0), "i_skew_s": (-2.0, 2.0)}
 FD_CHAIN_US = 0.01
+RESPONSE_THETA, RESPONSE_NU, RESPONSE_LH_UM = 0.01, 0.05, 0.02   # steps differentiating the valve's motion
+                           # (log factor, N/V, µm): coarser than the fit's, as the motion is sampled in time
 GAIN_TAPS = 64             # samples of the chain's impulse response summed by noise_gain (a 3 µs filter: 6)
 
 
@@ -141,6 +144,8 @@ class ElectricalCalibration:
         cal = self.params.calibration
         lines.append(f"  uncertainty left in every estimate with these parameters: N_u {100 * cal.nu_rel_sigma:.3f} %, "
                      f"L_h {cal.lh_sigma_m * UM_PER_M:.3f} µm (1 sigma; in the parameter file's [calibration])")
+        lines.append(f"  ... and in the valve's predicted motion: stroke {100 * cal.stroke_rel_sigma:.3f} %, opening "
+                     f"instant {cal.opening_sigma_s * US_PER_S:.3f} µs")
         for n, sd in self.chain_sigma_us.items():
             lines.append(f"  chain.{n:<16} {getattr(self.params.chain, n) * US_PER_S:8.3f} µs, sd {sd:.3f} µs")
         for a, b, c in self.correlated:
@@ -399,6 +404,51 @@ class _Problem:
         return CalibrationUncertainty(min(float(np.sqrt(np.mean(np.square(nu_rel)))) if nu_rel else 0.0, 0.1),
                                       min(float(np.sqrt(np.mean(np.square(lh_sd)))) * M_PER_UM if lh_sd else 0.0, 10e-6))
 
+    def left_response(self, fit: LeastSquaresResult, cov: np.ndarray) -> tuple[float, float]:
+        """What the shared parameters' uncertainty leaves in the valve's predicted motion: the RMS
+        over the batch of the plateau stroke's (relative) and the opening instant's (s) standard
+        deviation, each injection's prediction differentiated in the structure and its own (N_u,
+        L_h) and taken through their covariance less the part its own samples explain. The valve
+        answers to the structure and to (N_u, L_h) together: an error in one that the voltage
+        compensates with the other moves the stroke by less than each alone would say."""
+        x, k, p = fit.x, self.k, self.p
+        sim = self.sims(x[:k])
+        steps = np.concatenate([np.full(k, RESPONSE_THETA), [RESPONSE_NU, RESPONSE_LH_UM]])
+        stroke_rel, opening = [], []
+        for j, inj in enumerate(self.usable):
+            nu, lh = float(x[p + 2 * j]), float(x[p + 2 * j + 1])
+            h = steps.copy()
+            if nu + h[k] > sim.params.psa.nu_max_n_per_v:     # stay inside the simulator's N_u range
+                h[k] = -h[k]
+            try:
+                y0 = np.array(predict_valve(sim, inj, nu, lh * M_PER_UM)[1:])     # opening (s), stroke (m)
+                g = np.empty((2, k + 2))
+                for i in range(k):
+                    theta = x[:k].copy()
+                    theta[i] += h[i]
+                    g[:, i] = predict_valve(self.sims(theta), inj, nu, lh * M_PER_UM)[1:]
+                g[:, k] = predict_valve(sim, inj, nu + h[k], lh * M_PER_UM)[1:]
+                g[:, k + 1] = predict_valve(sim, inj, nu, (lh + h[k + 1]) * M_PER_UM)[1:]
+            except EstimatorError:     # e.g. an N_u at the edge of the simulator's range
+                continue
+            g = (g - y0[:, None]) / h
+            if not (np.all(np.isfinite(g)) and y0[1] > 0):
+                continue
+            idx = [*range(k), p + 2 * j, p + 2 * j + 1]
+            c = cov[np.ix_(idx, idx)].copy()
+            own = fit.jac[:, idx[k:]]
+            try:
+                c[k:, k:] -= np.linalg.inv(own.T @ own)
+            except np.linalg.LinAlgError:
+                continue
+            v = g @ c @ g.T
+            opening.append(math.sqrt(max(v[0, 0], 0.0)))
+            stroke_rel.append(math.sqrt(max(v[1, 1], 0.0)) / y0[1])
+        if not stroke_rel:
+            return 0.0, 0.0
+        return (min(float(np.sqrt(np.mean(np.square(stroke_rel)))), 1.0),
+                min(float(np.sqrt(np.mean(np.square(opening)))), 100e-6))
+
 
 def calibrate_electrical(injections: list[Injection], base: InjectorParameters | None = None,
                          names: tuple[str, ...] = STRUCTURAL_NAMES, tolerance: float = 0.10,
@@ -458,7 +508,9 @@ def _result(problem: _Problem, fit: LeastSquaresResult, restarts: int, base: Inj
     after = problem.voltage_residuals(fit)
     params = replace(problem.sims.params(x[:k]),
                      chain=replace(base.chain, **{n: getattr(chain, n) for n in problem.chain_names}),
-                     calibration=problem.left_uncertainty(fit, cov))
+                     calibration=replace(problem.left_uncertainty(fit, cov),
+                                         **dict(zip(("stroke_rel_sigma", "opening_sigma_s"),
+                                                    problem.left_response(fit, cov)))))
     return ElectricalCalibration(
         params, tuple(names), np.exp(x[:k]), sd[:k], x[p::2].copy(), x[p + 1::2].copy(), rms_before,
         float(np.sqrt(np.mean(np.concatenate(after) ** 2))), correlated, weak, warnings,

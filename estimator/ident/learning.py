@@ -32,7 +32,8 @@ estimator, per injector id (states: :class:`~estimator.ident.status.Learning`):
     reaches ``monitor_limit`` within ``limit / (1 - k)`` injections. The injections seen while the sum
     grew are kept, and collection goes on while the old model keeps serving; the new calibration
     starts from the configured tables (a new part is a new draw of the lot) and is adopted if it
-    explains the held-out injections better than the model in use. A ``relearn`` command starts
+    explains the held-out injections better than the model in use, or no worse while it moves their
+    N_u beyond its uncertainty. A ``relearn`` command starts
     this state at once.
 
 Every calibration compares each structural parameter with the part's tolerance
@@ -149,7 +150,8 @@ class Learner:
         """Collect the refinement window of a monitored model; submit it once ready (True: submitted).
         A window of ten injections measures a stiffness to about 1 %; the refinement's larger window
         sharpens the model and its tolerance diagnostics, and is adopted if it explains held-out
-        injections better than the model in use."""
+        injections better than the model in use, or no worse while it moves their N_u beyond its
+        uncertainty: twelve injections can leave a part's N_u scale several of its σ off."""
         c = replace(self.config, window=self.config.refine_window)
         window = self._refine.setdefault(iid, CalibrationWindow(c.window))
         window.add(inj, nu)

@@ -8,9 +8,10 @@ one's makes room. Once the window holds enough injections over a wide enough ran
 :func:`self_calibrate` fits the structural parameters to all but the newest ``held_out`` of them
 (:func:`~estimator.ident.electrical.calibrate_electrical`) and tests the result on those held out:
 each is identified with the current and with the calibrated parameters, and the calibrated set is
-adopted only if it explains them better by more than ``adopt_chi2`` (chi-square units, the sum over
-the held-out injections of the drop in their residual energy over their noise variance) and the
-calibration explains its own batch. A rejected calibration starts a new window.
+adopted only if the calibration explains its own batch and it explains them better by more than
+``adopt_chi2`` (chi-square units, the sum over the held-out injections of the drop in their residual
+energy over their noise variance), or no worse by that much while it moves their N_u by more than
+``adopt_shift_sigmas`` of its standard deviations (:func:`_adoptable`). A rejected calibration starts a new window.
 
 The calibration itself (seconds of computing) is handed to a *calibrator*: :class:`InlineCalibrator`
 runs it at once (offline tracking: deterministic), the daemon's background calibrator
@@ -59,6 +60,7 @@ class SelfCalConfig:
     confirm: int = 5               # injections an adopted model serves before it is monitoring
     retry_after: int = 12          # injections after a refused calibration before the next window (doubling, x8 at most)
     refine_window: int = 24        # once monitoring: one more calibration over this many injections (0: none)
+    adopt_shift_sigmas: float = 3.0   # ... or adopted if it moves the held-out N_u by more than this many sd
 
     def __post_init__(self) -> None:
         if not (isinstance(self.window, int) and isinstance(self.held_out, int) and self.held_out >= 1
@@ -74,7 +76,7 @@ class SelfCalConfig:
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise ValueError(f"self-calibration {name} = {v!r} must be a non-negative whole number")
         for name in ("min_preload_spread", "adopt_chi2", "tolerance", "part_tolerance", "tolerance_sigmas",
-                     "monitor_drift", "monitor_limit"):
+                     "monitor_drift", "monitor_limit", "adopt_shift_sigmas"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"self-calibration {name} = {v!r} must be a positive number")
@@ -91,7 +93,8 @@ class CalibrationStatus:
     ``served`` the injections the model in use has served since its adoption; ``refusals`` the
     calibrations refused in a row and ``retry_in`` the injections left before the next window;
     ``source`` where the model in use comes from (``tables``, ``learned`` or ``seeded``);
-    ``refined`` whether the model in use has had its refinement over a larger window.
+    ``refined`` whether the model in use has had its refinement over a larger window; ``nu_shift_z``
+    how far the last calibration moved the held-out injections' N_u, in its standard deviations.
     """
 
     state: str = Learning.IDLE
@@ -109,6 +112,7 @@ class CalibrationStatus:
     retry_in: int = 0
     source: str = "tables"
     refined: bool = False
+    nu_shift_z: float = float("nan")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (NaN as None)."""
@@ -116,7 +120,7 @@ class CalibrationStatus:
             return round(v, 4) if math.isfinite(v) else None
         return {"state": str(self.state), "batch": self.batch, "preload_span": round(self.preload_span, 3),
                 "rms_before_v": num(self.rms_before_v), "rms_after_v": num(self.rms_after_v),
-                "held_out_chi2": num(self.held_out_chi2), "message": self.message,
+                "held_out_chi2": num(self.held_out_chi2), "nu_shift_z": num(self.nu_shift_z), "message": self.message,
                 "calibrations": self.calibrations, "out_of_tolerance": list(self.out_of_tolerance),
                 "evidence": round(self.evidence, 3), "served": self.served, "refusals": self.refusals,
                 "retry_in": self.retry_in, "source": self.source, "refined": self.refined}
@@ -135,12 +139,13 @@ class CalibrationStatus:
             if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < 2 ** 31:
                 raise ValueError(f"{name} = {v!r} must be a non-negative whole number")
             setattr(st, name, v)
-        for name in ("rms_before_v", "rms_after_v", "held_out_chi2", "preload_span", "evidence"):
+        for name in ("rms_before_v", "rms_after_v", "held_out_chi2", "nu_shift_z", "preload_span", "evidence"):
             v = d.get(name)
             if v is None:
                 continue
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ValueError(f"{name} = {v!r} must be a non-negative number or null")
+            signed = name in ("held_out_chi2", "nu_shift_z")    # a calibration may explain the held-out worse
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or (v < 0 and not signed):
+                raise ValueError(f"{name} = {v!r} must be a {'' if signed else 'non-negative '}number or null")
             setattr(st, name, float(v))
         msg, source, oot = d.get("message", ""), d.get("source", "tables"), d.get("out_of_tolerance", [])
         if not isinstance(msg, str) or len(msg) > 1000:
@@ -211,27 +216,43 @@ def _calibrate(window: CalibrationWindow, base: InjectorParameters, config: Self
     dt = held[0].dt_s
     old, new = FastSimulator(current if current is not None else base, dt), FastSimulator(res.params, dt)
     chi2 = 0.0
+    shifts = []
     for inj in held:
-        r_old, r_new = _held_out_residual(old, inj), _held_out_residual(new, inj)
+        (r_old, nu_old), (r_new, nu_new) = _held_out_residual(old, inj), _held_out_residual(new, inj)
         sigma = noise_level_v(r_new)
         chi2 += float((r_old @ r_old - r_new @ r_new) / sigma ** 2)
+        shifts.append(nu_new - nu_old)
     status.held_out_chi2 = chi2
-    if not chi2 > config.adopt_chi2:
+    sd = float(np.median(res.sigma_nu_n_per_v)) if res.sigma_nu_n_per_v.size else 0.0
+    status.nu_shift_z = float(np.mean(shifts)) / sd if sd > 0 else float("nan")   # NaN: no shift to judge
+    if not _adoptable(chi2, status.nu_shift_z, config):
         status.message = (f"the calibrated model explains the held-out injections no better (chi-square gain "
-                          f"{chi2:.1f} <= {config.adopt_chi2:g})")
+                          f"{chi2:.1f} <= {config.adopt_chi2:g}) and moves their N_u by {status.nu_shift_z:+.1f} sd")
         return status, None
-    status.state, status.message = Learning.ADOPTED, f"held-out chi-square gain {chi2:.0f}"
+    status.state, status.message = Learning.ADOPTED, (f"held-out chi-square gain {chi2:.0f}, N_u moved "
+                                                     f"{status.nu_shift_z:+.1f} sd")
     return status, new
 
 
-def _held_out_residual(sim: FastSimulator, inj: Injection) -> np.ndarray:
+def _adoptable(chi2: float, shift_z: float, config: SelfCalConfig) -> bool:
+    """Whether a calibration replaces the model in use: it explains the held-out injections better by
+    more than ``adopt_chi2``, or it explains them no worse by that much and moves their N_u by more than
+    ``adopt_shift_sigmas`` of its standard deviations. The held-out voltage alone hardly tells two models
+    apart whose structure scales with N_u; the one calibrated on more injections is the better when
+    they disagree on N_u beyond its uncertainty."""
+    if chi2 > config.adopt_chi2:
+        return True
+    return chi2 > -config.adopt_chi2 and abs(shift_z) > config.adopt_shift_sigmas
+
+
+def _held_out_residual(sim: FastSimulator, inj: Injection) -> tuple[np.ndarray, float]:
     """The residual (V) of ``inj`` over its kept samples at its own cold-start estimate on ``sim``, the
     measurement chain of ``sim``'s parameters included (a calibrated set carries its own)."""
     est = identify(inj, sim, IdentConfig())
     if not (math.isfinite(est.nu_n_per_v) and math.isfinite(est.lh_m)):
-        return np.full(inj.voltage_v.size, 1e3)
+        return np.full(inj.voltage_v.size, 1e3), float("nan")
     result: np.ndarray = measured_voltage(sim, inj, est.nu_n_per_v, est.lh_m * UM_PER_M)[0] - inj.voltage_v
-    return result
+    return result, est.nu_n_per_v
 
 
 @dataclass

@@ -196,13 +196,20 @@ class ValveParameters:
 class CalibrationUncertainty:
     """How uncertain a calibrated parameter set leaves the estimates made with it (1 sigma, the same
     for every injection of the injector, so averaging does not shrink it): ``nu_rel_sigma`` of N_u
-    (relative), ``lh_sigma_m`` of L_h (m). Zero for the tables' values, which are taken as exact."""
+    (relative), ``lh_sigma_m`` of L_h (m); and of what the valve does, ``stroke_rel_sigma`` of the
+    plateau stroke (relative) and ``opening_sigma_s`` of the opening instant (s) predicted from an
+    estimate made with these parameters. A structural error moves N_u and L_h so that the voltage
+    still fits, and the valve's predicted motion keeps less of it than either (zero: not known, the
+    prediction's σ then comes from N_u's and L_h's). Zero for the tables' values, taken as exact."""
 
     nu_rel_sigma: float = 0.0
     lh_sigma_m: float = 0.0
+    stroke_rel_sigma: float = 0.0
+    opening_sigma_s: float = 0.0
 
     def __post_init__(self) -> None:
-        for name, limit in (("nu_rel_sigma", 0.1), ("lh_sigma_m", 10e-6)):
+        for name, limit in (("nu_rel_sigma", 0.1), ("lh_sigma_m", 10e-6), ("stroke_rel_sigma", 1.0),
+                            ("opening_sigma_s", 100e-6)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and 0 <= v <= limit):
                 raise ParameterError(f"[calibration] {name} = {v!r} must be a number within 0..{limit:g}")
@@ -211,6 +218,11 @@ class CalibrationUncertainty:
     def zero(self) -> bool:
         """True for exact parameters (the default)."""
         return self.nu_rel_sigma == 0.0 and self.lh_sigma_m == 0.0
+
+    @property
+    def has_response(self) -> bool:
+        """True when the calibration states the uncertainty of the valve's predicted motion."""
+        return self.stroke_rel_sigma > 0.0 or self.opening_sigma_s > 0.0
 
     def cov(self, nu_n_per_v: float) -> np.ndarray:
         """The covariance it adds to an estimate at ``nu_n_per_v``, in (N/V, µm)."""
@@ -255,7 +267,8 @@ class InjectorParameters:
             raise ParameterError("a parameter set needs the tables psa and valve")
         cal = data.get("calibration", {})
         if not isinstance(cal, Mapping) or set(cal) - {f.name for f in fields(CalibrationUncertainty)}:
-            raise ParameterError("[calibration] must be a table of nu_rel_sigma and lh_sigma_m")
+            raise ParameterError("[calibration] must be a table of nu_rel_sigma, lh_sigma_m, stroke_rel_sigma "
+                                 "and opening_sigma_s")
         return cls(PsaParameters.from_mapping(data["psa"]), ValveParameters.from_mapping(data["valve"]),
                    chain_from_mapping(data.get("chain", {})), CalibrationUncertainty(**cal))
 

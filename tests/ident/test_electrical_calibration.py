@@ -4,6 +4,7 @@ alone, and what they do for its idle-stroke estimate."""
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 
@@ -34,7 +35,7 @@ def test_a_batch_at_several_preload_forces_recovers_the_part_and_its_idle_stroke
     """Seeded series part (every structural parameter within ±10 %): six injections at 28-300 N bring
     the voltage residual to the noise level; with the calibrated parameters a new injection at the
     nominal preload is ok and within 0.2 µm, where the nominal parameters are model_mismatch."""
-    from estimator.ident.idle_stroke import identify
+    from estimator.ident.idle_stroke import identify, predict_valve
     from estimator.model.fast_sim import FastSimulator
 
     _part, plant, rng = _part_and_plant(5)
@@ -52,6 +53,13 @@ def test_a_batch_at_several_preload_forces_recovers_the_part_and_its_idle_stroke
         own = identify(inj, FastSimulator(res.params, m.dt_s))
         assert nominal.status.value == "model_mismatch"
         assert own.status.value == "ok" and abs(own.lh_m * 1e6 - LH_UM) < 0.2
+        # the set states what it leaves in the valve's predicted motion, and that covers the prediction
+        cal = res.params.calibration
+        assert 0 < cal.stroke_rel_sigma < 0.01 and 0 < cal.opening_sigma_s < 1e-6
+        whole = Injection(m.current_a, m.voltage_v, m.dt_s, 28.0)      # the charge, beyond the fit's window
+        _tc, t_open, stroke = predict_valve(FastSimulator(res.params, m.dt_s), whole, own.nu_n_per_v, own.lh_m)
+        assert abs(stroke - m.stroke_m) < 3 * math.hypot(cal.stroke_rel_sigma * stroke, own.sigma_lh_m)
+        assert abs(t_open - m.t_open_s) < 3 * cal.opening_sigma_s + 0.5e-6
 
 
 def test_a_batch_at_one_preload_force_is_reported_as_weak():

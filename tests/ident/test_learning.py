@@ -207,3 +207,28 @@ def test_a_calibration_that_comes_back_after_a_reset_is_not_adopted():
     cal.released = True
     tracker.update(injections[k])
     assert 0 not in tracker.own_pools and tracker.calibration[0].state in (Learning.IDLE, Learning.LEARNING)
+
+
+def test_a_calibration_that_moves_n_u_beyond_its_uncertainty_is_adopted_unless_it_explains_worse():
+    """The held-out voltage hardly tells apart two models whose structure scales with N_u: a
+    calibration is adopted when it explains the held-out injections better, or no worse (by less than
+    adopt_chi2) while it moves their N_u by more than adopt_shift_sigmas of its standard deviations."""
+    from estimator.ident.selfcal import _adoptable
+
+    c = SelfCalConfig()
+    assert _adoptable(c.adopt_chi2 + 1.0, 0.0, c)                       # better
+    assert not _adoptable(10.0, 1.0, c)                                 # no better, N_u where it was
+    assert _adoptable(-10.0, -4.0, c) and _adoptable(0.0, 3.5, c)       # no worse, N_u moved
+    assert not _adoptable(-c.adopt_chi2 - 1.0, 6.0, c)                  # worse, however far N_u moved
+    assert not _adoptable(0.0, 3.5, SelfCalConfig(adopt_shift_sigmas=4.0))
+
+
+def test_a_status_of_a_calibration_that_explained_the_held_out_worse_round_trips(tmp_path):
+    """A refused calibration's held-out chi-square gain and N_u shift may be negative; the state file
+    keeps them."""
+    st = CalibrationStatus(Learning.MONITORING, 0, 0.5, 0.1, -38.2, "refinement: no better", 2,
+                           nu_shift_z=-6.3, source="learned", refined=True)
+    path = tmp_path / "state.json"
+    save_states(path, {}, None, {2: st})
+    loaded, problem = load_learning(path)
+    assert problem is None and loaded == {2: st}
