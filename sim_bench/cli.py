@@ -386,6 +386,16 @@ def cmd_lot(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_publish(args: argparse.Namespace) -> int:
+    from sim_bench.published import main as publish_main
+
+    missing = [d for d in args.dirs if not d.is_dir()]
+    if missing:
+        print(f"error: not a directory: {missing[0]}", file=sys.stderr)
+        return 2
+    return publish_main(args.dirs, args.out)
+
+
 def cmd_hub(args: argparse.Namespace) -> int:
     """Serve the loopback CAN hub until interrupted (SIGINT, SIGTERM, SIGHUP stop it and its server)."""
     from sim_bench.hub import Hub
@@ -569,6 +579,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=4, help="seed of the random draws (default 4)")
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "speed.json", help="JSON report (default bench-results/speed.json)")
     s.set_defaults(func=cmd_speed)
+
+    s = sub.add_parser("publish", help="the headline figures from the benches' JSON reports into the documentation's "
+                       "one source (docs/figures.json)")
+    s.add_argument("dirs", type=Path, nargs="+", help="directories holding bench reports (bench-results/*.json), "
+                   "one run of a bench each: several runs of a timing give its median and range")
+    s.add_argument("--out", type=Path, default=Path("docs") / "figures.json",
+                   help="the figures file, updated (default docs/figures.json, from the repository's root)")
+    s.set_defaults(func=cmd_publish)
 
     s = sub.add_parser("calibration-traces", help="traces for eq. 25 (no valve, with s3) at several temperatures")
     s.add_argument("--out", type=Path, required=True, help="output directory")

@@ -119,6 +119,43 @@ def test_the_readme_headline_figures_are_the_performance_pages():
     assert not {k: v for k, v in stale.items() if v}, stale
 
 
+def _numbers(text: str) -> list[str]:
+    return [n.replace(",", "") for n in re.findall(r"\d[\d,]*(?:\.\d+)?", text)]
+
+
+def _states(stream: list[str], text: str) -> bool:
+    """Whether the numbers of ``text`` appear in ``stream`` one after the other."""
+    want = _numbers(text)
+    return any(stream[i:i + len(want)] == want for i in range(len(stream) - len(want) + 1))
+
+
+def test_the_published_figures_are_what_the_readme_and_the_performance_page_state():
+    """docs/figures.json is where a current figure comes from (``sim_bench publish`` writes it from the
+    benches' JSON reports): the performance page states each published figure (a lot's or a part's
+    values each), and the README's headline table each one it has a row for. Publishing a figure
+    measured again fails here until both say it."""
+    import json
+
+    from sim_bench.published import FIGURES
+
+    figures = json.loads((DOCS / "figures.json").read_text(encoding="utf-8"))
+    known = {f"{f.bench}: {f.name}": f for f in FIGURES}
+    assert set(figures) <= set(known) and len(figures) >= 10, sorted(set(figures) - set(known))
+    page = _numbers((DOCS / "performance.md").read_text(encoding="utf-8"))
+    readme = _numbers(" ".join(row[1] for row in _headline_rows()))
+    wrong = []
+    for name, fig in figures.items():
+        digits = known[name].digits
+        each_value = fig["runs"] == 1 and len(fig["values"]) > 1      # one run's lots or parts
+        on_page = _states(page, fig["text"]) or (each_value and all(f"{v:.{digits}f}" in page
+                                                                     for v in fig["values"]))
+        if not on_page:
+            wrong.append(f"performance page: {name} {fig['text']}")
+        if known[name].headline and not _states(readme, fig["text"]):
+            wrong.append(f"README: {name} {fig['text']}")
+    assert not wrong, wrong
+
+
 def test_the_readme_targets_are_the_benches_own():
     """The target the README states for a bench with headline targets is one of that bench's own
     (sim_bench.targets, which the bench exits on and the performance page renders)."""
@@ -139,3 +176,39 @@ def test_the_readme_targets_are_the_benches_own():
         assert stated <= known, (what, bench, sorted(stated - known))
         checked += 1
     assert checked >= 5
+
+
+def test_publish_takes_the_median_and_range_of_runs_and_a_lots_range_of_one(tmp_path):
+    """``sim_bench publish``: five speed runs give the median and the range; one compensation run the
+    range over its lots; a tracking report's lot-life scenario counts as that bench; figures not
+    measured again stay; a directory that is not one is refused with one line."""
+    import json
+    import subprocess
+    import sys
+
+    for i, warm in enumerate((0.212, 0.210, 0.215, 0.209, 0.211)):
+        d = tmp_path / f"run{i}" / "bench-results"
+        d.mkdir(parents=True)
+        (d / "speed.json").write_text(json.dumps({"benchmark": "speed", "warm_median_ms": warm,
+                                                  "warm_with_correction_median_ms": warm + 0.09,
+                                                  "cold_median_ms": 1.0}))
+    lots = [{"closed": {"stroke_spread_um": {"settled_median": v}, "opening_spread_us": {"settled_median": 0.2}}}
+            for v in (0.1, 0.13, 0.12)]
+    (tmp_path / "run0" / "bench-results" / "compensation.json").write_text(json.dumps(
+        {"benchmark": "compensation", "lots": lots, "z_rms_stroke": 0.9, "z_rms_opening": 1.2}))
+    (tmp_path / "run1" / "bench-results" / "tracking.json").write_text(json.dumps(
+        {"benchmark": "tracking", "reports": [{"benchmark": "tracking", "scenario": "lot-life",
+                                               "summary": {"max_lh_err_within_um": 0.0751}}]}))
+    out = tmp_path / "figures.json"
+    out.write_text(json.dumps({"daemon: daemon_p99_ms": {"text": "1.92", "runs": 1, "values": [1.92]}}))
+    cmd = [sys.executable, "-m", "sim_bench", "publish", *(str(tmp_path / f"run{i}") for i in range(5)),
+           "--out", str(out)]
+    subprocess.run(cmd, check=True, capture_output=True, cwd=ROOT)
+    figs = json.loads(out.read_text())
+    assert figs["speed: warm_median_ms"]["text"] == "0.211 (0.209–0.215)"
+    assert figs["speed: warm_median_ms"]["runs"] == 5
+    assert figs["compensation: stroke_spread_um"]["text"] == "0.100–0.130"
+    assert figs["tracking --scenario lot-life: lh_max_within_um"]["text"] == "0.075"
+    assert figs["daemon: daemon_p99_ms"]["text"] == "1.92"
+    bad = subprocess.run([*cmd[:4], str(tmp_path / "nowhere")], capture_output=True, text=True, cwd=ROOT)
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
