@@ -582,7 +582,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("publish", help="the headline figures from the benches' JSON reports into the documentation's "
                        "one source (docs/figures.json)")
-    s.add_argument("dirs", type=Path, nargs="+", help="directories holding bench reports (bench-results/*.json), "
+    s.add_argument("dirs", type=Path, nargs="+", help="directories holding bench reports (the JSON under bench-results), "
                    "one run of a bench each: several runs of a timing give its median and range")
     s.add_argument("--out", type=Path, default=Path("docs") / "figures.json",
                    help="the figures file, updated (default docs/figures.json, from the repository's root)")
