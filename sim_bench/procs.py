@@ -195,10 +195,12 @@ class DaemonProcess:
         self.bus_spec = bus_spec
         self.log_path = log_path
         self.args = ["-m", "estimator", "run", "--bus", bus_spec]
+        # absolute: the daemon runs in the repository, the caller anywhere (a relative state directory
+        # would be another one, shared by every run started elsewhere)
         if state_dir is not None:
-            self.args += ["--state-dir", str(state_dir)]
+            self.args += ["--state-dir", str(Path(state_dir).absolute())]
         if config is not None:
-            self.args += ["--config", str(config)]
+            self.args += ["--config", str(Path(config).absolute())]
         self.args += extra or []
         self.notify = NotifySocket()
         self.proc: subprocess.Popen | None = None

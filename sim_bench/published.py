@@ -24,18 +24,31 @@ Report = dict[str, Any]
 class Figure(NamedTuple):
     """One headline figure: the report it comes from (``bench``: the report's ``benchmark``, with
     `` --self-calibration`` for the daemon's learning run), its name, how it is read from one report
-    (a number, or a list whose range is the figure: lots, parts), its decimals, and whether the
-    README's headline table states it (the performance page states every one)."""
+    (a number, or a list whose range is the figure: lots, parts), its decimals (negative: rounded to
+    tens, hundreds, ..., with thousands separated), whether several runs are stated as the range
+    alone (``spread``) rather than the median and the range, and whether the README's headline table
+    states it (the performance page states every one)."""
 
     bench: str
     name: str
     read: Callable[[Report], float | list[float]]
     digits: int
     headline: bool = True
+    spread: bool = False
 
 
 def _lots(key: str, figure: str, loop: str = "closed") -> Callable[[Report], list[float]]:
     return lambda r: [lot[loop][key][figure] for lot in r["lots"]]
+
+
+def _both(r: Report, what: str) -> float:
+    """Offline and online together (``refused``, ``false_flags``), of the good parts."""
+    return float(r["summary"][f"offline_{what}"] + r["summary"][f"online_{what}"])
+
+
+def _variant(r: Report, name: str) -> dict[str, Any]:
+    """One variant's summary of a ``selfcal`` report."""
+    return next(v for v in r["summary"] if v["variant"] == name)
 
 
 def _series_rows(r: Report, key: str) -> list[float]:
@@ -43,10 +56,19 @@ def _series_rows(r: Report, key: str) -> list[float]:
 
 
 FIGURES: tuple[Figure, ...] = (
+    Figure("accuracy --sweep random", "rmse_lh_um", lambda r: r["summary"]["rmse_lh_um"], 3),
+    Figure("accuracy --sweep random", "crb_lh_um", lambda r: r["summary"]["crb_lh_um"], 3),
+    Figure("accuracy --sweep random", "rmse_nu_pct", lambda r: r["summary"]["rmse_nu_pct"], 3),
+    Figure("accuracy --sweep random", "crb_nu_pct", lambda r: r["summary"]["crb_nu_pct"], 3),
+    Figure("accuracy --sweep random", "false_mismatch_pct", lambda r: 100 * r["summary"]["mismatch_fraction"], 0),
+    Figure("accuracy --sweep high-noise", "false_mismatch_pct",
+           lambda r: 100 * r["summary"]["mismatch_fraction"], 0),
+    Figure("accuracy --sweep spread", "rms_error_over_sigma", lambda r: r["summary"]["rms_error_over_sigma"], 2),
     Figure("speed", "warm_median_ms", lambda r: r["warm_median_ms"], 3),
     Figure("speed", "warm_with_correction_median_ms", lambda r: r["warm_with_correction_median_ms"], 3),
     Figure("speed", "cold_median_ms", lambda r: r["cold_median_ms"], 2),
     Figure("daemon", "daemon_p99_ms", lambda r: r["nominal"]["daemon_latency_p99_ms"], 2),
+    Figure("daemon", "ingest_frames_per_s", lambda r: r["ingest"]["frames_per_s"], -2, spread=True),
     Figure("daemon", "external_p99_ms", lambda r: r["nominal"]["external_latency_p99_ms"], 2, headline=False),
     Figure("daemon", "overload_p99_ms", lambda r: r["overload"]["daemon_latency_p99_ms"], 2, headline=False),
     Figure("daemon --self-calibration", "learning_p99_ms", lambda r: r["nominal"]["daemon_latency_p99_ms"], 2),
@@ -55,10 +77,22 @@ FIGURES: tuple[Figure, ...] = (
     Figure("compensation", "open_opening_spread_us", _lots("opening_spread_us", "settled_median", "open"), 1),
     Figure("compensation", "stroke_spread_um", _lots("stroke_spread_um", "settled_median"), 3),
     Figure("compensation", "opening_spread_us", _lots("opening_spread_us", "settled_median"), 2),
+    Figure("compensation", "settle_injections",
+           lambda r: [p["settle_injections"] for lot in r["lots"] for p in lot["closed"]["injectors"]], 0),
     Figure("compensation", "z_rms_stroke", lambda r: r["z_rms_stroke"], 2),
     Figure("compensation", "z_rms_opening", lambda r: r["z_rms_opening"], 2),
+    Figure("selfcal", "lh_rms_um", lambda r: _variant(r, "plain")["lh_rms_um"], 3),
+    Figure("selfcal", "lh_max_um", lambda r: _variant(r, "plain")["lh_max_um"], 3),
+    Figure("selfcal", "nu_max_pct", lambda r: _variant(r, "plain")["nu_max_pct"], 3),
+    Figure("selfcal", "lh_max_z", lambda r: max(_variant(r, v)["lh_max_z"] for v in ("plain", "chain")), 1),
+    Figure("selfcal", "lh_max_z_plain", lambda r: _variant(r, "plain")["lh_max_z"], 2, headline=False),
+    Figure("selfcal", "lh_max_z_chain", lambda r: _variant(r, "chain")["lh_max_z"], 2, headline=False),
     Figure("selfcal-online", "lh_max_from_40_um", lambda r: max(_series_rows(r, "max_lh_err_from_um")), 3),
     Figure("selfcal-online", "adopted_at", lambda r: _series_rows(r, "adopted_at"), 0),
+    Figure("bench --scenario nominal", "max_abs_lh_um", lambda r: r["max_abs_lh_um"], 3),
+    Figure("bench --scenario series-lot", "max_abs_lh_um", lambda r: r["max_abs_lh_um"], 3, spread=True),
+    Figure("selfcal-refusals", "false_refusals", lambda r: _both(r, "refused"), 0),
+    Figure("selfcal-refusals", "false_flags", lambda r: _both(r, "false_flags"), 0),
     Figure("tracking --scenario steady", "rms_lh_after_um", lambda r: r["summary"]["rms_lh_after_um"], 3),
     Figure("tracking --scenario spread-injector", "sigma_ratio_lh", lambda r: r["summary"]["sigma_ratio_lh"], 2),
     Figure("tracking --scenario lot-life", "lh_max_within_um",
@@ -71,6 +105,11 @@ def bench_of(report: Report) -> str:
     name = str(report.get("benchmark", ""))
     if name == "daemon" and report.get("self_calibration"):
         return "daemon --self-calibration"
+    if name == "accuracy":
+        summary = report.get("summary", {})
+        return f"accuracy --sweep {summary.get('sweep')}" + (" (mismatch)" if summary.get("mismatch") else "")
+    if name == "bench":
+        return f"bench --scenario {report.get('scenario')}"
     if name == "tracking":
         summary = report.get("summary", {})
         scenario = report.get("scenario") or summary.get("scenario")
@@ -86,21 +125,32 @@ def reports_in(directory: Path) -> list[Report]:
             doc = json.loads(path.read_text(encoding="utf-8"))
         except (OSError, ValueError):
             continue
-        if not isinstance(doc, dict) or "benchmark" not in doc:
+        if not isinstance(doc, dict):
             continue
-        out.extend(doc["reports"] if doc.get("benchmark") == "tracking" and "reports" in doc else [doc])
+        if isinstance(doc.get("score"), dict):            # an end-to-end scenario's report
+            out.append({"benchmark": "bench", **doc["score"]})
+        elif doc.get("benchmark") in ("tracking", "accuracy") and "reports" in doc:
+            out.extend(doc["reports"])
+        elif "benchmark" in doc and doc["benchmark"] != "bench":   # bench-all.json repeats its scenarios'
+            out.append(doc)
     return out
 
 
-def text(values: list[float], digits: int) -> str:
-    """What the documentation states: a value; a range (one run's lots or parts); the median and the
-    range over several runs."""
-    def f(v: float) -> str:
-        return f"{v:.{digits}f}"
+def number(v: float, digits: int) -> str:
+    """``v`` as the documentation writes it: ``digits`` decimals, or (negative) rounded to tens,
+    hundreds, ... with thousands separated (``214,700``)."""
+    return f"{v:.{digits}f}" if digits >= 0 else f"{round(v, digits):,.0f}"
+
+
+def text(values: list[float], digits: int, spread: bool = False) -> str:
+    """What the documentation states: a value; the range (``spread``: one run's lots or parts, or
+    the runs themselves); the median and the range over several runs."""
     if len(values) == 1:
-        return f(values[0])
-    lo, hi = min(values), max(values)
-    return f"{f(statistics.median(values))} ({f(lo)}–{f(hi)})"
+        return number(values[0], digits)
+    lo, hi = number(min(values), digits), number(max(values), digits)
+    if spread:
+        return lo if lo == hi else f"{lo}–{hi}"
+    return f"{number(statistics.median(values), digits)} ({lo}–{hi})"
 
 
 def publish(directories: Iterable[Path]) -> dict[str, dict[str, Any]]:
@@ -124,10 +174,10 @@ def publish(directories: Iterable[Path]) -> dict[str, dict[str, Any]]:
             continue
         if len(read) == 1 and isinstance(read[0], list):     # one run: the range over its lots or parts
             vals = [float(v) for v in read[0]]
-            shown = f"{min(vals):.{fig.digits}f}–{max(vals):.{fig.digits}f}"
+            shown = text(vals, fig.digits, spread=True)
         else:
             vals = [float(v) for v in read if not isinstance(v, list)]
-            shown = text(vals, fig.digits)
+            shown = text(vals, fig.digits, fig.spread)
         out[f"{fig.bench}: {fig.name}"] = {"text": shown, "runs": len(read),
                                            "values": [round(v, 6) for v in vals]}
     return out

@@ -107,3 +107,20 @@ def test_one_table_of_targets_that_the_benches_judge_with():
     learning = {"self_calibration": True, "nominal": dict(nominal, daemon_latency_p99_ms=9.0),
                 "adopted": {"daemon_latency_p99_ms": 6.0}}
     assert [f.split()[0] for f in failures(ing, learning)] == ["adopted_p99_ms"]
+
+
+def test_a_daemon_started_from_another_directory_keeps_its_state_where_the_caller_said(tmp_path, monkeypatch):
+    """The benches run the daemon in the repository; a relative state directory or configuration
+    given from elsewhere must still be the caller's (a bench run from a scratch directory once shared
+    one state directory with every other such run, and started from their learned models)."""
+    from pathlib import Path
+
+    from sim_bench.procs import DaemonProcess
+
+    monkeypatch.chdir(tmp_path)
+    d = DaemonProcess("virtual", Path("daemon.log"), state_dir=Path("bench-results/state"), config=Path("c.toml"))
+    try:
+        assert Path(d.args[d.args.index("--state-dir") + 1]) == tmp_path / "bench-results" / "state"
+        assert Path(d.args[d.args.index("--config") + 1]) == tmp_path / "c.toml"
+    finally:
+        d.notify.sock.close()
