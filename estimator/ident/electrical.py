@@ -393,16 +393,24 @@ class _Problem:
         two columns' J'J)."""
         nu_rel, lh_sd = [], []
         for j in range(self.b):
-            idx = [self.p + 2 * j, self.p + 2 * j + 1]
-            own = fit.jac[:, idx]
-            try:
-                shared_part = cov[np.ix_(idx, idx)] - np.linalg.inv(own.T @ own)
-            except np.linalg.LinAlgError:
+            own = self.own_part(fit, j)
+            if own is None:
                 continue
+            idx = [self.p + 2 * j, self.p + 2 * j + 1]
+            shared_part = cov[np.ix_(idx, idx)] - own
             nu_rel.append(math.sqrt(max(shared_part[0, 0], 0.0)) / fit.x[idx[0]])
             lh_sd.append(math.sqrt(max(shared_part[1, 1], 0.0)))
-        return CalibrationUncertainty(min(float(np.sqrt(np.mean(np.square(nu_rel)))) if nu_rel else 0.0, 0.1),
-                                      min(float(np.sqrt(np.mean(np.square(lh_sd)))) * M_PER_UM if lh_sd else 0.0, 10e-6))
+        return CalibrationUncertainty(_rms(nu_rel, 0.1), min(_rms(lh_sd, math.inf) * M_PER_UM, 10e-6))
+
+    def own_part(self, fit: LeastSquaresResult, j: int) -> np.ndarray | None:
+        """The covariance of injection ``j``'s (N_u, L_h) that its own samples explain: the inverse of
+        its own two columns' J'J (None where that is singular)."""
+        own = fit.jac[:, [self.p + 2 * j, self.p + 2 * j + 1]]
+        try:
+            result: np.ndarray = np.linalg.inv(own.T @ own)
+        except np.linalg.LinAlgError:
+            return None
+        return result
 
     def left_response(self, fit: LeastSquaresResult, cov: np.ndarray) -> tuple[float, float]:
         """What the shared parameters' uncertainty leaves in the valve's predicted motion: the RMS
@@ -420,8 +428,11 @@ class _Problem:
             h = steps.copy()
             if nu + h[k] > sim.params.psa.nu_max_n_per_v:     # stay inside the simulator's N_u range
                 h[k] = -h[k]
+            own = self.own_part(fit, j)
             try:
                 y0 = np.array(predict_valve(sim, inj, nu, lh * M_PER_UM)[1:])     # opening (s), stroke (m)
+                if own is None or not (np.all(np.isfinite(y0)) and y0[1] > 0):
+                    continue
                 g = np.empty((2, k + 2))
                 for i in range(k):
                     theta = x[:k].copy()
@@ -432,22 +443,20 @@ class _Problem:
             except EstimatorError:     # e.g. an N_u at the edge of the simulator's range
                 continue
             g = (g - y0[:, None]) / h
-            if not (np.all(np.isfinite(g)) and y0[1] > 0):
+            if not np.all(np.isfinite(g)):
                 continue
             idx = [*range(k), p + 2 * j, p + 2 * j + 1]
             c = cov[np.ix_(idx, idx)].copy()
-            own = fit.jac[:, idx[k:]]
-            try:
-                c[k:, k:] -= np.linalg.inv(own.T @ own)
-            except np.linalg.LinAlgError:
-                continue
+            c[k:, k:] -= own
             v = g @ c @ g.T
             opening.append(math.sqrt(max(v[0, 0], 0.0)))
             stroke_rel.append(math.sqrt(max(v[1, 1], 0.0)) / y0[1])
-        if not stroke_rel:
-            return 0.0, 0.0
-        return (min(float(np.sqrt(np.mean(np.square(stroke_rel)))), 1.0),
-                min(float(np.sqrt(np.mean(np.square(opening)))), 100e-6))
+        return _rms(stroke_rel, 1.0), _rms(opening, 100e-6)
+
+
+def _rms(values: list[float], cap: float) -> float:
+    """Root mean square of ``values`` (0 for none), at most ``cap``."""
+    return min(float(np.sqrt(np.mean(np.square(values)))), cap) if values else 0.0
 
 
 def calibrate_electrical(injections: list[Injection], base: InjectorParameters | None = None,
