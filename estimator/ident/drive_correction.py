@@ -328,15 +328,13 @@ def correction_after(compensator: DriveCompensator, tracker: Tracker, inj: Injec
     cov = None
     if st is not None and ok:
         p = np.asarray(st.p, dtype=float)[:2, :2]
-        s_nu, s_lh = res.sigma_nu, res.sigma_lh_m * UM_PER_M
-        rho = float(p[0, 1] / math.sqrt(p[0, 0] * p[1, 1])) if p[0, 0] > 0 and p[1, 1] > 0 else 0.0
-        cov = np.array([[s_nu ** 2, rho * s_nu * s_lh], [rho * s_nu * s_lh, s_lh ** 2]])
+        var = np.array([res.sigma_nu ** 2, (res.sigma_lh_m * UM_PER_M) ** 2])
         cal = sim.params.calibration if sim is not None else None
         if cal is not None and cal.has_response and _validated(tracker, iid):
-            share = np.diag(cal.cov(res.nu_n_per_v))
-            cov = cov.copy()
-            cov[0, 0], cov[1, 1] = max(cov[0, 0] - share[0], p[0, 0]), max(cov[1, 1] - share[1], p[1, 1])
-            cov[0, 1] = cov[1, 0] = rho * math.sqrt(cov[0, 0] * cov[1, 1])
+            var = np.maximum(var - np.diag(cal.cov(res.nu_n_per_v)), np.diag(p))
+        rho = float(p[0, 1] / math.sqrt(p[0, 0] * p[1, 1])) if p[0, 0] > 0 and p[1, 1] > 0 else 0.0
+        c = rho * math.sqrt(var[0] * var[1])
+        cov = np.array([[var[0], c], [c, var[1]]])
     return compensator.update(iid, ok, sim, res.nu_n_per_v, res.lh_m * UM_PER_M,
                               cov, inj.f_open_n if preload_n is None else preload_n,
                               tracker.nominal_simulator(inj.dt_s), res.rate_n_per_v_s, inj.time_s)
