@@ -246,7 +246,6 @@ def run_bench(scenario_name: str, bus: str | None, seconds: float | None, out_di
     """Run one scenario end to end (its node on the named ``drive`` if given, see
     :data:`estimator.model.drive.DRIVES`); returns the score dict (also written to out_dir)."""
     sc = scenarios.get(scenario_name, seconds=seconds)
-    out_dir = out_dir.absolute()     # the daemon runs elsewhere: its state directory must be this one
     out_dir.mkdir(parents=True, exist_ok=True)
     bus, hub = resolve_bus(bus, out_dir)
     codec = Codec()

@@ -105,15 +105,13 @@ def bench_of(report: Report) -> str:
     name = str(report.get("benchmark", ""))
     if name == "daemon" and report.get("self_calibration"):
         return "daemon --self-calibration"
-    if name == "accuracy":
-        summary = report.get("summary", {})
-        return f"accuracy --sweep {summary.get('sweep')}" + (" (mismatch)" if summary.get("mismatch") else "")
     if name == "bench":
         return f"bench --scenario {report.get('scenario')}"
-    if name == "tracking":
+    if name in ("accuracy", "tracking"):     # one report per sweep or scenario, on the exact or a mismatched plant
         summary = report.get("summary", {})
-        scenario = report.get("scenario") or summary.get("scenario")
-        return f"tracking --scenario {scenario}" + (" (mismatch)" if summary.get("mismatch") else "")
+        which = summary.get("sweep") if name == "accuracy" else report.get("scenario") or summary.get("scenario")
+        option = "--sweep" if name == "accuracy" else "--scenario"
+        return f"{name} {option} {which}" + (" (mismatch)" if summary.get("mismatch") else "")
     return name
 
 

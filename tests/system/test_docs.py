@@ -19,6 +19,7 @@ from sim_bench.cli import build_parser as sim_bench_parser
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = ROOT / "docs"
 README = ROOT / "README.md"
+NUMBER = re.compile(r"\d[\d,]*(?:\.\d+)?")   # a figure as the documentation writes it (214,700; 0.211)
 
 
 def _user_docs() -> str:
@@ -111,16 +112,16 @@ def _headline_rows() -> list[list[str]]:
 def test_the_readme_headline_figures_are_the_performance_pages():
     """Each figure the README's headline table states is one the performance page states (the page is
     where a figure is replaced when it is measured again): a README left behind fails here."""
-    number = re.compile(r"\d[\d,]*(?:\.\d+)?")
-    page = {n.replace(",", "") for n in number.findall((ROOT / "docs" / "performance.md").read_text(encoding="utf-8"))}
+    page = set(_numbers((ROOT / "docs" / "performance.md").read_text(encoding="utf-8")))
     rows = _headline_rows()
     assert len(rows) >= 15
-    stale = {row[0]: [n for n in number.findall(row[1]) if n.replace(",", "") not in page] for row in rows}
+    stale = {row[0]: [n for n in _numbers(row[1]) if n not in page] for row in rows}
     assert not {k: v for k, v in stale.items() if v}, stale
 
 
 def _numbers(text: str) -> list[str]:
-    return [n.replace(",", "") for n in re.findall(r"\d[\d,]*(?:\.\d+)?", text)]
+    """The numbers in ``text`` as written, thousands separators dropped."""
+    return [n.replace(",", "") for n in NUMBER.findall(text)]
 
 
 def _states(stream: list[str], text: str) -> bool:
@@ -161,7 +162,6 @@ def test_the_readme_targets_are_the_benches_own():
     (sim_bench.targets, which the bench exits on and the performance page renders)."""
     from sim_bench.targets import TARGETS
 
-    number = re.compile(r"\d[\d,]*(?:\.\d+)?")
     bench = None
     checked = 0
     for what, _current, target, command in (row[:4] for row in _headline_rows()):
@@ -171,8 +171,8 @@ def test_the_readme_targets_are_the_benches_own():
         if bench not in TARGETS:
             continue
         known = {float(t.limit) for t in TARGETS[bench]}
-        known |= {float(n.replace(",", "")) for t in TARGETS[bench] for n in number.findall(t.what)}
-        stated = {float(n.replace(",", "")) for n in number.findall(target)}
+        known |= {float(n) for t in TARGETS[bench] for n in _numbers(t.what)}
+        stated = {float(n) for n in _numbers(target)}
         assert stated <= known, (what, bench, sorted(stated - known))
         checked += 1
     assert checked >= 5
