@@ -22,19 +22,46 @@ Report = dict[str, Any]
 
 
 class Figure(NamedTuple):
-    """One headline figure: the report it comes from (``bench``: the report's ``benchmark``, with
-    `` --self-calibration`` for the daemon's learning run), its name, how it is read from one report
-    (a number, or a list whose range is the figure: lots, parts), its decimals (negative: rounded to
-    tens, hundreds, ..., with thousands separated), whether several runs are stated as the range
-    alone (``spread``) rather than the median and the range, and whether the README's headline table
-    states it (the performance page states every one)."""
+    """One published figure: the report it comes from (``bench``, as :func:`bench_of` names it), its
+    name, how it is read from one report (a number, or a list whose range is the figure: lots, parts),
+    its decimals (negative: rounded to tens, hundreds, ..., with thousands separated), the row of the
+    performance page that states it (the start of one table line; None: its prose), whether the
+    README's headline table states it too, and whether several runs are stated as the range alone
+    (``spread``) rather than the median and the range."""
 
     bench: str
     name: str
     read: Callable[[Report], float | list[float]]
     digits: int
-    headline: bool = True
+    row: str | None
+    headline: bool = False
     spread: bool = False
+
+
+def _summary(key: str, scale: float = 1.0) -> Callable[[Report], float]:
+    """A key of the report's ``summary`` (times ``scale``: a fraction as a percentage)."""
+    return lambda r: scale * r["summary"][key]
+
+
+def _part(*keys: str) -> Callable[[Report], float]:
+    """The figure at ``keys`` in the report's nested sections."""
+    def read(r: Report) -> float:
+        value: Any = r
+        for k in keys:
+            value = value[k]
+        return float(value)
+    return read
+
+
+def _count(fraction: str, of: str = "n") -> Callable[[Report], float]:
+    """How many a fraction of the summary is of its ``of`` count."""
+    return lambda r: round(r["summary"][fraction] * r["summary"][of])
+
+
+def _ok_within_3_sigma(r: Report) -> float:
+    """How many ``ok`` estimates of an accuracy sweep lie within 3σ."""
+    s = r["summary"]
+    return round(s["ok_within_3_sigma"] * round(s["ok_fraction"] * s["n"]))
 
 
 def _lots(key: str, figure: str, loop: str = "closed") -> Callable[[Report], list[float]]:
@@ -46,57 +73,212 @@ def _both(r: Report, what: str) -> float:
     return float(r["summary"][f"offline_{what}"] + r["summary"][f"online_{what}"])
 
 
-def _variant(r: Report, name: str) -> dict[str, Any]:
-    """One variant's summary of a ``selfcal`` report."""
-    return next(v for v in r["summary"] if v["variant"] == name)
+def _variant(name: str, key: str) -> Callable[[Report], float]:
+    """One variant's figure in a ``selfcal`` report."""
+    return lambda r: next(v for v in r["summary"] if v["variant"] == name)[key]
 
 
-def _series_rows(r: Report, key: str) -> list[float]:
-    return [float(row[key]) for row in r["rows"] if not row.get("exact")]
+def _series_rows(key: str) -> Callable[[Report], list[float]]:
+    """A figure of every series part (not the exact injector) of ``selfcal --online``."""
+    return lambda r: [float(row[key]) for row in r["rows"] if not row.get("exact")]
 
+
+def _lot_rows(key: str) -> Callable[[Report], list[float]]:
+    """A figure of every position of the lot's life that has it."""
+    return lambda r: [float(row[key]) for row in r["rows"] if row.get(key) is not None]
+
+
+def _attack(row: str, key: str) -> Callable[[Report], float]:
+    """A figure of one reliability row."""
+    return lambda r: r["rows"][row][key]
+
+
+def _hazards(key: str) -> Callable[[Report], float]:
+    """The worst of the state-directory hazards' (the second daemon's row apart)."""
+    return lambda r: max(h[key] for h in r["rows"]["state-dir"]["hazards"] if "second_exit" not in h)
+
+
+def _second(key: str) -> Callable[[Report], float]:
+    """The second daemon on a held state directory."""
+    return lambda r: next(h[key] for h in r["rows"]["state-dir"]["hazards"] if "second_exit" in h)
+
+
+def _workers(n: int, key: str) -> Callable[[Report], float]:
+    """A figure of the fleet's run on ``n`` workers."""
+    return lambda r: next(run[key] for run in r["runs"] if run["workers"] == n)
+
+
+def _accuracy(sweep: str, row: str, *figures: tuple[str, Callable[[Report], float], int],
+              headline: tuple[str, ...] = ()) -> tuple[Figure, ...]:
+    return tuple(Figure(f"accuracy --sweep {sweep}", name, read, digits, row, name in headline)
+                 for name, read, digits in figures)
+
+
+def _tracking(scenario: str, row: str, lh_digits: int = 3, nu_digits: int = 3) -> tuple[Figure, ...]:
+    """A tracking scenario's row: filtered L_h and N_u RMS, RMS(error/σ) and the outliers counted."""
+    bench = f"tracking --scenario {scenario}"
+    return (Figure(bench, "rms_lh_um", _summary("rms_lh_um"), lh_digits, row),
+            Figure(bench, "rms_nu_pct", _summary("rms_nu_pct"), nu_digits, row),
+            Figure(bench, "sigma_ratio_lh", _summary("sigma_ratio_lh"), 2, row,
+                   headline=scenario == "spread-injector"),
+            Figure(bench, "outliers", _summary("outliers"), 0, row))
+
+
+RMSE_LH = ("rmse_lh_um", _summary("rmse_lh_um"), 3)
+CRB_LH = ("crb_lh_um", _summary("crb_lh_um"), 3)
+FALSE_MISMATCH = ("false_mismatch_pct", _summary("mismatch_fraction", 100), 0)
+MISMATCH = ("mismatch_pct", _summary("mismatch_fraction", 100), 0)
+OK_FAR = ("ok_off_by_more_than_0p3", _summary("ok_off_by_more_than_0p3"), 0)
+Z_RMS = ("rms_error_over_sigma", _summary("rms_error_over_sigma"), 2)
+HYSTERESIS_ROW = "| steady / fast-ramp / lh-step / glitch | hysteresis"
+LEARNING_ROW = "| four series injectors learning at once"
 
 FIGURES: tuple[Figure, ...] = (
-    Figure("accuracy --sweep random", "rmse_lh_um", lambda r: r["summary"]["rmse_lh_um"], 3),
-    Figure("accuracy --sweep random", "crb_lh_um", lambda r: r["summary"]["crb_lh_um"], 3),
-    Figure("accuracy --sweep random", "rmse_nu_pct", lambda r: r["summary"]["rmse_nu_pct"], 3),
-    Figure("accuracy --sweep random", "crb_nu_pct", lambda r: r["summary"]["crb_nu_pct"], 3),
-    Figure("accuracy --sweep random", "false_mismatch_pct", lambda r: 100 * r["summary"]["mismatch_fraction"], 0),
-    Figure("accuracy --sweep high-noise", "false_mismatch_pct",
-           lambda r: 100 * r["summary"]["mismatch_fraction"], 0),
-    Figure("accuracy --sweep spread", "rms_error_over_sigma", lambda r: r["summary"]["rms_error_over_sigma"], 2),
-    Figure("speed", "warm_median_ms", lambda r: r["warm_median_ms"], 3),
-    Figure("speed", "warm_with_correction_median_ms", lambda r: r["warm_with_correction_median_ms"], 3),
-    Figure("speed", "cold_median_ms", lambda r: r["cold_median_ms"], 2),
-    Figure("daemon", "daemon_p99_ms", lambda r: r["nominal"]["daemon_latency_p99_ms"], 2),
-    Figure("daemon", "ingest_frames_per_s", lambda r: r["ingest"]["frames_per_s"], -2, spread=True),
-    Figure("daemon", "external_p99_ms", lambda r: r["nominal"]["external_latency_p99_ms"], 2, headline=False),
-    Figure("daemon", "overload_p99_ms", lambda r: r["overload"]["daemon_latency_p99_ms"], 2, headline=False),
-    Figure("daemon --self-calibration", "learning_p99_ms", lambda r: r["nominal"]["daemon_latency_p99_ms"], 2),
-    Figure("daemon --self-calibration", "adopted_p99_ms", lambda r: r["adopted"]["daemon_latency_p99_ms"], 2),
-    Figure("compensation", "open_stroke_spread_um", _lots("stroke_spread_um", "settled_median", "open"), 2),
-    Figure("compensation", "open_opening_spread_us", _lots("opening_spread_us", "settled_median", "open"), 1),
-    Figure("compensation", "stroke_spread_um", _lots("stroke_spread_um", "settled_median"), 3),
-    Figure("compensation", "opening_spread_us", _lots("opening_spread_us", "settled_median"), 2),
+    # single injection
+    *_accuracy("random", "| random, exact model | L_h RMSE / CRB", RMSE_LH, CRB_LH, headline=("rmse_lh_um", "crb_lh_um")),
+    *_accuracy("random", "| random, exact model | N_u RMSE / CRB", ("rmse_nu_pct", _summary("rmse_nu_pct"), 3),
+               ("crb_nu_pct", _summary("crb_nu_pct"), 3), headline=("rmse_nu_pct", "crb_nu_pct")),
+    *_accuracy("random", "| random, exact model | opening time RMSE", ("rmse_t_open_us", _summary("rmse_t_open_us"), 2),
+               ("crb_t_open_us", _summary("crb_t_open_us"), 2)),
+    *_accuracy("random", "| random, exact model | `model_mismatch` false alarms", FALSE_MISMATCH,
+               headline=("false_mismatch_pct",)),
+    *_accuracy("near-edge", "| near-edge", RMSE_LH, ("ok_pct", _summary("ok_fraction", 100), 0)),
+    *_accuracy("high-noise", "| 0.3 V noise", RMSE_LH, CRB_LH, FALSE_MISMATCH, headline=("false_mismatch_pct",)),
+    *_accuracy("random (mismatch)", "| hysteresis plant", RMSE_LH, ("max_abs_lh_um", _summary("max_abs_lh_um"), 2)),
+    *_accuracy("spread", "| series parts ±10 %", OK_FAR, Z_RMS, MISMATCH, headline=("rms_error_over_sigma",)),
+    *_accuracy("spread-chain", "| series parts behind an unmodelled chain", OK_FAR, Z_RMS),
+    *_accuracy("chain", "| chain modelled", RMSE_LH, CRB_LH, ("max_abs_nu_pct", _summary("max_abs_nu_pct"), 3)),
+    *_accuracy("preload-off", "| header preload force", OK_FAR, ("ok", _count("ok_fraction"), 0),
+               ("ok_within_3_sigma", _ok_within_3_sigma, 0), Z_RMS, MISMATCH),
+    # the recursive estimator
+    *_tracking("steady", "| steady | exact"),
+    Figure("tracking --scenario steady", "rms_lh_after_um", _summary("rms_lh_after_um"), 3, "| steady | exact",
+           headline=True),
+    *_tracking("temperature-ramp", "| temperature-ramp"),
+    *_tracking("wear", "| wear"),
+    *_tracking("fast-ramp", "| fast-ramp"),
+    *_tracking("lh-step", "| lh-step"),
+    *_tracking("nu-step", "| nu-step"),
+    *_tracking("warm-up", "| warm-up ("),
+    *_tracking("glitch", "| glitch ("),
+    *(Figure(f"tracking --scenario {s} (mismatch)", "rms_lh_um", _summary("rms_lh_um"), 3, HYSTERESIS_ROW)
+      for s in ("steady", "fast-ramp", "lh-step", "glitch")),
+    Figure("tracking --scenario glitch (mismatch)", "outliers", _summary("outliers"), 0, HYSTERESIS_ROW),
+    *_tracking("spread-injector", "| spread-injector", lh_digits=2, nu_digits=1),
+    # learning
+    Figure("tracking --scenario lot-life", "lh_max_within_um", _summary("max_lh_err_within_um"), 3,
+           "| filtered L_h from injection 40, parts within tolerance", headline=True),
+    Figure("tracking --scenario lot-life", "swap_settled_after", _lot_rows("swap_settled_after"), 0,
+           "| swapped part: within 0.15 µm again"),
+    Figure("tracking --scenario lot-life", "ok_far", _summary("ok_far"), 0, "| `ok` while more than 0.3 µm off"),
+    *(Figure("tracking --scenario lot-life", key, _summary(key), 0, "| parts beyond tolerance flagged `out_of_tolerance`")
+      for key in ("flagged_beyond", "beyond", "false_flags", "within")),
+    Figure("tracking --scenario lot-life", "first_adopted", _lot_rows("first_adopted"), 0, "| first adoption"),
+    Figure("bench --scenario series-lot", "max_abs_lh_um", lambda r: r["max_abs_lh_um"], 3,
+           "| end-to-end bench, every scenario", headline=True, spread=True),
+    Figure("selfcal-refusals", "false_refusals", lambda r: _both(r, "refused"), 0,
+           "| false refusals, offline / online", headline=True),
+    Figure("selfcal-refusals", "false_flags", lambda r: _both(r, "false_flags"), 0,
+           "| false `out_of_tolerance`, offline / online", headline=True),
+    Figure("selfcal-refusals", "hysteresis_refused", _summary("hysteresis_refused"), 0, "| hysteresis parts refused"),
+    *(Figure("selfcal-refusals", key, _summary(key), 0, "| parts beyond tolerance flagged, first window")
+      for key in ("beyond_flagged_online", "beyond_flagged_refined")),
+    # self-calibration
+    *(Figure("selfcal", f"{key}_{variant}", _variant(variant, key), digits, row,
+             headline=variant == "plain" and key in ("lh_rms_um", "lh_max_um", "nu_max_pct"))
+      for variant, row in (("plain", "| plain |"), ("chain", "| chain (300 kHz")) for key, digits in
+      (("adopted", 0), ("lh_rms_um", 3), ("lh_max_um", 3), ("nu_max_pct", 3), ("lh_max_z", 2), ("nu_max_z", 2),
+       ("calibration_seconds_median", 1))),
+    *(Figure("selfcal", f"{key}_mismatch", _variant("mismatch", key), digits, "| mismatch (chain + hysteresis)")
+      for key, digits in (("lh_rms_um", 3), ("lh_max_um", 2), ("nu_max_pct", 1), ("calibration_seconds_median", 1))),
+    Figure("selfcal", "lh_max_z", lambda r: max(_variant(v, "lh_max_z")(r) for v in ("plain", "chain")), 1, None,
+           headline=True),
+    Figure("selfcal-online", "adopted_at", _series_rows("adopted_at"), 0, "| injections until adoption",
+           headline=True),
+    Figure("selfcal-online", "lh_max_from_40_um", lambda r: max(_series_rows("max_lh_err_from_um")(r)), 3,
+           "| filtered L_h error from injection 40 on", headline=True),
+    Figure("selfcal-online", "lh_max_z_from_40", lambda r: max(_series_rows("max_lh_z_from")(r)), 2,
+           "| filtered L_h error from injection 40 on"),
+    *(Figure("selfcal-online", key, _part("speed", key), 2, "| update of a mismatched injector")
+      for key in ("median_during_ms", "p99_during_ms", "median_ms")),
+    Figure("selfcal-online", "p99_ms", _part("speed", "p99_ms"), 1, "| update of a mismatched injector"),
+    # speed
+    Figure("speed", "warm_median_ms", lambda r: r["warm_median_ms"], 3, "| warm per-injection update, median",
+           headline=True),
+    Figure("speed", "warm_with_correction_median_ms", lambda r: r["warm_with_correction_median_ms"], 3,
+           "| the same through the daemon's processor", headline=True),
+    Figure("speed", "cold_median_ms", lambda r: r["cold_median_ms"], 2, "| cold start, median", headline=True),
+    Figure("speed", "first_call_ms", lambda r: r["first_call_ms"], 0, "| first identification in a process"),
+    # the daemon
+    Figure("daemon", "ingest_frames_per_s", lambda r: r["ingest"]["frames_per_s"], -2, "| ingest", headline=True,
+           spread=True),
+    Figure("daemon", "daemon_p99_ms", lambda r: r["nominal"]["daemon_latency_p99_ms"], 2,
+           "| latency, last frame → EstimateState", headline=True),
+    Figure("daemon", "external_p99_ms", lambda r: r["nominal"]["external_latency_p99_ms"], 2,
+           "| the same seen from another process"),
+    Figure("daemon", "overload_p99_ms", lambda r: r["overload"]["daemon_latency_p99_ms"], 2, "| 2× overload"),
+    Figure("daemon --self-calibration", "learning_p99_ms", lambda r: r["nominal"]["daemon_latency_p99_ms"], 2,
+           LEARNING_ROW, headline=True),
+    *(Figure("daemon --self-calibration", f"{stage}_p99_ms", _part("nominal", "daemon_stage_p99_ms", stage), 2,
+             LEARNING_ROW) for stage in ("queue", "assembly", "estimation", "send")),
+    Figure("daemon --self-calibration", "adopted_p99_ms", lambda r: r["adopted"]["daemon_latency_p99_ms"], 2,
+           "| the same injectors once adopted", headline=True),
+    Figure("daemon --self-calibration", "overload_p99_ms", lambda r: r["overload"]["daemon_latency_p99_ms"], 1,
+           "| the same, then 400/s"),
+    Figure("bench --scenario nominal", "max_abs_lh_um", lambda r: r["max_abs_lh_um"], 3,
+           "| end-to-end bench, nominal", headline=True),
+    Figure("bench --scenario nominal", "rms_lh_um", lambda r: r["rms_lh_um"], 3, "| end-to-end bench, nominal"),
+    Figure("reliability", "hazard_ready_s", _hazards("ready_s"), 1, "| state-directory hazards", spread=True),
+    Figure("reliability", "hazard_rss_mb", _hazards("rss_mb"), 0, "| state-directory hazards", spread=True),
+    Figure("reliability", "second_exit", _second("second_exit"), 0, "| a second daemon", spread=True),
+    Figure("reliability", "second_s", _second("second_s"), 1, "| a second daemon", spread=True),
+    *(Figure("reliability", f"{attack}: {key}", _attack(attack, key), digits, row, spread=True)
+      for attack, row in (("period-flood", "| a stranger's cheap flood"), ("full-flood", "| a stranger's well-formed"),
+                          ("sighup-burst", "| 50 SIGHUPs"), ("command-flood", "| 1,000 reset commands"))
+      for key, digits in (("legit_estimated", 0), ("legit_p99_ms", 1))),
+    Figure("reliability", "period-flood: attacker_counted", _attack("period-flood", "attacker_counted"), 0,
+           "| a stranger's cheap flood", spread=True),
+    Figure("reliability", "full-flood: attacker_counted", _attack("full-flood", "attacker_counted"), 0,
+           "| a stranger's well-formed", spread=True),
+    Figure("reliability", "command-flood: commands_applied", _attack("command-flood", "commands_applied"), 0,
+           "| 1,000 reset commands", spread=True),
+    # drive compensation
+    Figure("compensation", "open_stroke_spread_um", _lots("stroke_spread_um", "settled_median", "open"), 2,
+           "| plateau-stroke spread, open loop", headline=True),
+    Figure("compensation", "open_stroke_spread_p95_um", _lots("stroke_spread_um", "settled_p95", "open"), 2,
+           "| plateau-stroke spread, open loop"),
+    Figure("compensation", "stroke_spread_um", _lots("stroke_spread_um", "settled_median"), 3,
+           "| the same, closed loop (each correction", headline=True),
+    Figure("compensation", "stroke_spread_p95_um", _lots("stroke_spread_um", "settled_p95"), 3,
+           "| the same, closed loop (each correction"),
+    Figure("compensation", "open_opening_spread_us", _lots("opening_spread_us", "settled_median", "open"), 1,
+           "| opening-instant spread, open loop", headline=True),
+    Figure("compensation", "open_opening_spread_p95_us", _lots("opening_spread_us", "settled_p95", "open"), 1,
+           "| opening-instant spread, open loop"),
+    Figure("compensation", "opening_spread_us", _lots("opening_spread_us", "settled_median"), 2,
+           "| the same, closed loop |", headline=True),
+    Figure("compensation", "opening_spread_p95_us", _lots("opening_spread_us", "settled_p95"), 2,
+           "| the same, closed loop |"),
+    Figure("compensation", "bus_stroke_spread_um", _lots("stroke_spread_um", "settled_median", "closed_bus"), 3,
+           "| closed loop with the correction carried"),
+    Figure("compensation", "bus_opening_spread_us", _lots("opening_spread_us", "settled_median", "closed_bus"), 2,
+           "| closed loop with the correction carried"),
     Figure("compensation", "settle_injections",
-           lambda r: [p["settle_injections"] for lot in r["lots"] for p in lot["closed"]["injectors"]], 0),
-    Figure("compensation", "z_rms_stroke", lambda r: r["z_rms_stroke"], 2),
-    Figure("compensation", "z_rms_opening", lambda r: r["z_rms_opening"], 2),
-    Figure("selfcal", "lh_rms_um", lambda r: _variant(r, "plain")["lh_rms_um"], 3),
-    Figure("selfcal", "lh_max_um", lambda r: _variant(r, "plain")["lh_max_um"], 3),
-    Figure("selfcal", "nu_max_pct", lambda r: _variant(r, "plain")["nu_max_pct"], 3),
-    Figure("selfcal", "lh_max_z", lambda r: max(_variant(r, v)["lh_max_z"] for v in ("plain", "chain")), 1),
-    Figure("selfcal", "lh_max_z_plain", lambda r: _variant(r, "plain")["lh_max_z"], 2, headline=False),
-    Figure("selfcal", "lh_max_z_chain", lambda r: _variant(r, "chain")["lh_max_z"], 2, headline=False),
-    Figure("selfcal-online", "lh_max_from_40_um", lambda r: max(_series_rows(r, "max_lh_err_from_um")), 3),
-    Figure("selfcal-online", "adopted_at", lambda r: _series_rows(r, "adopted_at"), 0),
-    Figure("bench --scenario nominal", "max_abs_lh_um", lambda r: r["max_abs_lh_um"], 3),
-    Figure("bench --scenario series-lot", "max_abs_lh_um", lambda r: r["max_abs_lh_um"], 3, spread=True),
-    Figure("selfcal-refusals", "false_refusals", lambda r: _both(r, "refused"), 0),
-    Figure("selfcal-refusals", "false_flags", lambda r: _both(r, "false_flags"), 0),
-    Figure("tracking --scenario steady", "rms_lh_after_um", lambda r: r["summary"]["rms_lh_after_um"], 3),
-    Figure("tracking --scenario spread-injector", "sigma_ratio_lh", lambda r: r["summary"]["sigma_ratio_lh"], 2),
-    Figure("tracking --scenario lot-life", "lh_max_within_um",
-           lambda r: r["summary"]["max_lh_err_within_um"], 3),
+           lambda r: [p["settle_injections"] for lot in r["lots"] for p in lot["closed"]["injectors"]], 0,
+           "| injections from the model's adoption", headline=True),
+    Figure("compensation", "z_rms_stroke", lambda r: r["z_rms_stroke"], 2, "| RMS(error/σ) of the predicted stroke",
+           headline=True),
+    Figure("compensation", "z_rms_opening", lambda r: r["z_rms_opening"], 2, "| RMS(error/σ) of the predicted stroke",
+           headline=True),
+    # lots
+    *(Figure(f"fleet-bench{option}", name, _workers(n, key), digits, row)
+      for option, row in (("", "| one trace per injector"), (" --captures", "| one BLF capture"))
+      for name, n, key, digits in (("ready_per_s_1w", 1, "work_per_worker_per_s", 0),
+                                   ("per_s_1w", 1, "injections_per_s", 0),
+                                   ("ready_per_worker_per_s_2w", 2, "work_per_worker_per_s", 0),
+                                   ("scaling_ready_2w", 2, "scaling_efficiency_ready", 2),
+                                   ("rms_lh_um", 1, "rms_lh_um", 3), ("bad_flagged", 1, "bad_flagged", 0),
+                                   ("bad_injectors", 1, "bad_injectors", 0), ("good_flagged", 1, "good_flagged", 0))),
 )
 
 
@@ -107,6 +289,8 @@ def bench_of(report: Report) -> str:
         return "daemon --self-calibration"
     if name == "bench":
         return f"bench --scenario {report.get('scenario')}"
+    if name == "fleet":
+        return "fleet-bench" + (" --captures" if report.get("inputs") == "captures" else "")
     if name in ("accuracy", "tracking"):     # one report per sweep or scenario, on the exact or a mismatched plant
         summary = report.get("summary", {})
         which = summary.get("sweep") if name == "accuracy" else report.get("scenario") or summary.get("scenario")
@@ -182,7 +366,8 @@ def publish(directories: Iterable[Path]) -> dict[str, dict[str, Any]]:
 
 
 def main(directories: list[Path], output: Path) -> int:
-    """Write ``output`` with the figures found (those already there and not measured again stay)."""
+    """Write ``output`` with the figures found (those already there and not measured again stay, those
+    :data:`FIGURES` no longer names go)."""
     found = publish(directories)
     if not found:
         print(f"no bench report with a headline figure under {', '.join(map(str, directories))}")
@@ -192,6 +377,10 @@ def main(directories: list[Path], output: Path) -> int:
     except ValueError:
         current = {}
     current.update(found)
+    known = {f"{f.bench}: {f.name}" for f in FIGURES}
+    for name in sorted(set(current) - known):         # a figure no bench publishes any more
+        print(f"{name}: no longer published, removed")
+        del current[name]
     output.write_text(json.dumps(dict(sorted(current.items())), indent=1, ensure_ascii=False) + "\n",
                       encoding="utf-8")
     for name, fig in found.items():

@@ -1,5 +1,5 @@
 """Fleet analysis on Dask: many captures and traces, one command, one machine or a cluster.
 
-The top layer: it imports the service layer's pipeline (:mod:`estimator.pipeline.estimates`) and
-dask.distributed; nothing below imports it.
+The top layer, beside the daemon: it builds on the pipeline (:mod:`estimator.pipeline.estimates`)
+and dask.distributed, never on the daemon's modules; nothing below imports it.
 """

@@ -130,29 +130,46 @@ def _states(stream: list[str], text: str) -> bool:
     return any(stream[i:i + len(want)] == want for i in range(len(stream) - len(want) + 1))
 
 
+def _page_rows(row: str, lines: list[str]) -> list[str]:
+    return [line for line in lines if line.startswith(row)]
+
+
+def test_every_published_figure_has_one_row_on_the_performance_page():
+    """Each figure :data:`sim_bench.published.FIGURES` knows names the start of one table line of the
+    performance page (a row renamed or split leaves its figures unchecked otherwise)."""
+    from sim_bench.published import FIGURES
+
+    lines = (DOCS / "performance.md").read_text(encoding="utf-8").splitlines()
+    rows = {f.row for f in FIGURES if f.row is not None}
+    assert len(rows) >= 50
+    assert not {r: n for r in rows if (n := len(_page_rows(r, lines))) != 1}
+
+
 def test_the_published_figures_are_what_the_readme_and_the_performance_page_state():
     """docs/figures.json is where a current figure comes from (``sim_bench publish`` writes it from the
-    benches' JSON reports): the performance page states each published figure (a lot's or a part's
-    values each), and the README's headline table each one it has a row for. Publishing a figure
-    measured again fails here until both say it."""
+    benches' JSON reports) and holds every figure the benches publish: the performance page states
+    each in its row (a lot's or a part's values each), the README's headline table each one it has a
+    row for. Publishing a figure measured again fails here until both say it."""
     import json
 
     from sim_bench.published import FIGURES
 
     figures = json.loads((DOCS / "figures.json").read_text(encoding="utf-8"))
     known = {f"{f.bench}: {f.name}": f for f in FIGURES}
-    assert set(figures) <= set(known) and len(figures) >= 10, sorted(set(figures) - set(known))
-    page = _numbers((DOCS / "performance.md").read_text(encoding="utf-8"))
+    assert set(figures) == set(known), (sorted(set(figures) - set(known)), sorted(set(known) - set(figures)))
+    page = (DOCS / "performance.md").read_text(encoding="utf-8")
+    lines = page.splitlines()
     readme = _numbers(" ".join(row[1] for row in _headline_rows()))
     wrong = []
     for name, fig in figures.items():
-        digits = known[name].digits
+        figure = known[name]
+        where = _page_rows(figure.row, lines)[0] if figure.row else page
+        stated = _numbers(where)
         each_value = fig["runs"] == 1 and len(fig["values"]) > 1      # one run's lots or parts
-        on_page = _states(page, fig["text"]) or (each_value and all(f"{v:.{digits}f}" in page
-                                                                     for v in fig["values"]))
-        if not on_page:
-            wrong.append(f"performance page: {name} {fig['text']}")
-        if known[name].headline and not _states(readme, fig["text"]):
+        if not (_states(stated, fig["text"]) or
+                (each_value and all(f"{v:.{figure.digits}f}" in stated for v in fig["values"]))):
+            wrong.append(f"performance page, {figure.row or 'prose'}: {name} {fig['text']}")
+        if figure.headline and not _states(readme, fig["text"]):
             wrong.append(f"README: {name} {fig['text']}")
     assert not wrong, wrong
 
@@ -181,7 +198,8 @@ def test_the_readme_targets_are_the_benches_own():
 def test_publish_takes_the_median_and_range_of_runs_and_a_lots_range_of_one(tmp_path):
     """``sim_bench publish``: five speed runs give the median and the range; one compensation run the
     range over its lots; a tracking report's lot-life scenario counts as that bench; figures not
-    measured again stay; a directory that is not one is refused with one line."""
+    measured again stay, one no bench publishes goes; a directory that is not one is refused with one
+    line."""
     import json
     import subprocess
     import sys
@@ -200,7 +218,8 @@ def test_publish_takes_the_median_and_range_of_runs_and_a_lots_range_of_one(tmp_
         {"benchmark": "tracking", "reports": [{"benchmark": "tracking", "scenario": "lot-life",
                                                "summary": {"max_lh_err_within_um": 0.0751}}]}))
     out = tmp_path / "figures.json"
-    out.write_text(json.dumps({"daemon: daemon_p99_ms": {"text": "1.92", "runs": 1, "values": [1.92]}}))
+    out.write_text(json.dumps({"daemon: daemon_p99_ms": {"text": "1.92", "runs": 1, "values": [1.92]},
+                               "speed: a figure no bench publishes": {"text": "1", "runs": 1, "values": [1.0]}}))
     cmd = [sys.executable, "-m", "sim_bench", "publish", *(str(tmp_path / f"run{i}") for i in range(5)),
            "--out", str(out)]
     subprocess.run(cmd, check=True, capture_output=True, cwd=ROOT)
@@ -210,5 +229,6 @@ def test_publish_takes_the_median_and_range_of_runs_and_a_lots_range_of_one(tmp_
     assert figs["compensation: stroke_spread_um"]["text"] == "0.100–0.130"
     assert figs["tracking --scenario lot-life: lh_max_within_um"]["text"] == "0.075"
     assert figs["daemon: daemon_p99_ms"]["text"] == "1.92"
+    assert "speed: a figure no bench publishes" not in figs
     bad = subprocess.run([*cmd[:4], str(tmp_path / "nowhere")], capture_output=True, text=True, cwd=ROOT)
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
