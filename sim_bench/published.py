@@ -124,6 +124,23 @@ def _tracking(scenario: str, row: str, lh_digits: int = 3, nu_digits: int = 3) -
             Figure(bench, "outliers", _summary("outliers"), 0, row))
 
 
+def _spreads(loop: str, prefix: str, stroke_row: str, stroke_digits: int, opening_row: str, opening_digits: int,
+             p95: bool = True) -> tuple[Figure, ...]:
+    """``compensation``'s plateau-stroke and opening-instant spreads across each lot once settled, in
+    one loop: the median (a README headline figure for the open and the closed loop) and the 95th
+    percentile."""
+    out = []
+    for what, unit, row, digits in (("stroke", "um", stroke_row, stroke_digits),
+                                    ("opening", "us", opening_row, opening_digits)):
+        key = f"{what}_spread_{unit}"
+        out.append(Figure("compensation", prefix + key, _lots(key, "settled_median", loop), digits, row,
+                          headline=loop in ("open", "closed")))
+        if p95:
+            out.append(Figure("compensation", f"{prefix}{what}_spread_p95_{unit}", _lots(key, "settled_p95", loop),
+                              digits, row))
+    return tuple(out)
+
+
 RMSE_LH = ("rmse_lh_um", _summary("rmse_lh_um"), 3)
 CRB_LH = ("crb_lh_um", _summary("crb_lh_um"), 3)
 FALSE_MISMATCH = ("false_mismatch_pct", _summary("mismatch_fraction", 100), 0)
@@ -243,26 +260,10 @@ FIGURES: tuple[Figure, ...] = (
     Figure("reliability", "command-flood: commands_applied", _attack("command-flood", "commands_applied"), 0,
            "| 1,000 reset commands", spread=True),
     # drive compensation
-    Figure("compensation", "open_stroke_spread_um", _lots("stroke_spread_um", "settled_median", "open"), 2,
-           "| plateau-stroke spread, open loop", headline=True),
-    Figure("compensation", "open_stroke_spread_p95_um", _lots("stroke_spread_um", "settled_p95", "open"), 2,
-           "| plateau-stroke spread, open loop"),
-    Figure("compensation", "stroke_spread_um", _lots("stroke_spread_um", "settled_median"), 3,
-           "| the same, closed loop (each correction", headline=True),
-    Figure("compensation", "stroke_spread_p95_um", _lots("stroke_spread_um", "settled_p95"), 3,
-           "| the same, closed loop (each correction"),
-    Figure("compensation", "open_opening_spread_us", _lots("opening_spread_us", "settled_median", "open"), 1,
-           "| opening-instant spread, open loop", headline=True),
-    Figure("compensation", "open_opening_spread_p95_us", _lots("opening_spread_us", "settled_p95", "open"), 1,
-           "| opening-instant spread, open loop"),
-    Figure("compensation", "opening_spread_us", _lots("opening_spread_us", "settled_median"), 2,
-           "| the same, closed loop |", headline=True),
-    Figure("compensation", "opening_spread_p95_us", _lots("opening_spread_us", "settled_p95"), 2,
-           "| the same, closed loop |"),
-    Figure("compensation", "bus_stroke_spread_um", _lots("stroke_spread_um", "settled_median", "closed_bus"), 3,
-           "| closed loop with the correction carried"),
-    Figure("compensation", "bus_opening_spread_us", _lots("opening_spread_us", "settled_median", "closed_bus"), 2,
-           "| closed loop with the correction carried"),
+    *_spreads("open", "open_", "| plateau-stroke spread, open loop", 2, "| opening-instant spread, open loop", 1),
+    *_spreads("closed", "", "| the same, closed loop (each correction", 3, "| the same, closed loop |", 2),
+    *_spreads("closed_bus", "bus_", "| closed loop with the correction carried", 3,
+              "| closed loop with the correction carried", 2, p95=False),
     Figure("compensation", "settle_injections",
            lambda r: [p["settle_injections"] for lot in r["lots"] for p in lot["closed"]["injectors"]], 0,
            "| injections from the model's adoption", headline=True),
