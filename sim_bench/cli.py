@@ -38,6 +38,31 @@ def _add_drive_argument(s: argparse.ArgumentParser, default_text: str) -> None:
                    help=f"amplifier current shape (estimator.model.drive; default: {default_text})")
 
 
+def _preload_force(text: str) -> float:
+    """``--preload N``: a preload force within the lot's range (N)."""
+    from sim_bench.series_life import PRELOAD_RANGE_N
+
+    try:
+        f = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a force in N") from None
+    lo, hi = PRELOAD_RANGE_N
+    if not lo <= f <= hi:
+        raise argparse.ArgumentTypeError(f"{f:g} N is outside {lo:g}-{hi:g} N")
+    return f
+
+
+def _injections(text: str) -> int:
+    """A count of injections (a whole number, 0 or more)."""
+    try:
+        k = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if k < 0:
+        raise argparse.ArgumentTypeError(f"{k} is negative")
+    return k
+
+
 def _params(args: argparse.Namespace):
     """``--params FILE`` (what ``estimator calibrate --out`` writes) or Tables 1-2."""
     from estimator.model.parameters import load_parameters
@@ -139,8 +164,11 @@ def cmd_tracking(args: argparse.Namespace) -> int:
     """The recursive estimator on drift, steps, glitches and warm-ups; exit 1 if a target is missed."""
     from sim_bench import lot_life, tracking_bench
 
+    if (args.preload is not None or args.narrow_after) and args.scenario != "lot-life":
+        print("error: --preload and --narrow-after are options of --scenario lot-life", file=sys.stderr)
+        return 2
     if args.scenario == "lot-life":
-        life = lot_life.run(args.seed)
+        life = lot_life.run(args.seed, preload_n=args.preload, narrow_after=args.narrow_after)
         print(lot_life.format_report(life))
         _write_json(args.json_out, life)
         return 0 if life["summary"]["passed"] else 1
@@ -568,6 +596,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="default: every scenario matched, and " + ", ".join(tracking_bench.DEFAULT_MISMATCH)
                         + " on the hysteresis plant too")
     s.add_argument("--injections", type=int, default=None, help="override the scenario's length")
+    s.add_argument("--preload", type=_preload_force, default=None, metavar="N",
+                   help="lot-life at this one preload force (N, 28-300) instead of a wandering rail pressure")
+    s.add_argument("--narrow-after", type=_injections, default=0, metavar="K",
+                   help="lot-life learning with the self-calibration's narrow_after = K (default 0: off)")
     _add_drive_argument(s, "the scenario's")
     s.add_argument("--seed", type=int, default=2, help="seed of the random draws (default 2)")
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "tracking.json", help="JSON report (default bench-results/tracking.json)")

@@ -12,6 +12,10 @@ the run is deterministic). Judged on what a user of the lot needs:
 - every part beyond tolerance flagged ``out_of_tolerance``. A part within tolerance that is flagged is
   counted and shown (the false-flag rate, at most 1 %, is measured over many more parts by
   ``python -m sim_bench selfcal --refusals``), not failed here.
+
+With ``preload_n`` the rail pressure stands still at that preload force (a test bench at one
+operating point): with the default settings the parts do not learn (no span of preload forces); with
+``narrow_after`` they learn over that one force.
 """
 
 from __future__ import annotations
@@ -35,22 +39,30 @@ INTERVAL_S = 1.0
 DEFAULT_SEED = 5
 
 
-def run(seed: int = DEFAULT_SEED, positions: int = POSITIONS, injections: int = INJECTIONS) -> dict[str, Any]:
-    """Every position of a seeded lot through its life; a JSON-ready report with a row per position."""
+def run(seed: int = DEFAULT_SEED, positions: int = POSITIONS, injections: int = INJECTIONS,
+        preload_n: float | None = None, narrow_after: int = 0) -> dict[str, Any]:
+    """Every position of a seeded lot through its life (at one preload force ``preload_n``, N, or
+    the rail pressure wandering; learning with ``narrow_after``); a JSON-ready report with a row per
+    position."""
     spec = LotSpec(beyond_fraction=BEYOND_FRACTION, swap_at=SWAP_AT if injections > SWAP_AT else None,
                    swapped=SWAPPED)
-    rows = [_run_life(life, injections) for life in draw_lot(positions, seed, spec)]
+    preloads = None if preload_n is None else [float(preload_n)] * injections
+    learning = SelfCalConfig(narrow_after=narrow_after)
+    rows = [_run_life(life, injections, learning, preloads) for life in draw_lot(positions, seed, spec)]
     fails = [f"position {r['position']}: {f}" for r in rows for f in r["failures"]]
+    summary = _summary(rows, fails, injections)
+    if preload_n is not None or narrow_after:
+        summary.update(preload_n=preload_n, narrow_after=narrow_after)
     return {"benchmark": "tracking", "scenario": "lot-life", "seed": seed, "positions": positions,
-            "injections": injections, "swap_at": spec.swap_at, "rows": rows,
-            "summary": _summary(rows, fails, injections)}
+            "injections": injections, "swap_at": spec.swap_at, "preload_n": preload_n, "narrow_after": narrow_after,
+            "rows": rows, "summary": summary}
 
 
-def _run_life(life: Any, n: int) -> dict[str, Any]:
-    tracker = Tracker(TrackerConfig(), self_calibration=SelfCalConfig())
+def _run_life(life: Any, n: int, learning: SelfCalConfig, preloads: list[float] | None = None) -> dict[str, Any]:
+    tracker = Tracker(TrackerConfig(), self_calibration=learning)
     out = []
     seconds = []
-    for inj, _m, truth in life.injections(n, interval_s=INTERVAL_S):
+    for inj, _m, truth in life.injections(n, interval_s=INTERVAL_S, preloads=preloads):
         t0 = time.perf_counter()
         r = tracker.update(inj)
         seconds.append(time.perf_counter() - t0)
@@ -121,8 +133,11 @@ COLUMNS = [keyed("pos", "", ">3", "position"),
 def format_report(rep: dict[str, Any]) -> str:
     """A row per position, then the lot's verdict."""
     s = rep["summary"]
+    rail = "the rail pressure wandering" if rep.get("preload_n") is None else f"at {rep['preload_n']:g} N throughout"
+    if rep.get("narrow_after"):
+        rail += f", narrow_after {rep['narrow_after']}"
     title = (f"lot-life - {rep['positions']} series injectors (±10 %, {s['beyond']} beyond tolerance, one swapped at "
-             f"injection {rep['swap_at']}), {rep['injections']} injections each, default settings (learning on); "
+             f"injection {rep['swap_at']}), {rep['injections']} injections each, {rail}, default settings (learning on); "
              f"targets: filtered L_h within {LH_UM} µm from injection {FROM} (swapped: {SWAP_SETTLE} after the swap), "
              f"never ok while > {OK_UM} µm off, parts beyond tolerance flagged (BEYOND: the part mounted at the end)")
     table = render(COLUMNS, rep["rows"], verdict)

@@ -191,6 +191,11 @@ FIGURES: tuple[Figure, ...] = (
     *(Figure("tracking --scenario lot-life", key, _summary(key), 0, "| parts beyond tolerance flagged `out_of_tolerance`")
       for key in ("flagged_beyond", "beyond", "false_flags", "within")),
     Figure("tracking --scenario lot-life", "first_adopted", _lot_rows("first_adopted"), 0, "| first adoption"),
+    *(Figure(f"tracking --scenario lot-life --preload {f}{narrow}", key, _summary(key), digits,
+             f"| {f} N{', `--narrow-after 12`' if narrow else ''} |")
+      for f, narrow in (("28", ""), ("100", ""), ("28", " --narrow-after 12"), ("100", " --narrow-after 12"),
+                        ("250", " --narrow-after 12"))
+      for key, digits in (("max_lh_err_within_um", 3), ("ok_far", 0), ("flagged_beyond", 0))),
     Figure("bench --scenario series-lot", "max_abs_lh_um", lambda r: r["max_abs_lh_um"], 3,
            "| end-to-end bench, every scenario", headline=True, spread=True),
     Figure("selfcal-refusals", "false_refusals", lambda r: _both(r, "refused"), 0,
@@ -296,6 +301,10 @@ def bench_of(report: Report) -> str:
         summary = report.get("summary", {})
         which = summary.get("sweep") if name == "accuracy" else report.get("scenario") or summary.get("scenario")
         option = "--sweep" if name == "accuracy" else "--scenario"
+        if summary.get("preload_n") is not None:     # the lot's life at one rail pressure
+            which += f" --preload {summary['preload_n']:g}"
+        if summary.get("narrow_after"):
+            which += f" --narrow-after {summary['narrow_after']}"
         return f"{name} {option} {which}" + (" (mismatch)" if summary.get("mismatch") else "")
     return name
 

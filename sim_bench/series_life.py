@@ -15,7 +15,7 @@ end-to-end ``series-lot`` bench run.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -117,13 +117,14 @@ class Life:
         self._preload = None
         return np.array([self._walk(rng) for _ in range(n)])
 
-    def injections(self, n: int, rng: np.random.Generator | None = None,
-                   interval_s: float = 1.0) -> Iterator[tuple[Injection, Measurement, dict]]:
-        """The first ``n`` injections: (what the estimator gets, the plant's measurement, the truth)."""
+    def injections(self, n: int, rng: np.random.Generator | None = None, interval_s: float = 1.0,
+                   preloads: Sequence[float] | None = None) -> Iterator[tuple[Injection, Measurement, dict]]:
+        """The first ``n`` injections: (what the estimator gets, the plant's measurement, the truth).
+        ``preloads``: each injection's preload force (N) instead of the rail pressure's walk."""
         rng = rng if rng is not None else np.random.default_rng(self.seed)
         self._preload = None
         for k in range(n):
-            m, truth = self.measure(k, n, rng)
+            m, truth = self.measure(k, n, rng, preload_n=None if preloads is None else preloads[k])
             inj = Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n, self.position % 8, k % 256, float("nan"),
                             k * interval_s)
             yield inj, m, truth

@@ -92,6 +92,25 @@ class Learner:
         for out in self.calibrator.poll():
             self._finish(out)
 
+    def admit(self, inj: Injection) -> None:
+        """Before ``inj`` is estimated: a model learned over a narrow span of preload forces serves
+        only that span. Carried elsewhere it was never checked and can be biased beyond its σ, so at
+        a preload force beyond it the injector goes back on the tables, whose estimates say how
+        little they know, and learns again from this injection on."""
+        iid = inj.injector_id
+        st = self.status.get(iid)
+        if st is None or self._current(iid) is None or st.serves(inj.f_open_n, self.config):
+            return
+        self._windows.pop(iid, None)
+        self._refine.pop(iid, None)
+        self._running.pop(iid, None)      # a refinement running for the model: its outcome is dropped
+        self._adopt(iid, None, None)
+        self._set(iid, replace(st, state=Learning.LEARNING, source="tables", evidence=0.0, served=0, batch=0,
+                               preload_span=0.0, refined=False, learned_lo_n=0.0, learned_hi_n=0.0,
+                               message=f"preload force {inj.f_open_n:.0f} N outside {st.learned_lo_n:.0f}-"
+                                       f"{st.learned_hi_n:.0f} N, the span the model was learned over: back on "
+                                       "the tables, learning again"))
+
     def observe(self, inj: Injection, nu: float, mismatch: bool, raw_mismatch: bool, status: Status,
                 raw_status: Status) -> None:
         """One update of ``inj.injector_id``: its raw N_u estimate (N/V), its tracker's model-mismatch
@@ -159,7 +178,7 @@ class Learner:
             return False
         del self._refine[iid]
         self._set(iid, replace(st, state=Learning.CALIBRATING, served=served, evidence=0.0,
-                               message="refining the model over a larger window"))
+                               message="refining the model over a larger window" + _narrow_note(window, c, "; ")))
         self._running[iid] = Learning.MONITORING
         self.calibrator.submit(iid, window, self.base, c, self._current(iid))
         self.collect()
@@ -177,7 +196,8 @@ class Learner:
         if not window.ready(c):
             return
         del self._windows[iid]
-        self._set(iid, replace(self.status[iid], state=Learning.CALIBRATING))
+        st = self.status[iid]
+        self._set(iid, replace(st, state=Learning.CALIBRATING, message=_narrow_note(window, c) or st.message))
         self._running[iid] = state
         self.calibrator.submit(iid, window, self.base, c, self._current(iid))
         self.collect()
@@ -192,6 +212,8 @@ class Learner:
         own = self._current(iid) is not None
         calibrations = before.calibrations + 1
         new = replace(out.status, calibrations=calibrations, source=before.source)
+        if out.params is None:     # the model in use, if any, goes on serving where it was learned
+            new = replace(new, learned_lo_n=before.learned_lo_n, learned_hi_n=before.learned_hi_n)
         if purpose == Learning.MONITORING:
             self._finish_refinement(out, before, new)
             return
@@ -253,7 +275,8 @@ class Learner:
         ``monitoring``: restored from the state file)."""
         self._windows.pop(iid, None)
         st = self.status.get(iid, CalibrationStatus())
-        self._set(iid, replace(st, state=state, source=source, evidence=0.0, served=0, batch=0, preload_span=0.0))
+        self._set(iid, replace(st, state=state, source=source, evidence=0.0, served=0, batch=0, preload_span=0.0,
+                               learned_lo_n=0.0, learned_hi_n=0.0))
 
     def restore(self, iid: int, st: CalibrationStatus, has_model: bool) -> None:
         """A persisted status: its window is gone (collection starts again), a running calibration
@@ -290,3 +313,9 @@ class Learner:
     def close(self) -> None:
         """Stop the calibrator."""
         self.calibrator.close()
+
+
+def _narrow_note(window: CalibrationWindow, config: SelfCalConfig, lead: str = "") -> str:
+    """What a window calibrated over a narrow range of preload forces says of itself ("" otherwise)."""
+    narrow = window.narrow(config)
+    return f"{lead}{narrow}: the model is checked as the rail pressure moves" if narrow else ""

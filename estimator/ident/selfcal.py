@@ -4,7 +4,8 @@ the injections it makes anyway.
 While an injector is ``model_mismatch``, the recursive estimator keeps a bounded window of its
 accepted injections (:class:`CalibrationWindow`), chosen to span its operating points (preload force,
 coupling factor): when the window is full, the injection whose operating point is closest to another
-one's makes room. Once the window holds enough injections over a wide enough range of preload forces,
+one's makes room. Once the window holds enough injections over a wide enough range of preload forces
+(or, at one rail pressure, has been full for ``narrow_after`` more injections without reaching it),
 :func:`self_calibrate` fits the structural parameters to all but the newest ``held_out`` of them
 (:func:`~estimator.ident.electrical.calibrate_electrical`) and tests the result on those held out:
 each is identified with the current and with the calibrated parameters, and the calibrated set is
@@ -51,6 +52,7 @@ class SelfCalConfig:
     window: int = 12               # injections kept per injector (bounded memory: ≈ 6 kB each)
     held_out: int = 2              # the newest ones, kept out of the fit to test it
     min_preload_spread: float = 0.5   # (max - min) / mean of the preload forces before a calibration is tried
+    narrow_after: int = 0          # ... or once a full window has waited this many more injections (0: never)
     adopt_chi2: float = 25.0       # held-out improvement needed to adopt (chi-square units)
     tolerance: float = 0.10        # prior relative standard deviation of each structural parameter
     part_tolerance: float = 0.10   # the datasheet tolerance: a parameter beyond ±this of the tables ...
@@ -71,7 +73,7 @@ class SelfCalConfig:
                 and (self.refine_window == 0 or self.refine_window >= self.held_out + 3)):
             raise ValueError(f"self-calibration refine_window {self.refine_window!r} must be 0 or hold held_out "
                              f"{self.held_out!r} injections and at least three more")
-        for name in ("confirm", "retry_after"):
+        for name in ("confirm", "retry_after", "narrow_after"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise ValueError(f"self-calibration {name} = {v!r} must be a non-negative whole number")
@@ -94,7 +96,9 @@ class CalibrationStatus:
     calibrations refused in a row and ``retry_in`` the injections left before the next window;
     ``source`` where the model in use comes from (``tables``, ``learned`` or ``seeded``);
     ``refined`` whether the model in use has had its refinement over a larger window; ``nu_shift_z``
-    how far the last calibration moved the held-out injections' N_u, in its standard deviations.
+    how far the last calibration moved the held-out injections' N_u, in its standard deviations;
+    ``learned_lo_n``..``learned_hi_n`` the preload forces (N) of a model learned over a narrow span
+    (0: none), which serves them and those within ``min_preload_spread / 2`` of them.
     """
 
     state: str = Learning.IDLE
@@ -113,6 +117,16 @@ class CalibrationStatus:
     source: str = "tables"
     refined: bool = False
     nu_shift_z: float = float("nan")
+    learned_lo_n: float = 0.0      # a model learned over a narrow span of preload forces: that span (N);
+    learned_hi_n: float = 0.0      # 0: the model in use serves every preload force
+
+    def serves(self, f_open_n: float, config: SelfCalConfig) -> bool:
+        """Whether the model in use serves an injection at the preload force ``f_open_n`` (N): any
+        model but one learned over a narrow span, that one within ``min_preload_spread / 2`` of it."""
+        if self.learned_hi_n <= 0.0:
+            return True
+        margin = config.min_preload_spread / 2
+        return self.learned_lo_n * (1 - margin) <= f_open_n <= self.learned_hi_n * (1 + margin)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready (NaN as None)."""
@@ -123,7 +137,8 @@ class CalibrationStatus:
                 "held_out_chi2": num(self.held_out_chi2), "nu_shift_z": num(self.nu_shift_z), "message": self.message,
                 "calibrations": self.calibrations, "out_of_tolerance": list(self.out_of_tolerance),
                 "evidence": round(self.evidence, 3), "served": self.served, "refusals": self.refusals,
-                "retry_in": self.retry_in, "source": self.source, "refined": self.refined}
+                "retry_in": self.retry_in, "source": self.source, "refined": self.refined,
+                "learned_lo_n": round(self.learned_lo_n, 2), "learned_hi_n": round(self.learned_hi_n, 2)}
 
     @classmethod
     def from_dict(cls, d: Any) -> CalibrationStatus:
@@ -139,7 +154,8 @@ class CalibrationStatus:
             if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < 2 ** 31:
                 raise ValueError(f"{name} = {v!r} must be a non-negative whole number")
             setattr(st, name, v)
-        for name in ("rms_before_v", "rms_after_v", "held_out_chi2", "nu_shift_z", "preload_span", "evidence"):
+        for name in ("rms_before_v", "rms_after_v", "held_out_chi2", "nu_shift_z", "preload_span", "evidence",
+                     "learned_lo_n", "learned_hi_n"):
             v = d.get(name)
             if v is None:
                 continue
@@ -167,6 +183,7 @@ class CalibrationWindow:
 
     capacity: int
     items: list[tuple[Injection, float]] = field(default_factory=list)   # (injection, its N_u estimate)
+    waited: int = 0       # injections added while full (each made room for itself)
 
     def add(self, inj: Injection, nu_n_per_v: float) -> None:
         """Keep ``inj`` (its first :data:`~estimator.ident.electrical.WINDOW_S`); when full, drop the
@@ -178,6 +195,7 @@ class CalibrationWindow:
             d = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2) + np.eye(len(pts)) * 1e9
             a, b = np.unravel_index(int(np.argmin(d)), d.shape)
             del self.items[min(a, b)]
+            self.waited += 1
 
     def preload_spread(self) -> float:
         """(max - min) / mean of the preload forces held."""
@@ -185,8 +203,19 @@ class CalibrationWindow:
         return float(np.ptp(f) / np.mean(f)) if f.size else 0.0
 
     def ready(self, config: SelfCalConfig) -> bool:
-        """Full, and over a wide enough range of preload forces."""
-        return len(self.items) >= config.window and self.preload_spread() >= config.min_preload_spread
+        """Full, and over a wide enough range of preload forces, or full for ``narrow_after`` more
+        injections without reaching that range (an injector at one rail pressure)."""
+        return len(self.items) >= config.window and (self.preload_spread() >= config.min_preload_spread
+                                                     or 0 < config.narrow_after <= self.waited)
+
+    def narrow(self, config: SelfCalConfig) -> str:
+        """What it says of itself when its preload forces span less than ``min_preload_spread``
+        ("" when they do not)."""
+        if not self.items or self.preload_spread() >= config.min_preload_spread:
+            return ""
+        f = [inj.f_open_n for inj, _ in self.items]
+        return (f"preload forces {min(f):.0f}-{max(f):.0f} N only (span {self.preload_spread():.2f} < "
+                f"{config.min_preload_spread:g})")
 
 
 def self_calibrate(window: CalibrationWindow, base: InjectorParameters, config: SelfCalConfig,
@@ -229,8 +258,12 @@ def _calibrate(window: CalibrationWindow, base: InjectorParameters, config: Self
         status.message = (f"the calibrated model explains the held-out injections no better (chi-square gain "
                           f"{chi2:.1f} <= {config.adopt_chi2:g}) and moves their N_u by {status.nu_shift_z:+.1f} sd")
         return status, None
+    narrow = window.narrow(config)
     status.state, status.message = Learning.ADOPTED, (f"held-out chi-square gain {chi2:.0f}, N_u moved "
-                                                     f"{status.nu_shift_z:+.1f} sd")
+                                                     f"{status.nu_shift_z:+.1f} sd" + (f"; {narrow}" if narrow else ""))
+    if narrow:
+        f = [inj.f_open_n for inj in injections]
+        status.learned_lo_n, status.learned_hi_n = min(f), max(f)
     return status, new
 
 

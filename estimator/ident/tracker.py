@@ -86,6 +86,7 @@ class Tracker:
         """
         if self.learning is not None:
             self.learning.collect()
+            self.learning.admit(inj)
         state = self.states.get(inj.injector_id)
         if state is None:
             state = TrackerState()

@@ -4,6 +4,7 @@ that back off, tolerance diagnostics, and a status that survives the state file.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import pytest
 
@@ -149,7 +150,8 @@ def test_a_restored_status_without_its_model_starts_learning_again():
     assert not problems and tracker.calibration[1].state == Learning.IDLE and 1 not in tracker.own_pools
 
 
-@pytest.mark.parametrize("bad", [{"window": 2}, {"monitor_limit": 0}, {"retry_after": -1}, {"part_tolerance": "x"}])
+@pytest.mark.parametrize("bad", [{"window": 2}, {"monitor_limit": 0}, {"retry_after": -1}, {"part_tolerance": "x"},
+                                 {"narrow_after": -1}, {"narrow_after": 2.5}])
 def test_bad_learning_settings_are_refused(bad):
     with pytest.raises((ValueError, TypeError)):
         SelfCalConfig(**bad)
@@ -232,3 +234,74 @@ def test_a_status_of_a_calibration_that_explained_the_held_out_worse_round_trips
     save_states(path, {}, None, {2: st})
     loaded, problem = load_learning(path)
     assert problem is None and loaded == {2: st}
+
+
+def _still(n: int, f_open_n: float = 100.0) -> list:
+    """``n`` placeholder injections at one preload force (only their operating points matter)."""
+    import numpy as np
+
+    from estimator.ident.measurement import Injection
+
+    return [Injection(np.zeros(400), np.zeros(400), 0.5e-6, f_open_n, 0, k) for k in range(n)]
+
+
+def test_narrow_after_is_read_from_the_daemons_file():
+    assert DaemonConfig().self_calibration.narrow_after == 0
+    assert DaemonConfig.from_mapping({"self_calibration": {"narrow_after": 12}}).self_calibration.narrow_after == 12
+
+
+def test_a_window_at_one_preload_force_is_calibrated_once_it_has_waited_narrow_after():
+    """A full window short of min_preload_spread waits narrow_after more injections, then is ready
+    (an injector at one rail pressure learns too); narrow_after = 0 waits for the span for ever."""
+    from estimator.ident.selfcal import CalibrationWindow
+
+    c = SelfCalConfig(window=5, held_out=2, narrow_after=3)
+    w = CalibrationWindow(c.window)
+    for k, inj in enumerate(_still(5 + 3)):
+        w.add(inj, 17.0 + 0.1 * k)
+        assert w.ready(c) == (k == 7), k
+    assert "preload forces 100-100 N only" in w.narrow(c)
+    assert not w.ready(replace(c, narrow_after=0))
+    spread = CalibrationWindow(c.window)
+    for inj, f in zip(_still(5), (60.0, 80.0, 100.0, 120.0, 140.0)):
+        spread.add(replace(inj, f_open_n=f), 17.0)
+    assert spread.ready(c) and spread.narrow(c) == ""
+
+
+def test_a_model_learned_at_one_rail_pressure_serves_that_pressure_only():
+    """A series part at 100 N throughout: with the default settings it never learns (no span of
+    preload forces); with narrow_after it learns before injection 40, its filtered L_h within 0.15 µm
+    once adopted and never ok while more than 0.3 µm off; the status says the span. At 250 N it goes
+    back on the tables (no ok beyond 3σ) and learns again."""
+    life = _life(seed=32)
+    default = Tracker(self_calibration=SelfCalConfig())
+    for inj, _m, _t in life.injections(36, preloads=[100.0] * 36):
+        default.update(inj)
+    assert default.calibration[0].state == Learning.LEARNING and 0 not in default.own_pools
+    tracker = Tracker(self_calibration=SelfCalConfig(narrow_after=12))
+    preloads = [100.0] * 40 + [250.0] * 12
+    rows = []
+    for inj, _m, truth in life.injections(len(preloads), preloads=preloads):
+        r = tracker.update(inj)
+        st = tracker.calibration[0]
+        rows.append((truth["k"], r.lh_m * 1e6 - truth["lh_true_um"], r.sigma_lh_m * 1e6, r.status, st))
+        if truth["k"] == 39:
+            assert st.state in (Learning.ADOPTED, Learning.MONITORING) and 0 in tracker.own_pools
+            assert (st.learned_lo_n, st.learned_hi_n) == (100.0, 100.0)
+    adopted = next(k for k, *_, st in rows if st.state == Learning.ADOPTED)
+    assert all(abs(e) <= 0.15 for k, e, *_ in rows[adopted + 1:40]), [(k, round(e, 3)) for k, e, *_ in rows]
+    assert not [k for k, e, _s, status, _st in rows if status == Status.OK and abs(e) > 0.3]
+    after = rows[40:]
+    assert after[0][4].state == Learning.LEARNING and after[0][4].source == "tables"
+    assert "250 N outside 100-100 N" in after[0][4].message
+    assert not [k for k, e, s, status, _st in after if status == Status.OK and abs(e) > 3 * s]
+    assert 0 not in tracker.own_pools or tracker.calibration[0].learned_lo_n == 250.0
+
+
+def test_the_span_a_model_was_learned_over_round_trips_and_decides_where_it_serves():
+    c = SelfCalConfig()
+    st = CalibrationStatus(Learning.MONITORING, source="learned", learned_lo_n=98.0, learned_hi_n=102.0)
+    assert CalibrationStatus.from_dict(json.loads(json.dumps(st.to_dict()))) == st
+    assert st.serves(100.0, c) and st.serves(75.0, c) and st.serves(127.0, c)
+    assert not st.serves(70.0, c) and not st.serves(130.0, c)
+    assert CalibrationStatus(Learning.MONITORING).serves(28.0, c)      # a model of every preload force
