@@ -134,10 +134,10 @@ def format_report(rep: dict[str, Any]) -> str:
     """A row per position, then the lot's verdict."""
     s = rep["summary"]
     rail = "the rail pressure wandering" if rep.get("preload_n") is None else f"at {rep['preload_n']:g} N throughout"
-    if rep.get("narrow_after"):
-        rail += f", narrow_after {rep['narrow_after']}"
+    settings = (f"learning on with narrow_after {rep['narrow_after']}" if rep.get("narrow_after")
+                else "default settings (learning on)")
     title = (f"lot-life - {rep['positions']} series injectors (±10 %, {s['beyond']} beyond tolerance, one swapped at "
-             f"injection {rep['swap_at']}), {rep['injections']} injections each, {rail}, default settings (learning on); "
+             f"injection {rep['swap_at']}), {rep['injections']} injections each, {rail}, {settings}; "
              f"targets: filtered L_h within {LH_UM} µm from injection {FROM} (swapped: {SWAP_SETTLE} after the swap), "
              f"never ok while > {OK_UM} µm off, parts beyond tolerance flagged (BEYOND: the part mounted at the end)")
     table = render(COLUMNS, rep["rows"], verdict)

@@ -108,3 +108,9 @@ def test_replay_skips_a_garbage_line_and_names_it(tmp_path):
     assert "2 line(s)" in r.stderr and "first at line 6" in r.stderr
     # the injection whose block line was garbled is lost (counted), the others are estimated
     assert len(jl.read_text().splitlines()) >= 2
+
+
+def test_tracking_preload_is_an_option_of_the_lots_life():
+    assert "lot-life" in one_error_line(run("-m", "sim_bench", "tracking", "--scenario", "steady", "--preload", "100"))
+    r = run("-m", "sim_bench", "tracking", "--scenario", "lot-life", "--preload", "5")
+    assert r.returncode == 2 and "outside 28-300 N" in r.stderr and "Traceback" not in r.stderr
