@@ -50,12 +50,9 @@ def run(seed: int = DEFAULT_SEED, positions: int = POSITIONS, injections: int = 
     learning = SelfCalConfig(narrow_after=narrow_after)
     rows = [_run_life(life, injections, learning, preloads) for life in draw_lot(positions, seed, spec)]
     fails = [f"position {r['position']}: {f}" for r in rows for f in r["failures"]]
-    summary = _summary(rows, fails, injections)
-    if preload_n is not None or narrow_after:
-        summary.update(preload_n=preload_n, narrow_after=narrow_after)
     return {"benchmark": "tracking", "scenario": "lot-life", "seed": seed, "positions": positions,
             "injections": injections, "swap_at": spec.swap_at, "preload_n": preload_n, "narrow_after": narrow_after,
-            "rows": rows, "summary": summary}
+            "rows": rows, "summary": _summary(rows, fails, injections)}
 
 
 def _run_life(life: Any, n: int, learning: SelfCalConfig, preloads: list[float] | None = None) -> dict[str, Any]:

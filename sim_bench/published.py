@@ -88,11 +88,6 @@ def _lot_rows(key: str) -> Callable[[Report], list[float]]:
     return lambda r: [float(row[key]) for row in r["rows"] if row.get(key) is not None]
 
 
-def _attack(row: str, key: str) -> Callable[[Report], float]:
-    """A figure of one reliability row."""
-    return lambda r: r["rows"][row][key]
-
-
 def _hazards(key: str) -> Callable[[Report], float]:
     """The worst of the state-directory hazards' (the second daemon's row apart)."""
     return lambda r: max(h[key] for h in r["rows"]["state-dir"]["hazards"] if "second_exit" not in h)
@@ -254,15 +249,15 @@ FIGURES: tuple[Figure, ...] = (
     Figure("reliability", "hazard_rss_mb", _hazards("rss_mb"), 0, "| state-directory hazards", spread=True),
     Figure("reliability", "second_exit", _second("second_exit"), 0, "| a second daemon", spread=True),
     Figure("reliability", "second_s", _second("second_s"), 1, "| a second daemon", spread=True),
-    *(Figure("reliability", f"{attack}: {key}", _attack(attack, key), digits, row, spread=True)
+    *(Figure("reliability", f"{attack}: {key}", _part("rows", attack, key), digits, row, spread=True)
       for attack, row in (("period-flood", "| a stranger's cheap flood"), ("full-flood", "| a stranger's well-formed"),
                           ("sighup-burst", "| 50 SIGHUPs"), ("command-flood", "| 1,000 reset commands"))
       for key, digits in (("legit_estimated", 0), ("legit_p99_ms", 1))),
-    Figure("reliability", "period-flood: attacker_counted", _attack("period-flood", "attacker_counted"), 0,
+    Figure("reliability", "period-flood: attacker_counted", _part("rows", "period-flood", "attacker_counted"), 0,
            "| a stranger's cheap flood", spread=True),
-    Figure("reliability", "full-flood: attacker_counted", _attack("full-flood", "attacker_counted"), 0,
+    Figure("reliability", "full-flood: attacker_counted", _part("rows", "full-flood", "attacker_counted"), 0,
            "| a stranger's well-formed", spread=True),
-    Figure("reliability", "command-flood: commands_applied", _attack("command-flood", "commands_applied"), 0,
+    Figure("reliability", "command-flood: commands_applied", _part("rows", "command-flood", "commands_applied"), 0,
            "| 1,000 reset commands", spread=True),
     # drive compensation
     *_spreads("open", "open_", "| plateau-stroke spread, open loop", 2, "| opening-instant spread, open loop", 1),
@@ -301,10 +296,10 @@ def bench_of(report: Report) -> str:
         summary = report.get("summary", {})
         which = summary.get("sweep") if name == "accuracy" else report.get("scenario") or summary.get("scenario")
         option = "--sweep" if name == "accuracy" else "--scenario"
-        if summary.get("preload_n") is not None:     # the lot's life at one rail pressure
-            which += f" --preload {summary['preload_n']:g}"
-        if summary.get("narrow_after"):
-            which += f" --narrow-after {summary['narrow_after']}"
+        if report.get("preload_n") is not None:     # the lot's life at one rail pressure
+            which += f" --preload {report['preload_n']:g}"
+        if report.get("narrow_after"):
+            which += f" --narrow-after {report['narrow_after']}"
         return f"{name} {option} {which}" + (" (mismatch)" if summary.get("mismatch") else "")
     return name
 

@@ -152,7 +152,7 @@ def test_the_published_figures_are_what_the_readme_and_the_performance_page_stat
     row for. Publishing a figure measured again fails here until both say it."""
     import json
 
-    from sim_bench.published import FIGURES
+    from sim_bench.published import FIGURES, number
 
     figures = json.loads((DOCS / "figures.json").read_text(encoding="utf-8"))
     known = {f"{f.bench}: {f.name}": f for f in FIGURES}
@@ -167,7 +167,7 @@ def test_the_published_figures_are_what_the_readme_and_the_performance_page_stat
         stated = _numbers(where)
         each_value = fig["runs"] == 1 and len(fig["values"]) > 1      # one run's lots or parts
         if not (_states(stated, fig["text"]) or
-                (each_value and all(f"{v:.{figure.digits}f}" in stated for v in fig["values"]))):
+                (each_value and all(_numbers(number(v, figure.digits))[0] in stated for v in fig["values"]))):
             wrong.append(f"performance page, {figure.row or 'prose'}: {name} {fig['text']}")
         if figure.headline and not _states(readme, fig["text"]):
             wrong.append(f"README: {name} {fig['text']}")
