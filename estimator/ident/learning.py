@@ -101,9 +101,7 @@ class Learner:
         st = self.status.get(iid)
         if st is None or self._current(iid) is None or st.serves(inj.f_open_n, self.config):
             return
-        self._windows.pop(iid, None)
-        self._refine.pop(iid, None)
-        self._running.pop(iid, None)      # a refinement running for the model: its outcome is dropped
+        self._drop_work(iid)      # a refinement running for the model too: its outcome is dropped
         self._adopt(iid, None, None)
         self._set(iid, replace(st, state=Learning.LEARNING, source="tables", evidence=0.0, served=0, batch=0,
                                preload_span=0.0, refined=False, learned_lo_n=0.0, learned_hi_n=0.0,
@@ -251,11 +249,15 @@ class Learner:
     # ---- commands, seeds and persistence -----------------------------------------------------
     def forget(self, iid: int) -> None:
         """Forget the injector's learning (its own model goes back to the tables: ``reset``)."""
-        self._windows.pop(iid, None)
-        self._running.pop(iid, None)
-        self._refine.pop(iid, None)
+        self._drop_work(iid)
         if iid in self.status:
             self._set(iid, CalibrationStatus(calibrations=self.status[iid].calibrations))
+
+    def _drop_work(self, iid: int) -> None:
+        """Drop the injector's windows and the calibration running for it (its outcome is ignored)."""
+        self._windows.pop(iid, None)
+        self._refine.pop(iid, None)
+        self._running.pop(iid, None)
 
     def relearn(self, iid: int) -> None:
         """Start a new learning cycle now; the model in use serves until a new one is adopted."""

@@ -213,9 +213,14 @@ class CalibrationWindow:
         ("" when they do not)."""
         if not self.items or self.preload_spread() >= config.min_preload_spread:
             return ""
-        f = [inj.f_open_n for inj, _ in self.items]
-        return (f"preload forces {min(f):.0f}-{max(f):.0f} N only (span {self.preload_spread():.2f} < "
+        lo, hi = self.preload_range()
+        return (f"preload forces {lo:.0f}-{hi:.0f} N only (span {self.preload_spread():.2f} < "
                 f"{config.min_preload_spread:g})")
+
+    def preload_range(self) -> tuple[float, float]:
+        """The lowest and the highest preload force held (N)."""
+        f = [inj.f_open_n for inj, _ in self.items]
+        return min(f), max(f)
 
 
 def self_calibrate(window: CalibrationWindow, base: InjectorParameters, config: SelfCalConfig,
@@ -262,8 +267,7 @@ def _calibrate(window: CalibrationWindow, base: InjectorParameters, config: Self
     status.state, status.message = Learning.ADOPTED, (f"held-out chi-square gain {chi2:.0f}, N_u moved "
                                                      f"{status.nu_shift_z:+.1f} sd" + (f"; {narrow}" if narrow else ""))
     if narrow:
-        f = [inj.f_open_n for inj in injections]
-        status.learned_lo_n, status.learned_hi_n = min(f), max(f)
+        status.learned_lo_n, status.learned_hi_n = window.preload_range()
     return status, new
 
 
