@@ -14,6 +14,10 @@ The names in :data:`__all__` are the public API, what a user scripts with::
     for row in estimator.iter_estimates("capture.blf"):   # a capture, as the daemon estimates it
         print(row["injector_id"], row["status"], row["lh_um"], row["drive_scale"])
 
+    _, _, processor, _ = estimator.build_pipeline(estimator.EstimatorConfig())   # the closed loop
+    pub = processor.estimate(inj, next_preload_n=120.0)   # the estimate and the drive correction for 120 N
+    scale, offset_us = pub.correction.at(120.0)           # what the amplifier applies there
+
 They are imported when first used (``import estimator`` itself loads nothing heavy). Every other
 module may change without notice.
 """
@@ -42,9 +46,11 @@ _HOMES: dict[str, str] = {
     "SelfCalConfig": "estimator.ident.selfcal",
     "calibrate_electrical": "estimator.ident.electrical",
     # the drive that opens every valve alike
-    "DriveCompensator": "estimator.ident.drive_correction",
-    "DriveTarget": "estimator.ident.drive_correction",
-    "Correction": "estimator.ident.drive_correction",
+    "DriveCompensator": "estimator.drive.correction",
+    "DriveTarget": "estimator.drive.target",
+    "Correction": "estimator.drive.correction",
+    "correction_after": "estimator.drive.correction",
+    "AmplifierDrive": "estimator.drive.standard",
     # the model
     "InjectorParameters": "estimator.model.parameters",
     "load_parameters": "estimator.model.parameters",
@@ -62,6 +68,8 @@ _HOMES: dict[str, str] = {
     "EstimatorConfig": "estimator.pipeline.config",
     "ConfigError": "estimator.pipeline.config",
     "build_pipeline": "estimator.pipeline.build",
+    "Processor": "estimator.pipeline.processor",
+    "Published": "estimator.pipeline.processor",
     "iter_estimates": "estimator.pipeline.estimates",
     "replay": "estimator.pipeline.replay",
     # the bus and the daemon's configuration (the estimator's, with the bus, state and service keys)

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 from estimator.choices import Norm, Robust
 from estimator.cli_support import base_parser, lean_service_imports, run_cli
 from estimator.errors import EstimatorError
-from estimator.units import MEGA, PER_MICRO, S_PER_US
+from estimator.units import MEGA, PER_MICRO, S_PER_US, US_PER_S
 
 if TYPE_CHECKING:
     from estimator.pipeline.config import EstimatorConfig
@@ -116,13 +116,13 @@ def cmd_identify(args: argparse.Namespace) -> int:
 
 def cmd_track(args: argparse.Namespace) -> int:
     """Run the recursive estimator over trace files in order; one JSON line per injection."""
+    from estimator.drive.correction import correction_after
     from estimator.errors import TraceError
     from estimator.ident.config import TrackerConfig
-    from estimator.ident.drive_correction import DriveCompensator, correction_after
     from estimator.ident.estimate import rejected
     from estimator.ident.selfcal import SelfCalConfig
     from estimator.ident.status import Status
-    from estimator.pipeline.build import build_tracker
+    from estimator.pipeline.build import build_compensator, build_tracker
     from estimator.pipeline.config import EstimatorConfig
     from estimator.pipeline.processor import Published
 
@@ -130,7 +130,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     cfg = EstimatorConfig(params=getattr(args, "params", None), tracker=TrackerConfig(ident=_config(args)),
                           self_calibration=selfcal)
     tracker = build_tracker(cfg)
-    compensator = DriveCompensator(cfg.drive_correction)
+    compensator = build_compensator(cfg)
     bad = 0
     for path in args.traces:
         try:
@@ -145,7 +145,7 @@ def cmd_track(args: argparse.Namespace) -> int:
         # the drive that makes this injector's valve open as the nominal one does
         pub = Published(inj.injector_id, inj.counter, inj.time_s, res,
                         learning=tracker.calibration.get(inj.injector_id) if selfcal is not None else None,
-                        correction=correction_after(compensator, tracker, inj, res))
+                        correction=correction_after(compensator, tracker, inj, res) if compensator else None)
         print(json.dumps({"file": str(path), **pub.to_dict()}), flush=True)
     if bad:
         print(f"error: {bad} of {len(args.traces)} file(s) could not be read (see their lines)", file=sys.stderr)
@@ -381,6 +381,44 @@ def format_fleet(res) -> str:
     return "\n".join(keep + [f"wrote {f}" for f in res.files])
 
 
+def cmd_drive_table(args: argparse.Namespace) -> int:
+    """The amplifier's standard drive as a current table, from traces recorded at it (scale 1, offset 0)."""
+    import numpy as np
+
+    from estimator.drive.standard import from_recordings
+    from estimator.errors import TraceError
+    from estimator.io.traces import write_trace
+    from estimator.model.drive import same_grid
+
+    currents, periods, bad = [], [], 0
+    for path in args.traces:
+        try:
+            inj = _load(path, args)
+        except TraceError as exc:   # the batch goes on past a bad file
+            bad += 1
+            print(f"{path}: {exc}", file=sys.stderr)
+            continue
+        currents.append(inj.current_a)
+        periods.append(inj.dt_s)
+    if not currents:
+        raise EstimatorError("no trace could be read")
+    if not all(same_grid(p, periods[0]) for p in periods):
+        raise EstimatorError("the traces have different sample periods; give traces of one amplifier setting")
+    try:
+        drive, odd = from_recordings(currents, periods[0], args.out.name, args.tolerance)
+    except ValueError as exc:
+        raise EstimatorError(str(exc)) from None
+    for i in odd:
+        print(f"{args.traces[i]}: its current disagrees with the others' (left out)", file=sys.stderr)
+    t = np.arange(drive.current_a.size) * drive.dt_s
+    write_trace(args.out, {"t_s": t, "current_A": drive.current_a},
+                {"what": "amplifier standard drive", "recordings": len(currents) - len(odd)})
+    print(f"wrote {args.out}: {len(currents) - len(odd)} recording(s), {t[-1] * US_PER_S:.1f} µs, peak "
+          f"{float(np.max(np.abs(drive.current_a))):.3f} A; use it as [estimator.drive_correction] "
+          f"amplifier_drive = \"{args.out}\"")
+    return 1 if bad or odd else 0
+
+
 def cmd_dbc_path(args: argparse.Namespace) -> int:
     """Print the path of the packaged DBC (for cantools decode/monitor/plot)."""
     from estimator.codec.database import default_dbc_path
@@ -519,6 +557,16 @@ def build_parser() -> argparse.ArgumentParser:
     params_opt(s)
     mdf_opts(s)
     s.set_defaults(func=cmd_fleet)
+
+    s = sub.add_parser("drive-table", help="the amplifier's standard drive as a current table, from traces recorded "
+                       "at it: [estimator.drive_correction] amplifier_drive")
+    s.add_argument("traces", type=Path, nargs="+", help="traces (CSV or MDF4) of injections driven with the "
+                   "standard drive, from the start of charging, long enough to hold the whole charge")
+    s.add_argument("--out", type=Path, required=True, help="the current table to write (CSV t_s, current_A)")
+    s.add_argument("--tolerance", type=float, default=0.10,
+                   help="relative RMS a recording may differ from the others' median (default 0.10)")
+    mdf_opts(s)
+    s.set_defaults(func=cmd_drive_table)
 
     s = sub.add_parser("dbc-path", help="print where the packaged DBC is: cantools monitor $(injector-estimator dbc-path)")
     s.set_defaults(func=cmd_dbc_path)

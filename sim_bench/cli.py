@@ -16,6 +16,7 @@ from estimator.io.traces import read_trace, write_trace
 from estimator.model.drive import DRIVES, Drive, named_drive
 from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench import scenarios, tracking_bench
+from sim_bench.amplifiers import PROFILES as AMPLIFIER_PROFILES
 from sim_bench.targets import TARGETS, missed
 
 log = logging.getLogger("sim_bench")
@@ -246,19 +247,19 @@ def cmd_node(args: argparse.Namespace) -> int:
         node = InjectorNode(send, sc, args.seed)
         notifier = None
         if args.apply_corrections:   # drive each injector with the estimator's DriveCorrection, as an amplifier would
-            from estimator.codec.records import Codec, DriveCorrection
+            from estimator.codec.records import Codec, DriveCorrection, DriveCorrectionRow
             from estimator.io.captures import to_frame
 
             codec = Codec()
-            wanted = codec.messages[DriveCorrection].frame_id
+            wanted = {codec.messages[DriveCorrection].frame_id, codec.messages[DriveCorrectionRow].frame_id}
 
             def on_message(msg: can.Message) -> None:
-                if msg.arbitration_id == wanted and not msg.is_error_frame:
+                if msg.arbitration_id in wanted and not msg.is_error_frame:
                     try:
                         rec = codec.decode(to_frame(msg))
                     except EstimatorError:
                         return
-                    if isinstance(rec, DriveCorrection):
+                    if isinstance(rec, (DriveCorrection, DriveCorrectionRow)):
                         node.take_correction(rec)
             notifier = can.Notifier(bus, [on_message], timeout=0.05)
         log.info("node: scenario %s, %d injectors at %.1f Hz on %s%s", sc.name, sc.injectors, sc.rate_hz, spec,
@@ -281,7 +282,8 @@ def cmd_compensation(args: argparse.Namespace) -> int:
         raise EstimatorError(f"--injectors must be 2..8 and --injections at least {compensation.SETTLED + 20}")
     if not (1 <= args.lots <= 10):
         raise EstimatorError("--lots must be 1..10")
-    rep = compensation.run(args.seed, args.injectors, args.injections, args.lots)
+    amps = compensation.PROFILES if args.amplifier == "all" else (args.amplifier,)
+    rep = compensation.run(args.seed, args.injectors, args.injections, args.lots, amps)
     print(compensation.format_report(rep))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     compensation.figure(rep, args.out)
@@ -484,7 +486,9 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("compensation", help="drive compensation: a lot of series injectors open and closed loop")
     s.add_argument("--seed", type=int, default=1, help="seed of the first lot (default 1)")
     s.add_argument("--injectors", type=int, default=8, help="injectors in a lot (default 8)")
-    s.add_argument("--lots", type=int, default=3, help="lots, seeds SEED, SEED+1, ... (default 3)")
+    s.add_argument("--lots", type=int, default=1, help="lots per amplifier profile, seeds SEED, SEED+1, ... (default 1)")
+    s.add_argument("--amplifier", default="all", choices=(*AMPLIFIER_PROFILES, "all"),
+                   help="the simulated amplifier's standard drive (sim_bench.amplifiers; default all of them)")
     s.add_argument("--injections", type=int, default=150, help="injections per injector (default 150)")
     s.add_argument("--out", type=Path, default=DEFAULT_OUT / "compensation.png", help="figure (default bench-results/compensation.png)")
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "compensation.json", help="JSON report (default bench-results/compensation.json)")

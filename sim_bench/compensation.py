@@ -1,20 +1,26 @@
-"""Drive compensation bench: a lot of series injectors driven open loop (the standard drive) and
-closed loop (each injection driven with the injector's last published drive correction), with
-learning on (``python -m sim_bench compensation``).
+"""Drive compensation bench: a lot of series injectors driven open loop (the amplifier's standard drive)
+and closed loop (each injection driven with the injector's last published drive correction), with
+learning on and the estimator's default configuration (``python -m sim_bench compensation``).
 
 The lot (:mod:`sim_bench.series_life`): parts within the lot's structural spread, idle strokes
-1-8 µm, a warm-up moving N_u, the rail pressure wandering between idle and full load (28-300 N),
-the lot's amplifier chain. Both runs see the same parts, truths and noise; the closed loop applies
-each correction as an amplifier would at the next injection's preload force
-(:meth:`~estimator.ident.drive_correction.Correction.at`: the correction's own first-order
-sensitivity to the preload force). The truth is the plant's: its plateau stroke and its opening
-instant after the standard drive's start of charging (the correction's offset plus the plant's own).
+1-9 µm with up to 0.5 µm of wear, a warm-up from 15.6 to ≈ 20.6 N/V, the rail pressure wandering
+between idle and full load (28-300 N), the lot's amplifier chain, and one part swapped at injection
+40. It runs on each amplifier profile (:mod:`sim_bench.amplifiers`): the estimator is not told which,
+it learns each injector's standard drive from the measured current. Each run sees the same parts,
+truths and noise in three loops: ``open`` (the standard drive), ``closed`` (each correction computed
+for the next injection's preload force, as an ECU that knows its rail pressure asks for it) and
+``closed_bus`` (the correction published after each injection, applied at the next injection's
+preload force as an amplifier on the bus does, :meth:`~estimator.drive.correction.Correction.at`).
+The truth is the plant's: its plateau stroke and its opening instant after the standard drive's start
+of charging (the correction's offset plus the plant's own).
 
 Reported per injector and across each lot: the spread (max - min) and SD of the true opening instant
 and plateau stroke at each injection, before learning (the first injections) and after (the last
 ``SETTLED`` of the life), how many injections after the model's adoption the stroke takes to stay on
-target, overshoot; and, over all the lots' parts, whether the predicted σ covers the achieved error
-(a learned model's error is a bias, one draw per part: eight parts alone say little about it).
+target, overshoot, the share of injections at a drive limit, corrections marked valid after an
+estimate that was not ``ok``; and, over all the lots' parts, whether the predicted σ covers the
+achieved error (a learned model's error is a bias, one draw per part: eight parts alone say little
+about it).
 """
 
 from __future__ import annotations
@@ -24,15 +30,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimator.ident.drive_correction import Correction, DriveCompensator
+from estimator.drive.correction import Correction, DriveCompensator
 from estimator.ident.measurement import Injection
 from estimator.ident.status import Learning, Status
 from estimator.pipeline.config import EstimatorConfig
+from sim_bench.amplifiers import PROFILES, amplifier
 from sim_bench.series_life import LotSpec, draw_lot
 from sim_bench.targets import TARGETS, limit
 
 INJECTORS = 8              # a lot: an engine's injectors
-LOTS = 3                   # lots (seeds seed, seed + 1, ...): whether σ covers a part's bias is judged over all their parts
+LOTS = 1                   # lots per amplifier profile (seeds seed, seed + 1, ...): whether σ covers a part's bias is
+                           # judged over all the profiles' and lots' parts
+SWAP_AT, SWAPPED = 40, (1,)   # a part swapped early in the life: learned again before the settled injections
+NU_RISE = 5.0              # N/V: the warm-up from 15.6 to ≈ 20.6 (± a part's 0.4)
+LH_UM = (1.0, 9.0)         # µm: the parts' idle strokes
+WEAR_UM = 0.5              # µm: up to this much wear over the life
 INJECTIONS = 150           # per injector
 SETTLED = 60               # the last injections of the life, where learning is over
 SETTLE_UM = 0.15           # |stroke - target| within this (half the lot spread target), or within 2σ of the
@@ -52,27 +64,36 @@ class Run:
     sigma_opening_us: np.ndarray
     applied: np.ndarray           # a valid correction drove this injection
     adopted_at: list[int | None]  # injection at which each injector's own model was adopted
+    at_limit: np.ndarray | None = None   # the correction that drove this injection was at a limit
+    valid_not_ok: int = 0         # corrections published valid (not held) after an estimate that was not ok
+
+
+def lot_spec(amp: str = "standard") -> LotSpec:
+    """The compensation bench's lot on the amplifier profile ``amp``."""
+    return LotSpec(swap_at=SWAP_AT, swapped=SWAPPED, nu_rise=NU_RISE, lh_um=LH_UM, wear_um=WEAR_UM,
+                   amplifier=amplifier(amp))
 
 
 def run_loop(closed: bool, seed: int, injectors: int = INJECTORS, injections: int = INJECTIONS,
-             ecu: bool = True) -> Run:
+             ecu: bool = True, amp: str = "standard") -> Run:
     """The lot through ``injections`` injections each, with learning on; ``closed``: drive each
     injection with the injector's last correction, computed for that injection's preload force
     (``ecu``: as an ECU that knows its next rail pressure asks for it) or carried there by the
     correction's own sensitivity (as an amplifier on the bus applies it)."""
     from estimator.pipeline import build_pipeline
 
-    lives = draw_lot(injectors, seed, LotSpec())
+    lives = draw_lot(injectors, seed, lot_spec(amp))
     _, _, processor, _ = build_pipeline(EstimatorConfig())
     compensator = processor.compensator
     assert compensator is not None    # on by default
     shape = (injectors, injections)
     nan = np.full(shape, np.nan)
     out = Run(nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy(), np.zeros(shape, bool),
-              [None] * injectors)
+              [None] * injectors, np.zeros(shape, bool))
     rngs = [np.random.default_rng(life.seed) for life in lives]
     walks = [life.preload_walk(injections + 1, np.random.default_rng(life.seed + 1)) for life in lives]
     last: dict[int, Correction] = {}
+    swapped_model: dict[int, object] = {}    # the model in use when a position's part was swapped
     for k in range(injections):
         for i, life in enumerate(lives):
             corr = last.get(i, Correction())
@@ -80,7 +101,7 @@ def run_loop(closed: bool, seed: int, injectors: int = INJECTORS, injections: in
             applied: dict[str, float] = {}
 
             def scale_for(f: float, corr: Correction = corr, applied: dict[str, float] = applied) -> float:
-                scale, offset = corr.at(f, compensator.target)
+                scale, offset = corr.at(f)
                 applied.update(scale=scale, offset=offset)
                 return scale
             m, _truth = life.measure(k, injections, rngs[i], scale_for if use else None, walks[i][k])
@@ -90,14 +111,22 @@ def run_loop(closed: bool, seed: int, injectors: int = INJECTORS, injections: in
             out.stroke_um[i, k] = m.stroke_m * 1e6
             out.opening_us[i, k] = offset + m.t_open_s * 1e6
             out.applied[i, k] = use
+            assert out.at_limit is not None
+            out.at_limit[i, k] = use and corr.at_limit
             if use:
                 out.predicted_stroke_um[i, k] = corr.stroke_um
                 out.sigma_stroke_um[i, k] = corr.sigma_stroke_um
                 out.predicted_opening_us[i, k] = corr.opening_us
                 out.sigma_opening_us[i, k] = corr.sigma_opening_us
             last[i] = pub.correction or Correction()
+            if last[i].state == "valid" and pub.result.status != Status.OK:
+                out.valid_not_ok += 1
             st = processor.tracker.calibration.get(i)
-            if out.adopted_at[i] is None and st is not None and st.state in (Learning.ADOPTED, Learning.MONITORING):
+            model = processor.tracker.model_simulator(i, inj.dt_s)
+            if life.swap_at is not None and k == life.swap_at:   # a new part: its settling counts from its own model
+                out.adopted_at[i], swapped_model[i] = None, model
+            if out.adopted_at[i] is None and st is not None and st.state in (Learning.ADOPTED, Learning.MONITORING) \
+                    and (i not in swapped_model or model is not swapped_model[i]):
                 out.adopted_at[i] = k
             if pub.result.status == Status.OK and out.adopted_at[i] is None and st is not None \
                     and st.state == Learning.IDLE and k > 5:
@@ -123,6 +152,8 @@ def summarise(run: Run, target_stroke: float) -> dict:
                               "settled_p95": float(np.percentile(spread(run.opening_us)[late], 95))},
         "stroke_sd_um_settled": float(np.median(np.std(run.stroke_um[:, late], axis=0))),
         "opening_sd_us_settled": float(np.median(np.std(run.opening_us[:, late], axis=0))),
+        "at_limit_settled": float(np.mean(run.at_limit[:, late])) if run.at_limit is not None else 0.0,
+        "valid_not_ok": run.valid_not_ok,
     }
     per = []
     z_all: dict[str, list[np.ndarray]] = {"stroke": [], "opening": []}
@@ -164,22 +195,30 @@ def rms(z: np.ndarray) -> float | None:
     return float(np.sqrt(np.mean(z ** 2))) if z.size else None
 
 
-def run(seed: int = 1, injectors: int = INJECTORS, injections: int = INJECTIONS, lots: int = LOTS) -> dict:
-    """Open and closed loop on ``lots`` lots (seeds ``seed``, ``seed + 1``, ...); the report."""
+def run(seed: int = 1, injectors: int = INJECTORS, injections: int = INJECTIONS, lots: int = LOTS,
+        amplifiers: tuple[str, ...] = PROFILES) -> dict:
+    """Open and closed loops on ``lots`` lots per amplifier profile (seeds ``seed``, ``seed + 1``, ...
+    across all of them); the report."""
     from estimator.ident.simulators import SimulatorPool
 
     target = DriveCompensator().target_at(SimulatorPool().get(0.5e-6))
     rep: dict = {"benchmark": "compensation", "seed": seed, "lots": [], "injectors": injectors,
                  "injections": injections, "target_stroke_um": target[0], "target_opening_us": target[1],
-                 "targets": [t._asdict() for t in TARGETS["compensation"]]}
-    for n in range(lots):
-        runs = {"open": run_loop(False, seed + n, injectors, injections),
-                "closed": run_loop(True, seed + n, injectors, injections),
-                "closed_bus": run_loop(True, seed + n, injectors, injections, ecu=False)}
-        rep["lots"].append({"seed": seed + n, **{name: summarise(r, target[0]) for name, r in runs.items()}})
-        if n == 0:
-            rep["series"] = {name: {"stroke_um": runs[name].stroke_um.round(4).tolist(),
-                                    "opening_us": runs[name].opening_us.round(3).tolist()} for name in ("open", "closed")}
+                 "amplifiers": list(amplifiers), "targets": [t._asdict() for t in TARGETS["compensation"]]}
+    n = 0
+    for amp in amplifiers:
+        for _ in range(lots):
+            lot_seed = seed + n
+            runs = {"open": run_loop(False, lot_seed, injectors, injections, amp=amp),
+                    "closed": run_loop(True, lot_seed, injectors, injections, amp=amp),
+                    "closed_bus": run_loop(True, lot_seed, injectors, injections, ecu=False, amp=amp)}
+            rep["lots"].append({"seed": lot_seed, "amplifier": amp,
+                                **{name: summarise(r, target[0]) for name, r in runs.items()}})
+            if n == 0:
+                rep["series"] = {name: {"stroke_um": runs[name].stroke_um.round(4).tolist(),
+                                        "opening_us": runs[name].opening_us.round(3).tolist()}
+                                 for name in ("open", "closed")}
+            n += 1
     rep.update(pooled_z(rep["lots"]))
     rep["failures"] = failures(rep)
     return rep
@@ -198,19 +237,29 @@ def pooled_z(lots: list[dict]) -> dict[str, float | None]:
 
 
 def failures(rep: dict) -> list[str]:
-    """What makes the bench exit 1."""
+    """What makes the bench exit 1: each closed loop (the ECU's and the bus's) on each lot."""
     out = []
     for lot in rep["lots"]:
-        c, where = lot["closed"], f"lot {lot['seed']}"
-        if c["opening_spread_us"]["settled_median"] > limit("compensation", "opening_spread_us"):
-            out.append(f"{where}: opening spread {c['opening_spread_us']['settled_median']:.2f} µs")
-        if c["stroke_spread_um"]["settled_median"] > limit("compensation", "stroke_spread_um"):
-            out.append(f"{where}: stroke spread {c['stroke_spread_um']['settled_median']:.3f} µm")
-        for p in c["injectors"]:
-            if p["settle_injections"] is None or p["settle_injections"] > limit("compensation", "settle_injections"):
-                out.append(f"{where}: injector {p['injector']} settled after {p['settle_injections']} injections")
-            if p["overshoots"]:
-                out.append(f"{where}: injector {p['injector']}: {p['overshoots']} overshoots beyond 2σ")
+        for loop in ("closed", "closed_bus"):
+            if loop not in lot:
+                continue
+            c, where = lot[loop], f"lot {lot['seed']} ({lot.get('amplifier', 'standard')}, {loop})"
+            for what, unit, digits in (("opening", "us", 2), ("stroke", "um", 3)):
+                spread_ = c[f"{what}_spread_{unit}"]
+                for stat, key in (("settled_median", f"{what}_spread_{unit}"), ("settled_p95", f"{what}_spread_p95_{unit}")):
+                    if spread_[stat] > limit("compensation", key):
+                        out.append(f"{where}: {what} spread {stat} {spread_[stat]:.{digits}f}")
+            if c.get("at_limit_settled", 0.0) > limit("compensation", "at_limit_share"):
+                out.append(f"{where}: {100 * c['at_limit_settled']:.1f} % of the settled injections at a drive limit")
+            if c.get("valid_not_ok", 0):
+                out.append(f"{where}: {c['valid_not_ok']} corrections valid after an estimate that was not ok")
+            if loop != "closed":
+                continue
+            for p in c["injectors"]:
+                if p["settle_injections"] is None or p["settle_injections"] > limit("compensation", "settle_injections"):
+                    out.append(f"{where}: injector {p['injector']} settled after {p['settle_injections']} injections")
+                if p["overshoots"]:
+                    out.append(f"{where}: injector {p['injector']}: {p['overshoots']} overshoots beyond 2σ")
     lo, hi = Z_RMS
     for what in ("stroke", "opening"):
         z = rep[f"z_rms_{what}"]
@@ -224,16 +273,19 @@ def format_report(rep: dict) -> str:
     lines = [f"drive compensation, {len(rep['lots'])} lot(s) of {rep['injectors']} series injectors, "
              f"{rep['injections']} injections each, learning on; target stroke {rep['target_stroke_um']:.3f} µm, "
              f"opening {rep['target_opening_us']:.2f} µs",
-             f"{'':<15} {'stroke spread µm (median, p95)':>32} {'opening spread µs':>34}",
-             f"{'lot  loop':<15} {'first 10':>8} {'settled':>10} {'p95':>12} {'first 10':>10} {'settled':>10} {'p95':>12}"]
+             f"{'':<34} {'stroke spread µm':>30} {'opening spread µs':>30}",
+             f"{'lot  amplifier          loop':<34} {'first 10':>10} {'settled':>9} {'p95':>9} {'first 10':>10} "
+             f"{'settled':>9} {'p95':>9} {'at limit':>9}"]
     for lot in rep["lots"]:
         for name in ("open", "closed", "closed_bus"):
             s, o = lot[name]["stroke_spread_um"], lot[name]["opening_spread_us"]
-            lines.append(f"{lot['seed']:<4} {name:<10} {s['first10_median']:>8.3f} {s['settled_median']:>10.3f} "
-                         f"{s['settled_p95']:>12.3f} {o['first10_median']:>10.2f} {o['settled_median']:>10.2f} "
-                         f"{o['settled_p95']:>12.2f}")
+            lines.append(f"{lot['seed']:<4} {lot.get('amplifier', 'standard'):<18} {name:<10} "
+                         f"{s['first10_median']:>10.3f} {s['settled_median']:>9.3f} {s['settled_p95']:>9.3f} "
+                         f"{o['first10_median']:>10.2f} {o['settled_median']:>9.2f} {o['settled_p95']:>9.2f} "
+                         f"{100 * lot[name].get('at_limit_settled', 0.0):>8.1f}%")
     lines.append("closed: each correction computed for the next injection's preload force (an ECU); closed_bus: "
-                 "carried there by its per-kN sensitivity (an amplifier on the bus)")
+                 "the correction published after each injection, applied at the next one's preload force (an "
+                 "amplifier on the bus); at limit: settled injections driven by a correction at a drive limit")
     lines.append("closed loop per injector: adopted at / settled after / overshoots / max |stroke error| settled / "
                  "RMS(error/σ) of the predicted stroke, opening")
 

@@ -280,7 +280,7 @@ def speed(seed: int = 4, injections: int = 300, drive: Drive | None = None) -> d
     # the same injections through the daemon's processor, with the drive correction after each update
     from estimator.codec.ingest import Counters
     from estimator.codec.records import Codec
-    from estimator.ident.drive_correction import DriveCompensator
+    from estimator.drive.correction import DriveCompensator
     from estimator.pipeline.processor import Processor
 
     processor = Processor(Codec(), Tracker(TrackerConfig(), sim), Counters(), compensator=DriveCompensator())

@@ -14,15 +14,15 @@ import math
 import threading
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from estimator.codec.frame import Frame
 from estimator.codec.injection_frames import injection_frames
-from estimator.codec.records import Codec, DriveCorrection, SimTruth
-from estimator.ident.drive_correction import Correction
-from estimator.model.drive import STANDARD_AMPLITUDE_A, StandardDrive
+from estimator.codec.records import Codec, DriveCorrection, DriveCorrectionRow, SimTruth
+from estimator.drive.correction import Correction
+from sim_bench.amplifiers import Amplifier, Scaled
 from sim_bench.plant import Measurement, Plant, PlantConfig
 from sim_bench.scenarios import Scenario
 
@@ -58,12 +58,14 @@ class InjectionSource:
         # would: the standard drive's plateau current scaled, its start of charging offset
         self.corrections: dict[int, Correction] = {}
         self.offset_us: dict[int, float] = {}     # the offset applied to each injector's last injection
+        self.table_rows: dict[int, dict[int, tuple[int, float, float, float]]] = {}   # DriveCorrectionTable rows
         self.applied = 0                          # injections driven with a correction
         self.lives = []
         if scenario.series_lot:
             from sim_bench.series_life import LotSpec, draw_lot
 
-            spec = LotSpec(swap_at=scenario.swap_at, swapped=(1,), window_s=scenario.window_s)
+            amp = Amplifier("scenario", scenario.drive)   # the scenario's standard drive, scaled by a correction
+            spec = LotSpec(swap_at=scenario.swap_at, swapped=(1,), window_s=scenario.window_s, amplifier=amp)
             self.lives = draw_lot(scenario.injectors, seed, spec)
             self._life_length = int(round(scenario.seconds * scenario.rate_hz))
 
@@ -97,8 +99,18 @@ class InjectionSource:
         if self.lives:   # a series part of the lot: its own structure, warm-up and rail pressure
             return self.lives[injector].measure(n, self._life_length, self.rng, scale_for)[0], float("nan")
         tr = self.scenario.truth(injector, n, t, self.rng)
-        drive = StandardDrive(scale_for(tr.f_open_n) * STANDARD_AMPLITUDE_A) if scale_for is not None else None
+        drive = Scaled(self.plant.cfg.drive, scale_for(tr.f_open_n)) if scale_for is not None else None
         return self.plant.measure(tr.nu_n_per_v, tr.lh_um * 1e-6, tr.f_open_n, self.rng, drive), tr.temperature_c
+
+
+def _table(rows: dict[int, tuple[int, float, float, float]]) -> tuple[tuple[float, float, float], ...]:
+    """The drive-correction table once every row of it has arrived (else none: the sensitivities)."""
+    if not rows:
+        return ()
+    n = next(iter(rows.values()))[0]
+    if n < 2 or any(i not in rows for i in range(n)):
+        return ()
+    return tuple((rows[i][1], rows[i][2], rows[i][3]) for i in range(n))
 
 
 def apply_faults(frames: list[Frame], sc: Scenario, rng: np.random.Generator, stats: NodeStats) -> list[Frame]:
@@ -147,15 +159,26 @@ class InjectorNode:
         self.stats = NodeStats()
         self.counters = [0] * scenario.injectors
 
-    def take_correction(self, rec: DriveCorrection) -> None:
-        """A DriveCorrection from the bus: the injector's next injections are driven with it (the
-        SimTruth opening instant then counts from the standard drive's start of charging)."""
+    def take_correction(self, rec: DriveCorrection | DriveCorrectionRow) -> None:
+        """A DriveCorrection or a row of its table from the bus: the injector's next injections are
+        driven with it, the table's rows interpolated at each injection's preload force once every row
+        has arrived (the SimTruth opening instant then counts from the standard drive's start of charging)."""
         if self.scenario.pool:
             return   # pooled measurements are replayed, not simulated again: nothing to correct
-        self.source.corrections[rec.injector_id] = Correction(
+        iid = rec.injector_id
+        rows = self.source.table_rows.setdefault(iid, {})
+        if isinstance(rec, DriveCorrectionRow):
+            if rows and next(iter(rows.values()))[0] != rec.rows:
+                rows.clear()      # a table of another length: start again
+            rows[rec.row] = (rec.rows, rec.preload_n, rec.scale, rec.offset_us)
+            rec_c = self.source.corrections.get(iid)
+            if rec_c is not None:
+                self.source.corrections[iid] = replace(rec_c, table=_table(rows))
+            return
+        self.source.corrections[iid] = Correction(
             rec.scale, rec.offset_us, rec.stroke_um, rec.opening_us, rec.sigma_stroke_um, rec.sigma_opening_us,
             scale_per_kn=rec.scale_per_kn, offset_per_kn_us=rec.offset_per_kn_us, preload_n=rec.preload_n,
-            valid=rec.state in (1, 2), held=rec.state == 2, at_limit=bool(rec.at_limit))
+            valid=rec.state in (1, 2), held=rec.state == 2, at_limit=bool(rec.at_limit), table=_table(rows))
 
     def frames_for(self, injector: int, n: int, t: float) -> list[Frame]:
         """All frames of injection n of an injector at time t, faults applied, SimTruth last."""

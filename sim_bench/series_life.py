@@ -22,9 +22,9 @@ import numpy as np
 
 from estimator.ident.measurement import Injection
 from estimator.model.chain import MeasurementChain
-from estimator.model.drive import STANDARD_AMPLITUDE_A, StandardDrive
 from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench import series_part
+from sim_bench.amplifiers import STANDARD, Amplifier
 from sim_bench.plant import Measurement, Plant, PlantConfig
 
 PRELOAD_RANGE_N = (NOMINAL_PRELOAD_N, 300.0)   # idle to full load
@@ -54,6 +54,9 @@ class LotSpec:
     swapped: tuple[int, ...] = ()
     window_s: float = WINDOW_S
     wear_um: float = WEAR_UM
+    nu_rise: float = NU_RISE               # N/V: the warm-up's rise from NU_COLD
+    lh_um: tuple[float, float] = LH_UM     # a part's idle stroke, uniform
+    amplifier: Amplifier = STANDARD        # whose standard drive a correction scales
 
 
 @dataclass
@@ -70,6 +73,8 @@ class Life:
     window_s: float
     wear_um: float
     seed: int
+    nu_rise: float = NU_RISE
+    amplifier: Amplifier = STANDARD
     _plants: list[Plant] = field(default_factory=list, repr=False)
     _preload: float | None = field(default=None, repr=False)
 
@@ -79,7 +84,7 @@ class Life:
 
     def truth(self, k: int, n: int, preload_n: float) -> tuple[float, float]:
         """(N_u N/V, L_h µm) at injection ``k`` of ``n``."""
-        nu = NU_COLD + NU_RISE * (1.0 - math.exp(-k / WARM_UP_TAU)) + self.nu_offset
+        nu = NU_COLD + self.nu_rise * (1.0 - math.exp(-k / WARM_UP_TAU)) + self.nu_offset
         lh = self.lh_um[self.part_at(k)] + self.wear_um * k / max(n - 1, 1)
         return nu, lh
 
@@ -87,17 +92,19 @@ class Life:
                 preload_n: float | None = None) -> tuple[Measurement, dict]:
         """Injection ``k`` of a life of ``n``: the plant's measurement and the truth. Injections are
         measured in order (the rail pressure walks from one to the next). ``scale_for``: the plateau
-        current scale of the standard drive at this injection's preload force (a corrected drive;
+        current scale of the amplifier's standard drive at this injection's preload force (a corrected drive;
         None: the standard drive). ``preload_n``: this preload force (N) instead of the next step of
         the walk (a caller that drew the walk ahead, :meth:`preload_walk`)."""
         if not self._plants:
-            cfg = PlantConfig(window_s=self.window_s, chain=self.chain)
+            amp = self.amplifier
+            cfg = PlantConfig(window_s=self.window_s, chain=self.chain, drive=amp.standard, ripple_a=amp.ripple_a,
+                              ripple_period_s=amp.ripple_period_s)
             self._plants = [Plant(cfg, p.params) for p in self.parts]
         f = self._walk(rng) if preload_n is None else preload_n
         nu, lh = self.truth(k, n, f)
         p = self.part_at(k)
         scale = scale_for(f) if scale_for is not None else 1.0
-        drive = StandardDrive(scale * STANDARD_AMPLITUDE_A) if scale_for is not None else None
+        drive = self.amplifier.drive(scale) if scale_for is not None else None
         m = self._plants[p].measure(nu, lh * 1e-6, f, rng, drive)
         return m, {"k": k, "part": p, "nu_true": nu, "lh_true_um": lh, "beyond": self.beyond[p], "f_open_n": f,
                    "scale": scale}
@@ -150,12 +157,13 @@ def draw_lot(positions: int, seed: int, spec: LotSpec = LotSpec()) -> list[Life]
     for pos in range(positions):
         flags = [pos in beyond_at]
         parts = [_draw_part(rng, spec, flags[0])]
-        lhs = [float(rng.uniform(*LH_UM))]
+        lhs = [float(rng.uniform(*spec.lh_um))]
         if spec.swap_at is not None and pos in spec.swapped:
             flags.append(False)
             parts.append(_draw_part(rng, spec, False))
-            lhs.append(float(rng.uniform(*LH_UM)))
+            lhs.append(float(rng.uniform(*spec.lh_um)))
         lives.append(Life(pos, parts, flags, lhs, float(rng.uniform(-NU_OFFSET, NU_OFFSET)),
                           spec.swap_at if len(parts) > 1 else None, spec.chain, spec.window_s,
-                          float(rng.uniform(0.0, spec.wear_um)), int(rng.integers(2 ** 31))))
+                          float(rng.uniform(0.0, spec.wear_um)), int(rng.integers(2 ** 31)), spec.nu_rise,
+                          spec.amplifier))
     return lives

@@ -179,7 +179,7 @@ class ModelCalibration(Record):
 @dataclass(frozen=True)
 class DriveCorrection(Record):
     """One injector's drive correction after an injection (``state``: 0 none, 1 valid, 2 held; see
-    :class:`estimator.ident.drive_correction.Correction`)."""
+    :class:`estimator.drive.correction.Correction`)."""
 
     injector_id: int
     counter: int
@@ -201,6 +201,25 @@ class DriveCorrection(Record):
         "stroke_um": "Stroke", "sigma_stroke_um": "SigmaStroke", "opening_us": "Opening",
         "sigma_opening_us": "SigmaOpening", "scale_per_kn": "ScalePerKn", "offset_per_kn_us": "OffsetPerKn",
         "preload_n": "Preload", "state": "State", "at_limit": "AtLimit"}
+
+
+@dataclass(frozen=True)
+class DriveCorrectionRow(Record):
+    """One row of an injector's drive-correction table: ``scale`` and ``offset_us`` at ``preload_n``
+    (row ``row`` of ``rows``; see :meth:`estimator.drive.correction.Correction.at`)."""
+
+    injector_id: int
+    counter: int
+    row: int
+    rows: int
+    preload_n: float
+    scale: float
+    offset_us: float
+    MESSAGE: ClassVar[str] = "DriveCorrectionTable"
+    OUTPUT: ClassVar[bool] = True
+    SIGNALS: ClassVar[dict[str, str]] = {
+        "injector_id": "InjectorId", "counter": "InjectionCounter", "row": "Row", "rows": "Rows",
+        "preload_n": "Preload", "scale": "Scale", "offset_us": "Offset"}
 
 
 @dataclass(frozen=True)
@@ -314,7 +333,8 @@ class SampleBlock(Record):
 
 #: every message of the contract, by record class
 REGISTRY: tuple[type[Record], ...] = (InjectionHeader, SampleBlock, InjectionTrailer, EstimateState, EstimateQuality,
-                                      ValvePrediction, ModelCalibration, DriveCorrection, EstimatorStatus, EstimatorHealth,
+                                      ValvePrediction, ModelCalibration, DriveCorrection, DriveCorrectionRow, EstimatorStatus,
+                                      EstimatorHealth,
                                       EstimatorCommand,
                                       SimTruth)
 

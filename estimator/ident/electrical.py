@@ -415,8 +415,9 @@ class _Problem:
     def left_response(self, fit: LeastSquaresResult, cov: np.ndarray) -> tuple[float, float]:
         """What the shared parameters' uncertainty leaves in the valve's predicted motion: the RMS
         over the batch of the plateau stroke's (relative) and the opening instant's (s) standard
-        deviation, each injection's prediction differentiated in the structure and its own (N_u,
-        L_h) and taken through their covariance less the part its own samples explain. The valve
+        deviation, each injection's prediction differentiated in the structure, the measurement chain's
+        current skew and its own (N_u, L_h) and taken through their covariance less the part its own
+        samples explain. The valve
         answers to the structure and to (N_u, L_h) together: an error in one that the voltage
         compensates with the other moves the stroke by less than each alone would say."""
         x, k, p = fit.x, self.k, self.p
@@ -445,9 +446,16 @@ class _Problem:
             g = (g - y0[:, None]) / h
             if not np.all(np.isfinite(g)):
                 continue
-            idx = [*range(k), p + 2 * j, p + 2 * j + 1]
+            # the chain's current skew (µs) moves the actuator's current, and so the opening instant, one to
+            # one (earlier for a larger skew); its voltage filter acts through N_u and L_h only
+            chain = np.zeros((2, p - k))
+            for i, n in enumerate(self.chain_names):
+                if n == "i_skew_s":
+                    chain[0, i] = -S_PER_US
+            g = np.concatenate([g[:, :k], chain, g[:, k:]], axis=1)
+            idx = [*range(p), p + 2 * j, p + 2 * j + 1]
             c = cov[np.ix_(idx, idx)].copy()
-            c[k:, k:] -= own
+            c[p:, p:] -= own
             v = g @ c @ g.T
             opening.append(math.sqrt(max(v[0, 0], 0.0)))
             stroke_rel.append(math.sqrt(max(v[1, 1], 0.0)) / y0[1])

@@ -10,11 +10,11 @@ from __future__ import annotations
 from estimator.codec.bus_clock import BusClock
 from estimator.codec.ingest import Ingest
 from estimator.codec.records import Codec, InjectionHeader, load_database
-from estimator.ident.drive_correction import DriveCompensator
+from estimator.drive.correction import DriveCompensator
 from estimator.ident.selfcal import Calibrator
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.tracker import Tracker
-from estimator.pipeline.config import EstimatorConfig
+from estimator.pipeline.config import EstimatorConfig, load_amplifier_drive
 from estimator.pipeline.processor import Processor
 
 SILENT_BUS_S = 1.0   # s: the bus clock's guard unless the daemon's configuration says otherwise
@@ -50,6 +50,15 @@ def build_codec(cfg: EstimatorConfig) -> Codec:
     return Codec(load_database(cfg.dbc))
 
 
+def build_compensator(cfg: EstimatorConfig) -> DriveCompensator | None:
+    """The drive compensator as configured (None: off), with the amplifier's standard drive read from
+    its current table when one is configured."""
+    t = cfg.drive_correction
+    if t is None:
+        return None
+    return DriveCompensator(t, standard=load_amplifier_drive(t.drive_file) if t.drive_file is not None else None)
+
+
 def build_pipeline(cfg: EstimatorConfig, pool: SimulatorPool | None = None, codec: Codec | None = None,
                    calibrator: Calibrator | None = None,
                    silent_bus_s: float = SILENT_BUS_S) -> Pipeline:
@@ -59,7 +68,7 @@ def build_pipeline(cfg: EstimatorConfig, pool: SimulatorPool | None = None, code
     the live daemon's wall-clock guard (its configuration's); a replay's capture ends it."""
     codec = codec or build_codec(cfg)
     ingest = Ingest(codec, cfg.assembly_timeout_ms * 1e-3, cfg.max_injectors)
-    compensator = DriveCompensator(cfg.drive_correction) if cfg.drive_correction is not None else None
+    compensator = build_compensator(cfg)
     processor = Processor(codec, build_tracker(cfg, pool, calibrator, codec), ingest.counters, cfg.commands,
                           compensator)
     return codec, ingest, processor, BusClock(silent_bus_s)

@@ -6,7 +6,7 @@ The TOML file's tables are the tree: ``[estimator]`` holds the estimator's keys 
 :meth:`EstimatorConfig.__post_init__`), ``[estimator.ident]`` builds :class:`IdentConfig`,
 ``[estimator.tracker]`` :class:`TrackerConfig` (around that IdentConfig),
 ``[estimator.self_calibration]`` :class:`SelfCalConfig` (with ``mode = "off" | "on"``) and
-``[estimator.drive_correction]`` :class:`~estimator.ident.drive_correction.DriveTarget` (the same
+``[estimator.drive_correction]`` :class:`~estimator.drive.target.DriveTarget` (the same
 ``mode``). The daemon's configuration (:class:`estimator.service.config.DaemonConfig`) is this one
 with the bus, state and service keys added. Sources, later ones winning: the defaults, the file, CLI
 flags. A bad value raises :class:`ConfigError` with one line that names the table and the key. The
@@ -33,9 +33,10 @@ else:  # pragma: no cover
 
 from estimator.choices import Switch
 from estimator.codec.assembler import MAX_SAMPLE_PERIOD_NS
+from estimator.drive.standard import AmplifierDrive
+from estimator.drive.target import DriveTarget
 from estimator.errors import EstimatorError
 from estimator.ident.config import IdentConfig, TrackerConfig
-from estimator.ident.drive_correction import DriveTarget
 from estimator.ident.selfcal import SelfCalConfig
 from estimator.pipeline.processor import COMMAND_POLICIES
 from estimator.units import US_PER_S
@@ -221,6 +222,21 @@ class EstimatorConfig:
                 InjectorParameters.from_toml(path)
             except EstimatorError as exc:
                 raise ConfigError(f"[estimator.injector_params] {iid} = {str(path)!r}: {exc}") from None
+        if self.drive_correction is not None and self.drive_correction.drive_file is not None:
+            load_amplifier_drive(self.drive_correction.drive_file)
+
+
+def load_amplifier_drive(path: str | Path) -> AmplifierDrive:
+    """The amplifier's standard drive from a current table (CSV with columns t_s, current_A from the
+    start of charging, as ``python -m estimator drive-table`` writes it); ConfigError naming the key
+    and the file otherwise."""
+    from estimator.io.traces import read_trace
+
+    try:
+        tr = read_trace(path)
+        return AmplifierDrive.from_table(tr.column("t_s"), tr.column("current_A"), Path(path).name)
+    except (EstimatorError, ValueError, OSError) as exc:
+        raise ConfigError(f"[estimator.drive_correction] amplifier_drive = {str(path)!r}: {exc}") from None
 
 
 def _sections(values: dict[str, Any], where: str) -> dict[str, Any]:

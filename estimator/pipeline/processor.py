@@ -21,6 +21,7 @@ from estimator.codec.records import (
     Codec,
     Command,
     DriveCorrection,
+    DriveCorrectionRow,
     EstimateQuality,
     EstimateState,
     EstimatorCommand,
@@ -29,8 +30,8 @@ from estimator.codec.records import (
     ModelCalibration,
     ValvePrediction,
 )
+from estimator.drive.correction import CORRECTION_STATES, Correction, DriveCompensator, correction_after
 from estimator.errors import ParameterError
-from estimator.ident.drive_correction import CORRECTION_STATES, Correction, DriveCompensator, correction_after
 from estimator.ident.measurement import Injection
 from estimator.ident.selfcal import CalibrationStatus
 from estimator.ident.status import Learning, Status
@@ -40,6 +41,7 @@ from estimator.units import PER_MICRO, UM_PER_M, US_PER_S
 
 log = logging.getLogger(__name__)
 COMMAND_POLICIES = ("off", "reset-only", "all")   # who may steer the estimator over the bus (config key commands)
+TABLE_ROWS_PER_INJECTION = 2   # DriveCorrectionTable rows sent with each injection's correction, in turn
 
 
 ROW_FIELDS = ("time_s", "injector_id", "counter", "status", "nu_n_per_v", "lh_um", "sigma_nu_n_per_v", "sigma_lh_um",
@@ -91,6 +93,13 @@ def correction_frame(codec: Codec, injector_id: int, counter: int, c: Correction
                                         int(c.at_limit)))
 
 
+def table_frames(codec: Codec, injector_id: int, counter: int, c: Correction, rows: Sequence[int]) -> list[Frame]:
+    """The DriveCorrectionTable frames of the correction's table rows ``rows`` (none without a table)."""
+    table = c.table if c.valid else ()
+    return [codec.encode(DriveCorrectionRow(injector_id, counter, i, len(table), *table[i])) for i in rows
+            if i < len(table)]
+
+
 def output_frames(codec: Codec, injector_id: int, counter: int, res: TrackResult) -> list[Frame]:
     """EstimateState, EstimateQuality and ValvePrediction of one result (the frames the daemon sends)."""
     have = math.isfinite(res.nu_n_per_v) and math.isfinite(res.lh_m)
@@ -127,6 +136,7 @@ class Published:
     calibrations: tuple[tuple[int, CalibrationStatus], ...] = ()   # self-calibration changes (injector, status)
     learning: CalibrationStatus | None = None   # where this injector's learning stands (None: learning off)
     correction: Correction | None = None   # the injector's drive correction (None: drive correction off)
+    table_rows: tuple[int, ...] = ()       # the rows of its table sent with it (DriveCorrectionTable)
 
     @cached_property
     def frames(self) -> list[Frame]:
@@ -139,6 +149,7 @@ class Published:
         out = output_frames(codec, self.injector_id, self.counter, self.result)
         if self.correction is not None:
             out.append(correction_frame(codec, self.injector_id, self.counter, self.correction))
+            out.extend(table_frames(codec, self.injector_id, self.counter, self.correction, self.table_rows))
         return out + [calibration_frame(codec, i, st) for i, st in self.calibrations]
 
     def stale(self, age_s: float) -> Published:
@@ -170,7 +181,19 @@ class Published:
 
 
 class Processor:
-    """Runs the tracker on completed injections and builds the estimator's output frames."""
+    """The estimator as the daemon runs it: the tracker, learning and the drive correction for each
+    injection, and the output frames (what :func:`~estimator.pipeline.build.build_pipeline` returns
+    third).
+
+    :meth:`estimate` takes one :class:`~estimator.ident.measurement.Injection` and, where the caller
+    knows it (an ECU knows its next rail pressure), the next injection's preload force; it returns a
+    :class:`Published`: the tracker's result (``result``), the injector's learning state (``learning``)
+    and its drive correction (``correction``, a :class:`~estimator.drive.correction.Correction` for that
+    preload force, carried to any other by :meth:`~estimator.drive.correction.Correction.at`), and the
+    CAN frames the daemon sends (``frames``). :meth:`handle` does the same for the codec's events (the
+    daemon's and a replay's path). The same correction comes from a ``Tracker`` and a
+    ``DriveCompensator`` through :func:`~estimator.drive.correction.correction_after`.
+    """
 
     def __init__(self, codec: Codec, tracker: Tracker, counters: Counters, commands: str = "reset-only",
                  compensator: DriveCompensator | None = None) -> None:
@@ -183,6 +206,7 @@ class Processor:
         self.compensator = compensator      # per-injector drive corrections (None: off)
         self.rlog = RateLimitedLog(log)
         self._logged: dict[int, str] = {}   # the learning state last logged per injector (progress is not logged)
+        self._table_cursor: dict[int, int] = {}   # the next drive-table row to send per injector
         # rolling counters: each wraps at its signal's width (32 or 16 bits)
         self._masks = _wrap_masks(codec, EstimatorStatus, HEARTBEAT_COUNTERS)
         self._health_masks = _wrap_masks(codec, EstimatorHealth, HEALTH_COUNTERS)
@@ -284,12 +308,23 @@ class Processor:
                 log.warning("injector %d: out_of_tolerance: %s beyond the part's tolerance", iid,
                             ", ".join(st.out_of_tolerance))
         correction = self._correction(inj, res, next_preload_n) if self.compensator is not None else None
+        rows: tuple[int, ...] = ()
+        if correction is not None and correction.table:   # a few rows of the table with each injection, in turn
+            n = len(correction.table)
+            first = self._table_cursor.get(inj.injector_id, 0) % n
+            rows = tuple((first + k) % n for k in range(min(TABLE_ROWS_PER_INJECTION, n)))
+            self._table_cursor[inj.injector_id] = (first + len(rows)) % n
         return Published(inj.injector_id, inj.counter, inj.time_s, res, self.codec, changes,
-                         self.tracker.calibration.get(inj.injector_id), correction)
+                         self.tracker.calibration.get(inj.injector_id), correction, rows)
 
     def _correction(self, inj: Injection, res: TrackResult, preload_n: float | None = None) -> Correction:
         assert self.compensator is not None
-        return correction_after(self.compensator, self.tracker, inj, res, preload_n)
+        before = self.compensator.drive_disagreements
+        corr = correction_after(self.compensator, self.tracker, inj, res, preload_n)
+        if self.compensator.drive_disagreements != before:   # counted there, logged once per minute here
+            self.rlog.log(logging.WARNING, "drive-disagrees", "injector %d counter %d: correction held: %s",
+                          inj.injector_id, inj.counter, corr.reason)
+        return corr
 
     def status_frame(self, queue_depth: int, latency_p99_ms: float, uptime_s: float,
                      stage_p99_ms: dict[str, float] | None = None) -> Frame:

@@ -28,11 +28,11 @@ import can
 from estimator.codec.assembler import Completed
 from estimator.codec.frame import Frame
 from estimator.errors import EstimatorError
-from estimator.ident.drive_correction import DriveCompensator
 from estimator.ident.tracker import Tracker
 from estimator.io.captures import to_frame, to_message
 from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.pipeline import build_pipeline, build_pool, build_tracker
+from estimator.pipeline.build import build_compensator
 from estimator.pipeline.ratelimit import RateLimitedLog
 from estimator.service.bus import open_bus, resolve
 from estimator.service.calibration_worker import BackgroundCalibrator
@@ -373,7 +373,7 @@ class Daemon:
         self.processor.tracker = tracker
         self.processor.commands = new.commands
         if new.drive_correction != self.cfg.drive_correction:   # a new target: corrections start again
-            self.processor.compensator = DriveCompensator(new.drive_correction) if new.drive_correction else None
+            self.processor.compensator = build_compensator(new)
         self.ingest.assembler.timeout_s = new.assembly_timeout_ms * 1e-3
         self.clock.silent_bus_s = new.silent_bus_s
         logging.getLogger().setLevel(new.log_level_number)

@@ -18,7 +18,8 @@ ABOVE_CODEC = {"can", "estimator.io"} | ABOVE_IO
 FORBIDDEN = {
     "estimator/_compiled": {"cantools", "estimator.model", "estimator.ident", "estimator.codec"} | ABOVE_CODEC,
     "estimator/model": {"cantools", "estimator.ident", "estimator.codec", "logging"} | ABOVE_CODEC,
-    "estimator/ident": {"cantools", "estimator.codec"} | ABOVE_CODEC,
+    "estimator/ident": {"cantools", "estimator.codec", "estimator.drive"} | ABOVE_CODEC,
+    "estimator/drive": {"cantools", "estimator.codec"} | ABOVE_CODEC,
     "estimator/codec": ABOVE_CODEC,
     "estimator/io": ABOVE_IO,
     "estimator/pipeline": {"can"} | ABOVE_PIPELINE,

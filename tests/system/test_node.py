@@ -122,3 +122,41 @@ def test_the_node_drives_an_injector_with_its_published_correction(codec):
     assert corrected.opening_us < plain.opening_us - 10.0               # charged 10 µs earlier, and faster
     node.take_correction(DriveCorrection(1, 0, 1.2, -10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 28.0, 0, 0))   # state none
     assert truth_of(node, 1).stroke_um == pytest.approx(plain.stroke_um, abs=0.5) and node.source.applied == 1
+
+
+def test_the_correction_table_reaches_the_node_row_by_row(codec):
+    """The processor sends two DriveCorrectionTable rows with each injection's correction, in turn; the
+    node, once it has every row, applies the correction at any preload force as the estimator's own
+    ``Correction.at`` does (to the wire's resolution)."""
+    import math
+
+    from estimator.codec.records import DriveCorrection, DriveCorrectionRow
+    from estimator.drive.correction import DriveCompensator, DriveTarget
+    from estimator.ident.measurement import Injection
+    from estimator.pipeline import build_pipeline
+    from estimator.pipeline.config import EstimatorConfig
+    from sim_bench.plant import Plant
+
+    _, _, processor, _ = build_pipeline(EstimatorConfig())
+    processor.compensator = DriveCompensator(DriveTarget(amplifier_drive="trapezoid"))
+    plant, rng = Plant(), np.random.default_rng(8)
+    node = InjectorNode(lambda f: None, scenarios.get("nominal", injectors=2), 5, codec)
+    rows_seen: list[int] = []
+    for k in range(30):
+        f = 40.0 + 8.0 * k
+        m = plant.measure(17.0, 3e-6, f, rng)
+        pub = processor.estimate(Injection(m.current_a, m.voltage_v, m.dt_s, f, 1, k, math.nan, 0.1 * k))
+        for frame in pub.frames:
+            rec = codec.decode(frame)
+            if isinstance(rec, (DriveCorrection, DriveCorrectionRow)):
+                node.take_correction(rec)
+                if isinstance(rec, DriveCorrectionRow):
+                    rows_seen.append(rec.row)
+    c = pub.correction
+    assert c is not None and c.valid and len(c.table) == len(DriveTarget().table_preloads_n)
+    assert len(set(rows_seen)) == len(c.table) and len(rows_seen) <= 2 * 30
+    on_node = node.source.corrections[1]
+    assert len(on_node.table) == len(c.table)
+    for f in (28.0, 33.0, 47.0, 150.0, 300.0):
+        mine, theirs = c.at(f), on_node.at(f)
+        assert abs(mine[0] - theirs[0]) < 3e-4 and abs(mine[1] - theirs[1]) < 0.05, (f, mine, theirs)

@@ -1,0 +1,485 @@
+"""The drive that opens every valve alike: a per-injector correction of the amplifier's standard drive.
+
+The estimator knows each injector's coupling factor N_u and idle stroke L_h (with their covariance)
+and, once learned, its own structural parameters. From them this module computes how the amplifier's
+standard drive (:mod:`estimator.drive.standard`: learned from the measured current, or a configured
+table) must be changed so that the injector's valve opens as the **target** says
+(:mod:`estimator.drive.target`): the plateau current's scale (the stroke follows the charge) and the
+start-of-charge offset (the opening instant moves with it one to one).
+
+The plateau stroke is close to linear in the scale (≈ 27 µm per unit) and in L_h (-1 µm/µm), so a
+Newton step from the last correction, with derivatives refreshed every ``refresh`` injections or
+when the model or the drive changes, reaches the target in one simulation an injection. The
+correction carries its own sensitivities to the preload force (per kN), the limits it was computed
+with, and the σ of the stroke and the opening instant it will give, propagated from the estimate's
+covariance; for a calibrated model that states what its own uncertainty leaves in the valve's
+motion, that statement in place of the calibration's share of the covariance.
+
+Only an ``ok`` estimate whose injection's current agrees with the standard drive yields a fresh
+correction. After an estimate that is not ``ok`` the correction is computed again for the new
+preload force from the last ``ok`` estimate (N_u carried on by its drift rate) and marked ``held``:
+never carried across idle by a first-order sensitivity. A measured current the standard drive does
+not explain holds the last correction as it is and says why. Pure: no clocks, no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from estimator.drive.response import Response, linearise, respond, trapezoid
+from estimator.drive.standard import AmplifierDrive, DriveCheck, DriveLearner
+from estimator.drive.target import NOMINAL_LH_UM, NOMINAL_NU_N_PER_V, DriveTarget, resolve
+from estimator.errors import EstimatorError
+from estimator.ident.coords import UM_PER_M
+from estimator.ident.measurement import Injection
+from estimator.ident.status import Status
+from estimator.ident.tracker import Tracker, TrackResult
+from estimator.model.fast_sim import FastSimulator
+from estimator.model.parameters import NOMINAL_PRELOAD_N
+from estimator.units import US_PER_S
+
+N_PER_KN = 1e3
+MAX_INTERVAL_S = 60.0          # a longer pause between injections: N_u is not carried forward by the drift rate
+REFRESH_INJECTIONS = 16        # derivatives are simulated again this often (and whenever the model changes)
+ROWS_PER_INJECTION = 1         # preload-table rows computed again each injection (the others carried by derivatives)
+ROWS_AFTER_CHANGE = 4          # rows computed each injection after the model or the drive changed
+LINEAR_STROKE_UM = 0.05       # a Newton step that moves the stroke and the opening instant less than these is
+LINEAR_OPENING_US = 0.05       # taken from the derivatives, without a simulation
+CARRY_OPENING_US = 0.5         # a table row the derivatives would move further is simulated again first
+JITTER_WEIGHT = 0.1            # weight of each new injection in the running mean square of the jitter
+JITTER_MIN = 5                 # injections compared before the jitter enters σ
+JITTER_CLIP = 4.0              # a difference beyond this many RMS (plus the floor, µm and µs) counts as that much
+JITTER_FLOOR = (0.05, 0.5)
+CORRECTION_STATES = ("none", "valid", "held")   # DriveCorrection.State: code = index (the DBC's value table)
+DEFAULT_LIMITS = DriveTarget().scale_limits, DriveTarget().offset_limits_us
+
+
+@dataclass(frozen=True)
+class Correction:
+    """The correction of one injector's standard drive, for the preload force ``preload_n``.
+
+    ``scale`` × the standard drive's current, charging ``offset_us`` later (negative: earlier) than the
+    standard drive; at another preload force F an amplifier applies ``scale + scale_per_kn·(F -
+    preload_n)/1000`` and likewise the offset, within the limits the correction was computed with
+    (:meth:`at`). ``stroke_um``/``opening_us`` are what the injector's model predicts with it,
+    ``sigma_*`` their 1σ. ``held``: not from this injection's estimate (it was not ``ok``, or its current
+    disagreed with the standard drive; ``reason`` says which); ``valid`` False: no correction yet (the
+    standard drive). ``at_limit``: a limit kept the target out of reach, and stroke and opening are what
+    the limited drive gives. ``drive_scale``: the measured current's scale relative to the standard
+    drive (NaN: not checked).
+    """
+
+    scale: float = 1.0
+    offset_us: float = 0.0
+    stroke_um: float = math.nan
+    opening_us: float = math.nan
+    sigma_stroke_um: float = math.nan
+    sigma_opening_us: float = math.nan
+    target_stroke_um: float = math.nan
+    target_opening_us: float = math.nan
+    scale_per_kn: float = 0.0
+    offset_per_kn_us: float = 0.0
+    preload_n: float = math.nan
+    valid: bool = False
+    held: bool = False
+    at_limit: bool = False
+    scale_limits: tuple[float, float] = DEFAULT_LIMITS[0]
+    offset_limits_us: tuple[float, float] = DEFAULT_LIMITS[1]
+    reason: str = ""
+    drive_scale: float = math.nan
+    table: tuple[tuple[float, float, float], ...] = ()
+
+    @property
+    def state(self) -> str:
+        """``none`` (no ok estimate yet), ``valid`` (from this injection) or ``held`` (the last valid one):
+        :data:`CORRECTION_STATES`, the words of ``DriveCorrection.State``."""
+        return "held" if self.held else ("valid" if self.valid else "none")
+
+    def at(self, preload_n: float) -> tuple[float, float]:
+        """(scale, offset µs) to apply at ``preload_n`` (N), within the limits it was computed with: the
+        preload table interpolated linearly (clamped at its ends), shifted so that it gives this
+        correction at its own preload force; without a table, the per-kN sensitivities."""
+        if not self.valid:
+            return 1.0, 0.0
+        if self.table:
+            f, s, o = (np.array(col) for col in zip(*self.table))
+            here = math.isfinite(self.preload_n)
+            scale = float(np.interp(preload_n, f, s)) + (self.scale - float(np.interp(self.preload_n, f, s)) if here else 0.0)
+            offset = float(np.interp(preload_n, f, o)) + (self.offset_us - float(np.interp(self.preload_n, f, o))
+                                                          if here else 0.0)
+        else:
+            d_kn = (preload_n - self.preload_n) / N_PER_KN if math.isfinite(self.preload_n) else 0.0
+            scale = self.scale + self.scale_per_kn * d_kn
+            offset = self.offset_us + self.offset_per_kn_us * d_kn
+        return float(np.clip(scale, *self.scale_limits)), float(np.clip(offset, *self.offset_limits_us))
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-ready (units in the names; NaN as None; the table as rows [preload N, scale, offset µs]),
+        with the :attr:`state` word."""
+        out: dict[str, object] = {}
+        for k, v in self.__dict__.items():
+            out[k] = None if isinstance(v, float) and not math.isfinite(v) else (
+                [list(x) if isinstance(x, tuple) else x for x in v] if isinstance(v, tuple) else v)
+        out["state"] = self.state
+        return out
+
+
+@dataclass(frozen=True)
+class _OkEstimate:
+    """The last ``ok`` estimate a held correction is computed from again."""
+
+    sim: FastSimulator
+    nu: float
+    lh_um: float
+    cov: np.ndarray
+    rate_n_per_v_s: float
+    time_s: float
+
+
+@dataclass
+class _Point:
+    """The Newton iteration's memory at one preload force: the derivatives and what they were taken
+    with, and the last correction computed there (``nu``/``lh_um`` its estimate)."""
+
+    response: Response | None = None
+    model: object | None = None         # the simulator the derivatives were taken with
+    drive: object | None = None         # and the standard drive
+    age: int = 0                        # corrections since the derivatives were refreshed
+    last: Correction | None = None
+    nu: float = math.nan
+    lh_um: float = math.nan
+
+
+@dataclass
+class _Injector:
+    """What the compensator keeps per injector between injections."""
+
+    last: Correction = field(default_factory=Correction)
+    main: _Point = field(default_factory=_Point)
+    rows: list[_Point] = field(default_factory=list)   # one per preload of the table
+    next_row: int = 0
+    table: tuple[tuple[float, float, float], ...] = ()   # the last complete table
+    time_s: float = math.nan            # the last injection's time (s)
+    ok: _OkEstimate | None = None
+    jitter: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])   # samples, mean square (µm², µs²)
+
+
+class DriveCompensator:
+    """Per-injector drive corrections from the tracker's results (``update`` once per injection).
+
+    ``nominal``: a simulator of the configured (nominal) parameters, for the default target (else each
+    ``update`` passes one). ``standard``: the amplifier's standard drive when the target configures it
+    as a current table (the pipeline reads the file); ``trapezoid`` builds the built-in one, ``learned``
+    learns each injector's from its first injections.
+    """
+
+    def __init__(self, target: DriveTarget | None = None, nominal: FastSimulator | None = None,
+                 refresh: int = REFRESH_INJECTIONS, standard: AmplifierDrive | None = None) -> None:
+        self.target = target or DriveTarget()
+        self.nominal = nominal
+        self.refresh = refresh
+        if standard is None and self.target.drive_file is not None:
+            raise ValueError(f"amplifier_drive = {self.target.amplifier_drive!r}: the current table must be "
+                             "read and passed as standard (estimator.pipeline does)")
+        if standard is None and self.target.amplifier_drive == "trapezoid":
+            standard = AmplifierDrive.trapezoid()
+        self.standard = standard
+        self.drive_disagreements = 0        # injections whose current the standard drive did not explain
+        self._injectors: dict[int, _Injector] = {}
+        self._learners: dict[int, DriveLearner] = {}   # kept through a reset: the amplifier is the same
+        self._targets: dict[int, tuple[float, float]] = {}
+
+    def warm_up(self, nominal: FastSimulator) -> None:
+        """The target and one correction on a throw-away injector, so the first real one is not slow
+        (the daemon calls it before READY)."""
+        cov = np.diag([0.01, 0.01])
+        st = _Injector()
+        drive = self.standard or trapezoid(nominal.dt_s)
+        self._correct(st.main, nominal, nominal, NOMINAL_NU_N_PER_V, NOMINAL_LH_UM + 1.0, cov, NOMINAL_PRELOAD_N, drive)
+        self._table(st, nominal, nominal, NOMINAL_NU_N_PER_V, NOMINAL_LH_UM + 1.0, cov, drive)
+
+    def forget(self, injector_id: int) -> None:
+        """Drop an injector's corrections (a reset: it is driven with the standard drive again); a
+        learned standard drive is kept (the amplifier has not changed)."""
+        self._injectors.pop(injector_id, None)
+
+    def last(self, injector_id: int) -> Correction:
+        """The injector's last correction (the standard drive, ``valid`` False, if none)."""
+        st = self._injectors.get(injector_id)
+        return st.last if st is not None else Correction()
+
+    def drive_of(self, injector_id: int) -> AmplifierDrive | None:
+        """The standard drive the injector's corrections are computed with (None: not learned yet)."""
+        if self.standard is not None:
+            return self.standard
+        learner = self._learners.get(injector_id)
+        return learner.drive if learner is not None else None
+
+    def target_at(self, nominal: FastSimulator) -> tuple[float, float]:
+        """(stroke µm, opening µs) the target asks for (:func:`~estimator.drive.target.resolve` with
+        ``nominal``, a simulator of the configured parameters, and the configured drive, else the
+        built-in trapezoid: one target for every injector, whatever each one's learned drive)."""
+        nominal = self.nominal or nominal
+        got = self._targets.get(id(nominal))
+        if got is None:
+            got = resolve(nominal, self.target, self.standard or trapezoid(nominal.dt_s))
+            self._targets = {id(nominal): got}
+        return got
+
+    def check_drive(self, injector_id: int, current_a: np.ndarray, dt_s: float) -> tuple[AmplifierDrive | None, str, float]:
+        """The injector's standard drive after this injection's measured current (learning it from
+        injections at the standard drive), the reason it cannot serve this injection ("" when it can)
+        and the measured scale relative to it."""
+        drive = self.drive_of(injector_id)
+        if drive is None:
+            st = self._injectors.get(injector_id)
+            learner = self._learners.setdefault(
+                injector_id, DriveLearner(self.target.learn_injections, self.target.drive_tolerance))
+            if st is None or not st.last.valid:          # the amplifier drives its standard drive
+                learner.add(current_a, dt_s)
+            drive = learner.drive
+            if drive is None:
+                return None, (f"learning the amplifier's standard drive from its measured current "
+                              f"({learner.count} of {learner.needed} injections)"), math.nan
+        check: DriveCheck = drive.check(current_a, dt_s, self.target.drive_tolerance)
+        if not check.agrees:
+            self.drive_disagreements += 1
+            return drive, (f"the measured current disagrees with the amplifier's standard drive "
+                           f"({drive.source}): {100 * check.residual_rel:.0f} % of it unexplained "
+                           f"(drive_tolerance {100 * self.target.drive_tolerance:.0f} %)"), check.scale
+        return drive, "", check.scale
+
+    def update(self, injector_id: int, ok: bool, sim: FastSimulator | None, nu: float, lh_um: float,
+               cov: np.ndarray | None, f_open_n: float, nominal: FastSimulator | None = None,
+               rate_n_per_v_s: float = 0.0, time_s: float = math.nan, current_a: np.ndarray | None = None,
+               dt_s: float = math.nan, this_preload_n: float = math.nan,
+               predicted: tuple[float, float] = (math.nan, math.nan)) -> Correction:
+        """The correction after one injection: computed from an ``ok`` estimate (``nu`` N/V, ``lh_um``
+        µm, ``cov`` their 2×2 covariance in N/V and µm) with the injector's model ``sim`` at the
+        preload force ``f_open_n`` (N; the next injection's if known, else this one's). ``current_a``
+        (A, sampled every ``dt_s`` s): the injection's measured current, checked against (or teaching)
+        the amplifier's standard drive; without it the drive is taken as configured, learned or the
+        built-in trapezoid, unchecked. After an estimate that is not ``ok`` the correction is computed
+        again at ``f_open_n`` from the last ``ok`` one, ``held``; a current that disagrees holds the last
+        correction as it is. ``nominal``: a simulator of the configured parameters (the default
+        target), when the compensator was built without one. The correction is for the next injection:
+        N_u moves on by the filter's drift rate ``rate_n_per_v_s`` over the last interval between this
+        injector's injections (``time_s``, s; a warm-up would otherwise leave it behind). ``predicted``:
+        the estimator's own prediction of this injection's (stroke µm, opening µs after its start of
+        charging) from its measured current, at its preload force ``this_preload_n`` (N): compared with
+        what the last correction predicted for it, the injection-to-injection jitter a correction
+        cannot foresee (the amplifier's ripple, the estimate's noise) enters its σ."""
+        st = self._injectors.setdefault(injector_id, _Injector())
+        interval = time_s - st.time_s if math.isfinite(time_s) and math.isfinite(st.time_s) else 0.0
+        st.time_s = time_s
+        if math.isfinite(rate_n_per_v_s) and 0.0 < interval < MAX_INTERVAL_S:
+            nu = nu + rate_n_per_v_s * interval
+        nominal = self.nominal or nominal
+        if current_a is not None:
+            drive, reason, measured = self.check_drive(injector_id, current_a, dt_s)
+            if not reason:
+                _jitter(st, this_preload_n, measured, predicted)
+        else:
+            drive, reason, measured = self.drive_of(injector_id) or trapezoid(sim.dt_s if sim else 0.5e-6), "", math.nan
+        if drive is None or reason:
+            st.last = replace(st.last, held=st.last.valid, reason=reason, drive_scale=measured)
+            return st.last
+        usable = (ok and sim is not None and nominal is not None and cov is not None and math.isfinite(nu)
+                  and math.isfinite(lh_um) and math.isfinite(f_open_n))
+        try:
+            if usable:
+                assert sim is not None and cov is not None and nominal is not None
+                cov = np.asarray(cov, dtype=float)
+                if st.ok is not None and st.ok.sim is not sim:   # another model: its jitter is measured anew
+                    st.jitter = [0.0, 0.0, 0.0]
+                corr = self._correct(st.main, sim, nominal, nu, lh_um, cov, f_open_n, drive, jitter=_jitter_var(st))
+                corr = replace(corr, table=self._table(st, sim, nominal, nu, lh_um, cov, drive))
+                st.ok = _OkEstimate(sim, nu, lh_um, cov, rate_n_per_v_s if math.isfinite(rate_n_per_v_s) else 0.0,
+                                    time_s)
+            elif st.ok is not None and nominal is not None and math.isfinite(f_open_n):
+                corr = replace(self._again(st, nominal, f_open_n, time_s, drive), held=True,
+                               reason="estimate not ok: computed again from the last ok estimate")
+            else:
+                corr = replace(st.last, held=st.last.valid, reason="no ok estimate yet" if not st.last.valid
+                               else "estimate not ok")
+        except (EstimatorError, ValueError, FloatingPointError) as exc:   # e.g. N_u outside the simulator's range
+            corr = replace(st.last, held=st.last.valid, reason=f"no correction: {exc}")
+        st.last = replace(corr, drive_scale=measured)
+        return st.last
+
+    def _again(self, st: _Injector, nominal: FastSimulator, f_open_n: float, time_s: float,
+               drive: AmplifierDrive) -> Correction:
+        """The last ``ok`` estimate's correction at the preload force ``f_open_n`` (N), N_u carried on by
+        its drift rate to ``time_s``."""
+        ok = st.ok
+        assert ok is not None
+        dt = time_s - ok.time_s if math.isfinite(time_s) and math.isfinite(ok.time_s) else 0.0
+        nu = ok.nu + (ok.rate_n_per_v_s * dt if 0.0 < dt < MAX_INTERVAL_S else 0.0)
+        corr = self._correct(st.main, ok.sim, nominal, nu, ok.lh_um, ok.cov, f_open_n, drive, jitter=_jitter_var(st))
+        return replace(corr, table=st.last.table)
+
+    def _correct(self, pt: _Point, sim: FastSimulator, nominal: FastSimulator, nu: float, lh_um: float,
+                 cov: np.ndarray, f_open_n: float, drive: AmplifierDrive, derivatives: bool = True,
+                 jitter: tuple[float, float] = (0.0, 0.0)) -> Correction:
+        """The correction at ``f_open_n`` by Newton's method on the scale from ``pt``'s last one
+        (``derivatives``: the per-kN sensitivities and the σ too, ``jitter`` the injection-to-injection
+        variance of stroke and opening, µm² and µs², in it)."""
+        t = self.target
+        lo, hi = t.scale_limits
+        target_stroke, target_opening = self.target_at(nominal)
+        scale = float(np.clip(pt.last.scale if pt.last is not None and pt.last.valid else 1.0, lo, hi))
+        if pt.response is None or pt.model is not sim or pt.drive is not drive or pt.age >= self.refresh:
+            pt.response, pt.model, pt.drive, pt.age = linearise(sim, scale, nu, lh_um, f_open_n, drive), sim, drive, 0
+            stroke, opening = pt.response.stroke_um, pt.response.opening_us
+        else:
+            stroke, opening = respond(sim, scale, nu, lh_um, f_open_n, drive)
+        pt.age += 1
+        r = pt.response
+        if not (math.isfinite(stroke) and math.isfinite(opening)) or r.d_scale[0] <= 0:
+            # the valve does not open with this drive: the most current the limits allow, then again
+            scale = hi
+            pt.response, pt.model, pt.drive, pt.age = linearise(sim, scale, nu, lh_um, f_open_n, drive), sim, drive, 1
+            r = pt.response
+            stroke, opening = r.stroke_um, r.opening_us
+            if not (math.isfinite(stroke) and math.isfinite(opening)) or r.d_scale[0] <= 0:
+                raise ValueError("the valve does not open within the scale limits")
+        for _ in range(3):   # Newton on the scale: the stroke is close to linear in it
+            new = float(np.clip(scale + (target_stroke - stroke) / r.d_scale[0], lo, hi))
+            if abs(new - scale) < 1e-5:
+                break
+            step = new - scale
+            scale = new
+            if abs(step) * r.d_scale[0] < LINEAR_STROKE_UM and abs(step * r.d_scale[1]) < LINEAR_OPENING_US:
+                # small: the linear model is exact enough, no simulation (a forward difference across a
+                # bend of the opening instant is not: then the step is simulated)
+                stroke, opening = stroke + r.d_scale[0] * step, opening + r.d_scale[1] * step
+                break
+            stroke, opening = respond(sim, scale, nu, lh_um, f_open_n, drive)
+            if not (math.isfinite(stroke) and math.isfinite(opening)):
+                raise ValueError("the valve does not open within the scale limits")
+        at_limit = scale in (lo, hi) and abs(stroke - target_stroke) > 0.01
+        olo, ohi = t.offset_limits_us
+        offset = float(np.clip(target_opening - opening, olo, ohi))
+        at_limit = at_limit or offset in (olo, ohi)
+        corr = Correction(scale, offset, stroke, offset + opening, math.nan, math.nan, target_stroke, target_opening,
+                          0.0, 0.0, f_open_n, True, False, at_limit, t.scale_limits, t.offset_limits_us)
+        if derivatives:
+            # at another preload force the drive that keeps stroke and opening on target (to first order)
+            ds_df = -r.d_f[0] / r.d_scale[0]
+            do_df = -(r.d_f[1] + r.d_scale[1] * ds_df)
+            js = np.array([r.d_nu[0], r.d_lh[0]])
+            jo = np.array([r.d_nu[1], r.d_lh[1]])
+            cal = sim.params.calibration   # what the model's own uncertainty leaves in the motion (0: in cov)
+            var_s = float(js @ cov @ js) + (cal.stroke_rel_sigma * stroke) ** 2 + jitter[0]
+            var_o = float(jo @ cov @ jo) + (cal.opening_sigma_s * US_PER_S) ** 2 + jitter[1]
+            corr = replace(corr, sigma_stroke_um=math.sqrt(max(var_s, 0.0)), sigma_opening_us=math.sqrt(max(var_o, 0.0)),
+                           scale_per_kn=ds_df * N_PER_KN, offset_per_kn_us=do_df * N_PER_KN)
+        pt.last, pt.nu, pt.lh_um = corr, nu, lh_um
+        return corr
+
+    def _table(self, st: _Injector, sim: FastSimulator, nominal: FastSimulator, nu: float, lh_um: float,
+               cov: np.ndarray, drive: AmplifierDrive) -> tuple[tuple[float, float, float], ...]:
+        """The preload table (preload N, scale, offset µs) for the estimate (``nu``, ``lh_um``): each
+        row computed again in turn, ``ROWS_PER_INJECTION`` an injection (all of them when the model or
+        the drive changed), the others carried to the estimate by their own derivatives in N_u and L_h
+        (arithmetic: the stroke is close to linear in both). Until every row has been computed with this
+        model and drive, the last complete table (another model's: :meth:`Correction.at` shifts it to
+        this correction), empty before the first."""
+        preloads = self.target.table_preloads_n
+        if len(st.rows) != len(preloads):
+            st.rows, st.next_row = [_Point() for _ in preloads], 0
+        stale = [i for i, pt in enumerate(st.rows) if pt.model is not sim or pt.drive is not drive]
+        todo = stale[:ROWS_AFTER_CHANGE] if stale else []
+        for _ in range(ROWS_PER_INJECTION if not stale else 0):
+            todo.append(st.next_row)
+            st.next_row = (st.next_row + 1) % len(preloads)
+        for i in todo:
+            self._correct(st.rows[i], sim, nominal, nu, lh_um, cov, preloads[i], drive, derivatives=False)
+        if any(pt.model is not sim or pt.drive is not drive for pt in st.rows):
+            return st.table      # the last complete table (another model's) until every row is this one's
+        target_stroke, target_opening = self.target_at(nominal)
+        lo, hi = self.target.scale_limits
+        olo, ohi = self.target.offset_limits_us
+        out = []
+        for i, (f, pt) in enumerate(zip(preloads, st.rows)):
+            c, r = pt.last, pt.response
+            assert c is not None and r is not None
+            dnu, dlh = nu - pt.nu, lh_um - pt.lh_um
+            stroke = c.stroke_um + r.d_nu[0] * dnu + r.d_lh[0] * dlh
+            scale = min(max(c.scale + (target_stroke - stroke) / r.d_scale[0], lo), hi)   # scalars: no numpy
+            moved = r.d_nu[1] * dnu + r.d_lh[1] * dlh + r.d_scale[1] * (scale - c.scale)
+            if abs(moved) > CARRY_OPENING_US:   # beyond what the derivatives hold: simulated at the next turn
+                st.next_row, moved = i, 0.0
+            opening = (c.opening_us - c.offset_us) + moved
+            out.append((f, scale, min(max(target_opening - opening, olo), ohi)))
+        st.table = tuple(out)
+        return st.table
+
+
+def _jitter(st: _Injector, preload_n: float, measured_scale: float, predicted: tuple[float, float]) -> None:
+    """Compare the estimator's own prediction of this injection (``predicted``: stroke µm, opening µs
+    after its start of charging) with what the last correction predicted for it, when that correction
+    was computed for this preload force (N) and the measured current shows the amplifier applied it."""
+    last = st.last
+    if not (last.valid and not last.held and math.isfinite(preload_n) and abs(last.preload_n - preload_n) < 0.5
+            and math.isfinite(measured_scale) and abs(measured_scale - last.scale) < 0.02 * last.scale):
+        return
+    ds, do = predicted[0] - last.stroke_um, predicted[1] - (last.opening_us - last.offset_us)
+    if not (math.isfinite(ds) and math.isfinite(do)):
+        return
+    n, ms_s, ms_o = st.jitter
+    if n >= JITTER_MIN:   # one odd injection (a part swapped, an outlier) moves the mean square by a bounded step
+        ds = min(abs(ds), JITTER_CLIP * math.sqrt(ms_s) + JITTER_FLOOR[0])
+        do = min(abs(do), JITTER_CLIP * math.sqrt(ms_o) + JITTER_FLOOR[1])
+    w = max(JITTER_WEIGHT, 1.0 / (n + 1))
+    st.jitter = [n + 1, (1 - w) * ms_s + w * ds * ds, (1 - w) * ms_o + w * do * do]
+
+
+def _jitter_var(st: _Injector) -> tuple[float, float]:
+    """The injection-to-injection variance (µm², µs²) once enough injections were compared."""
+    n, ms_s, ms_o = st.jitter
+    return (ms_s, ms_o) if n >= JITTER_MIN else (0.0, 0.0)
+
+
+def correction_after(compensator: DriveCompensator, tracker: Tracker, inj: Injection, res: TrackResult,
+                     preload_n: float | None = None) -> Correction:
+    """The injector's drive correction after the tracker's result ``res`` for ``inj``: from an ``ok``
+    estimate with the model the injector is estimated with, at ``preload_n`` (N; default this
+    injection's preload force), its covariance the published σ (which may cover a bias) with the
+    filter's correlation; the injection's measured current checked against the amplifier's standard
+    drive; otherwise the last one, held. Where the injector's calibrated model states
+    the uncertainty it leaves in the valve's motion and that model is validated (:func:`_validated`),
+    that replaces the share of N_u's and L_h's covariance the calibration put there (the motion keeps
+    less of a structural error than they do)."""
+    iid = inj.injector_id
+    st = tracker.states.get(iid)
+    ok = res.status == Status.OK
+    sim = tracker.model_simulator(iid, inj.dt_s)
+    cov = None
+    if st is not None and ok:
+        p = np.asarray(st.p, dtype=float)[:2, :2]
+        var = np.array([res.sigma_nu ** 2, (res.sigma_lh_m * UM_PER_M) ** 2])
+        cal = sim.params.calibration if sim is not None else None
+        if cal is not None and cal.has_response and _validated(tracker, iid):
+            var = np.maximum(var - np.diag(cal.cov(res.nu_n_per_v)), np.diag(p))
+        rho = float(p[0, 1] / math.sqrt(p[0, 0] * p[1, 1])) if p[0, 0] > 0 and p[1, 1] > 0 else 0.0
+        c = rho * math.sqrt(var[0] * var[1])
+        cov = np.array([[var[0], c], [c, var[1]]])
+    return compensator.update(iid, ok, sim, res.nu_n_per_v, res.lh_m * UM_PER_M,
+                              cov, inj.f_open_n if preload_n is None else preload_n,
+                              tracker.nominal_simulator(inj.dt_s), res.rate_n_per_v_s, inj.time_s,
+                              inj.current_a, inj.dt_s, inj.f_open_n,
+                              (res.stroke_m * UM_PER_M, res.t_open_s * US_PER_S) if ok else (math.nan, math.nan))
+
+
+def _validated(tracker: Tracker, injector_id: int) -> bool:
+    """Whether the injector's model may be trusted with its own statement of the motion's uncertainty:
+    a model learned from a first window of twelve injections only once its refinement over a larger
+    window agreed with it or replaced it (that window left one part of 24 with N_u four of its stated
+    σ off); a parameter file's model, or one used without learning, as it is."""
+    status = tracker.calibration.get(injector_id)
+    return status is None or status.source != "learned" or status.refined
+

@@ -1,0 +1,129 @@
+"""The amplifier's own standard drive (estimator.drive.standard): learned from the measured current of
+the first injections, checked on every later one, read from a current table; the correction computed
+with it, not with the built-in trapezoid."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from estimator.drive.correction import DriveCompensator, DriveTarget, respond
+from estimator.drive.standard import AmplifierDrive, DriveLearner, from_recordings
+from estimator.ident.simulators import SimulatorPool
+from estimator.model.chain import MeasurementChain
+from estimator.model.drive import SAMPLE_PERIOD_S
+from sim_bench.amplifiers import amplifier
+from sim_bench.plant import Plant, PlantConfig
+
+COV = np.diag([0.01 ** 2, 0.05 ** 2])
+WINDOW_S = 200e-6     # holds the whole charge
+
+
+def _plant(name: str) -> Plant:
+    amp = amplifier(name)
+    return Plant(PlantConfig(window_s=WINDOW_S, drive=amp.standard, ripple_a=amp.ripple_a,
+                             ripple_period_s=amp.ripple_period_s))
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return SimulatorPool().get(SAMPLE_PERIOD_S)
+
+
+def test_the_correction_is_computed_with_the_drive_the_amplifier_delivers(sim):
+    """On an amplifier with a shorter, higher plateau of the same charge, the correction waits for the
+    drive learned from the first four injections, then predicts the opening instant the true drive
+    gives; the trapezoid would put it a microsecond off with a σ of a tenth of that."""
+    plant, rng = _plant("short-high"), np.random.default_rng(3)
+    comp = DriveCompensator()
+    for k in range(6):
+        m = plant.measure(18.0, 4e-6, 120.0, rng)
+        c = comp.update(0, True, sim, 18.0, 4.0, COV, 120.0, sim, current_a=m.current_a, dt_s=m.dt_s)
+        assert c.valid == (k >= 3), (k, c.reason)
+        if k < 3:
+            assert "learning the amplifier's standard drive" in c.reason
+    true = AmplifierDrive(amplifier("short-high").standard.samples(700e-6, SAMPLE_PERIOD_S), SAMPLE_PERIOD_S,
+                          "true", measured=False)
+    stroke, opening = respond(sim, c.scale, 18.0, 4.0, 120.0, true)
+    assert abs(stroke - c.stroke_um) < 0.05 and abs(c.offset_us + opening - c.opening_us) < 0.15
+    _, trapezoid_opening = respond(sim, c.scale, 18.0, 4.0, 120.0)
+    assert abs(c.offset_us + trapezoid_opening - c.opening_us) > 1.0
+    assert comp.drive_of(0) is not None and comp.drive_of(0).source == "learned"
+
+
+def test_a_current_the_standard_drive_does_not_explain_holds_the_correction(sim):
+    plant, rng = _plant("standard"), np.random.default_rng(4)
+    comp = DriveCompensator(DriveTarget(amplifier_drive="trapezoid"))
+    m = plant.measure(18.0, 4e-6, 120.0, rng)
+    good = comp.update(0, True, sim, 18.0, 4.0, COV, 120.0, sim, current_a=m.current_a, dt_s=m.dt_s)
+    assert good.valid and not good.held and abs(good.drive_scale - 1.0) < 0.02   # ripple within tolerance
+    other = _plant("short-high").measure(18.0, 4e-6, 120.0, rng)
+    held = comp.update(0, True, sim, 18.0, 4.0, COV, 140.0, sim, current_a=other.current_a, dt_s=other.dt_s)
+    assert held.held and held.scale == good.scale and "disagrees with the amplifier's standard drive" in held.reason
+    assert comp.drive_disagreements == 1
+
+
+def test_learning_starts_again_from_a_shape_unlike_the_ones_before():
+    rng = np.random.default_rng(5)
+    std, short = _plant("standard"), _plant("short-high")
+    learner = DriveLearner(needed=3)
+    assert learner.add(std.measure(17.0, 3e-6, 60.0, rng).current_a, SAMPLE_PERIOD_S)
+    assert learner.add(std.measure(17.0, 3e-6, 60.0, rng).current_a, SAMPLE_PERIOD_S) and learner.count == 2
+    assert not learner.add(short.measure(17.0, 3e-6, 60.0, rng).current_a, SAMPLE_PERIOD_S)
+    assert learner.count == 1 and learner.drive is None
+    assert not learner.add(np.full(401, math.nan), SAMPLE_PERIOD_S) and learner.count == 1
+
+
+def test_a_measured_drive_has_the_models_measurement_chain_undone():
+    """A current recorded through the amplifier's channel (its skew) drives a model that knows the chain
+    as the actuator's current; the designed trapezoid is used as it is."""
+    chain = MeasurementChain(i_skew_s=0.5e-6)
+    true = AmplifierDrive.trapezoid()
+    seen, _ = chain.apply(true.current_a, np.zeros_like(true.current_a), SAMPLE_PERIOD_S)
+    measured = AmplifierDrive(seen, SAMPLE_PERIOD_S, "learned")
+    back = measured.actuator_samples(SAMPLE_PERIOD_S, 490e-6, chain)
+    assert np.max(np.abs(back[:-2] - true.samples(SAMPLE_PERIOD_S, 490e-6)[:-2])) < 1e-9
+    assert np.max(np.abs(measured.samples(SAMPLE_PERIOD_S, 490e-6) - back)) > 0.01
+    assert true.actuator_samples(SAMPLE_PERIOD_S, 490e-6, chain) is true.samples(SAMPLE_PERIOD_S, 490e-6)
+
+
+def test_recordings_make_one_drive_without_the_odd_one():
+    rng = np.random.default_rng(6)
+    std = _plant("standard")
+    cur = [std.measure(17.0, 3e-6, 60.0, rng).current_a for _ in range(3)]
+    cur.append(_plant("short-high").measure(17.0, 3e-6, 60.0, rng).current_a)
+    drive, odd = from_recordings(cur, SAMPLE_PERIOD_S, "amp.csv")
+    assert odd == [3] and drive.check(cur[0], SAMPLE_PERIOD_S).agrees
+    with pytest.raises(ValueError):
+        from_recordings([cur[0], cur[3]], SAMPLE_PERIOD_S, "x")   # not one drive
+    for bad in (lambda: AmplifierDrive(np.zeros(10), SAMPLE_PERIOD_S, "x"),
+                lambda: AmplifierDrive(np.ones(10), -1.0, "x"),
+                lambda: AmplifierDrive.from_table(np.array([0.0, 1.0]), np.array([1.0, 1.0]), "x")):
+        with pytest.raises(ValueError):
+            bad()
+
+
+def test_a_current_table_is_the_configured_drive(tmp_path):
+    """``amplifier_drive`` naming a table written by ``estimator drive-table``: the compensator takes it;
+    a file that is not one is refused when the configuration is read."""
+    from estimator.cli import main
+    from estimator.pipeline.build import build_compensator
+    from estimator.pipeline.config import ConfigError, EstimatorConfig
+    from sim_bench.cli import main as sim_main
+
+    trace = tmp_path / "rec.csv"
+    assert sim_main(["simulate", "--drive", "short-high", "--t-end-us", "700", "--out", str(trace)]) == 0
+    table = tmp_path / "amp.csv"
+    assert main(["drive-table", str(trace), "--out", str(table)]) == 0
+    cfg = EstimatorConfig.from_mapping({"drive_correction": {"amplifier_drive": str(table)}})
+    comp = build_compensator(cfg)
+    assert comp is not None and comp.standard is not None and comp.standard.source == "amp.csv"
+    assert abs(float(np.max(comp.standard.current_a)) - float(np.max(amplifier("short-high").standard.samples(
+        700e-6, SAMPLE_PERIOD_S)))) < 0.01
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t_s,current_A\n0,nan\n")
+    with pytest.raises(ConfigError, match="amplifier_drive"):
+        EstimatorConfig.from_mapping({"drive_correction": {"amplifier_drive": str(bad)}})
+    assert main(["drive-table", str(tmp_path / "missing.csv"), "--out", str(table)]) != 0
