@@ -68,6 +68,11 @@ def _lots(key: str, figure: str, loop: str = "closed") -> Callable[[Report], lis
     return lambda r: [lot[loop][key][figure] for lot in r["lots"]]
 
 
+def _lots_pct(key: str, loop: str) -> Callable[[Report], list[float]]:
+    """A fraction of each lot's loop, in percent."""
+    return lambda r: [100.0 * lot[loop][key] for lot in r["lots"]]
+
+
 def _both(r: Report, what: str) -> float:
     """Offline and online together (``refused``, ``false_flags``), of the good parts."""
     return float(r["summary"][f"offline_{what}"] + r["summary"][f"online_{what}"])
@@ -262,10 +267,15 @@ FIGURES: tuple[Figure, ...] = (
     # drive compensation
     *_spreads("open", "open_", "| plateau-stroke spread, open loop", 2, "| opening-instant spread, open loop", 1),
     *_spreads("closed", "", "| the same, closed loop (each correction", 3, "| the same, closed loop |", 2),
-    *_spreads("closed_bus", "bus_", "| closed loop with the correction carried", 3,
-              "| closed loop with the correction carried", 2, p95=False),
+    *_spreads("closed_bus", "bus_", "| closed loop on the bus, stroke", 3, "| closed loop on the bus, opening", 2),
+    *(Figure("compensation", f"{prefix}at_limit_pct", _lots_pct("at_limit_settled", loop), 1,
+             "| settled injections at a drive limit") for prefix, loop in (("", "closed"), ("bus_", "closed_bus"))),
+    Figure("compensation", "valid_not_ok",
+           lambda r: float(sum(lot[loop]["valid_not_ok"] for lot in r["lots"] for loop in ("closed", "closed_bus"))),
+           0, "| corrections published valid after an estimate that was not"),
     Figure("compensation", "settle_injections",
-           lambda r: [p["settle_injections"] for lot in r["lots"] for p in lot["closed"]["injectors"]], 0,
+           lambda r: [p["settle_injections"] for lot in r["lots"] for p in lot["closed"]["injectors"]
+                      if p["settle_injections"] is not None], 0,
            "| injections from the model's adoption", headline=True),
     Figure("compensation", "z_rms_stroke", lambda r: r["z_rms_stroke"], 2, "| RMS(error/σ) of the predicted stroke",
            headline=True),

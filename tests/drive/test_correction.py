@@ -245,7 +245,7 @@ def test_the_sigma_covers_the_injection_to_injection_jitter_and_one_odd_injectio
     c = comp.update(0, True, sim, 18.0, 4.0, COV, 100.0, sim, current_a=plant_current, dt_s=0.5e-6,
                     this_preload_n=100.0)
     quiet = c.sigma_opening_us
-    for k in range(40):
+    for _ in range(40):
         predicted = (c.stroke_um + 0.03 * rng.standard_normal(), c.opening_us - c.offset_us + 0.3 * rng.standard_normal())
         c = comp.update(0, True, sim, 18.0, 4.0, COV, 100.0, sim, current_a=c.scale * plant_current, dt_s=0.5e-6,
                         this_preload_n=100.0, predicted=predicted)
