@@ -44,10 +44,12 @@ from estimator.units import US_PER_S
 N_PER_KN = 1e3
 MAX_INTERVAL_S = 60.0          # a longer pause between injections: N_u is not carried forward by the drift rate
 REFRESH_INJECTIONS = 16        # derivatives are simulated again this often (and whenever the model changes)
-ROWS_PER_INJECTION = 1         # preload-table rows computed again each injection (the others carried by derivatives)
+ROW_PERIOD = 2                 # one preload-table row computed again every this many injections (the others
+                               # carried by their derivatives; a row they would move too far goes first)
+ROW_REFRESH = 32               # a row's derivatives are simulated again after this many of its corrections
 ROWS_AFTER_CHANGE = 4          # rows computed each injection after the model or the drive changed
 LINEAR_STROKE_UM = 0.05       # a Newton step that moves the stroke and the opening instant less than these is
-LINEAR_OPENING_US = 0.05       # taken from the derivatives, without a simulation
+LINEAR_OPENING_US = 0.3        # taken from the derivatives, without a simulation
 CARRY_OPENING_US = 0.5         # a table row the derivatives would move further is simulated again first
 JITTER_WEIGHT = 0.1            # weight of each new injection in the running mean square of the jitter
 JITTER_MIN = 5                 # injections compared before the jitter enters σ
@@ -161,6 +163,7 @@ class _Injector:
     main: _Point = field(default_factory=_Point)
     rows: list[_Point] = field(default_factory=list)   # one per preload of the table
     next_row: int = 0
+    turn: int = 0                       # injections with a table
     table: tuple[tuple[float, float, float], ...] = ()   # the last complete table
     time_s: float = math.nan            # the last injection's time (s)
     ok: _OkEstimate | None = None
@@ -289,6 +292,7 @@ class DriveCompensator:
             return st.last
         usable = (ok and sim is not None and nominal is not None and cov is not None and math.isfinite(nu)
                   and math.isfinite(lh_um) and math.isfinite(f_open_n))
+        table = st.last.table
         try:
             if usable:
                 assert sim is not None and cov is not None and nominal is not None
@@ -296,18 +300,19 @@ class DriveCompensator:
                 if st.ok is not None and st.ok.sim is not sim:   # another model: its jitter is measured anew
                     st.jitter = [0.0, 0.0, 0.0]
                 corr = self._correct(st.main, sim, nominal, nu, lh_um, cov, f_open_n, drive, jitter=_jitter_var(st))
-                corr = replace(corr, table=self._table(st, sim, nominal, nu, lh_um, cov, drive))
+                table = self._table(st, sim, nominal, nu, lh_um, cov, drive)
                 st.ok = _OkEstimate(sim, nu, lh_um, cov, rate_n_per_v_s if math.isfinite(rate_n_per_v_s) else 0.0,
                                     time_s)
             elif st.ok is not None and nominal is not None and math.isfinite(f_open_n):
                 corr = replace(self._again(st, nominal, f_open_n, time_s, drive), held=True,
                                reason="estimate not ok: computed again from the last ok estimate")
+                table = st.last.table
             else:
                 corr = replace(st.last, held=st.last.valid, reason="no ok estimate yet" if not st.last.valid
                                else "estimate not ok")
         except (EstimatorError, ValueError, FloatingPointError) as exc:   # e.g. N_u outside the simulator's range
             corr = replace(st.last, held=st.last.valid, reason=f"no correction: {exc}")
-        st.last = replace(corr, drive_scale=measured)
+        st.last = replace(corr, drive_scale=measured, table=table)
         return st.last
 
     def _again(self, st: _Injector, nominal: FastSimulator, f_open_n: float, time_s: float,
@@ -318,20 +323,20 @@ class DriveCompensator:
         assert ok is not None
         dt = time_s - ok.time_s if math.isfinite(time_s) and math.isfinite(ok.time_s) else 0.0
         nu = ok.nu + (ok.rate_n_per_v_s * dt if 0.0 < dt < MAX_INTERVAL_S else 0.0)
-        corr = self._correct(st.main, ok.sim, nominal, nu, ok.lh_um, ok.cov, f_open_n, drive, jitter=_jitter_var(st))
-        return replace(corr, table=st.last.table)
+        return self._correct(st.main, ok.sim, nominal, nu, ok.lh_um, ok.cov, f_open_n, drive, jitter=_jitter_var(st))
 
     def _correct(self, pt: _Point, sim: FastSimulator, nominal: FastSimulator, nu: float, lh_um: float,
                  cov: np.ndarray, f_open_n: float, drive: AmplifierDrive, derivatives: bool = True,
-                 jitter: tuple[float, float] = (0.0, 0.0)) -> Correction:
+                 jitter: tuple[float, float] = (0.0, 0.0), refresh: int | None = None) -> Correction:
         """The correction at ``f_open_n`` by Newton's method on the scale from ``pt``'s last one
         (``derivatives``: the per-kN sensitivities and the σ too, ``jitter`` the injection-to-injection
-        variance of stroke and opening, µm² and µs², in it)."""
+        variance of stroke and opening, µm² and µs², in it; ``refresh``: how many corrections the
+        derivatives serve, default the compensator's)."""
         t = self.target
         lo, hi = t.scale_limits
         target_stroke, target_opening = self.target_at(nominal)
-        scale = float(np.clip(pt.last.scale if pt.last is not None and pt.last.valid else 1.0, lo, hi))
-        if pt.response is None or pt.model is not sim or pt.drive is not drive or pt.age >= self.refresh:
+        scale = min(max(pt.last.scale if pt.last is not None and pt.last.valid else 1.0, lo), hi)   # scalars: no numpy
+        if pt.response is None or pt.model is not sim or pt.drive is not drive or pt.age >= (refresh or self.refresh):
             pt.response, pt.model, pt.drive, pt.age = linearise(sim, scale, nu, lh_um, f_open_n, drive), sim, drive, 0
             stroke, opening = pt.response.stroke_um, pt.response.opening_us
         else:
@@ -347,7 +352,7 @@ class DriveCompensator:
             if not (math.isfinite(stroke) and math.isfinite(opening)) or r.d_scale[0] <= 0:
                 raise ValueError("the valve does not open within the scale limits")
         for _ in range(3):   # Newton on the scale: the stroke is close to linear in it
-            new = float(np.clip(scale + (target_stroke - stroke) / r.d_scale[0], lo, hi))
+            new = min(max(scale + (target_stroke - stroke) / r.d_scale[0], lo), hi)
             if abs(new - scale) < 1e-5:
                 break
             step = new - scale
@@ -362,29 +367,28 @@ class DriveCompensator:
                 raise ValueError("the valve does not open within the scale limits")
         at_limit = scale in (lo, hi) and abs(stroke - target_stroke) > 0.01
         olo, ohi = t.offset_limits_us
-        offset = float(np.clip(target_opening - opening, olo, ohi))
+        offset = min(max(target_opening - opening, olo), ohi)
         at_limit = at_limit or offset in (olo, ohi)
-        corr = Correction(scale, offset, stroke, offset + opening, math.nan, math.nan, target_stroke, target_opening,
-                          0.0, 0.0, f_open_n, True, False, at_limit, t.scale_limits, t.offset_limits_us)
+        sigma_s = sigma_o = math.nan
+        per_kn = (0.0, 0.0)
         if derivatives:
             # at another preload force the drive that keeps stroke and opening on target (to first order)
             ds_df = -r.d_f[0] / r.d_scale[0]
-            do_df = -(r.d_f[1] + r.d_scale[1] * ds_df)
-            js = np.array([r.d_nu[0], r.d_lh[0]])
-            jo = np.array([r.d_nu[1], r.d_lh[1]])
+            per_kn = (ds_df * N_PER_KN, -(r.d_f[1] + r.d_scale[1] * ds_df) * N_PER_KN)
             cal = sim.params.calibration   # what the model's own uncertainty leaves in the motion (0: in cov)
-            var_s = float(js @ cov @ js) + (cal.stroke_rel_sigma * stroke) ** 2 + jitter[0]
-            var_o = float(jo @ cov @ jo) + (cal.opening_sigma_s * US_PER_S) ** 2 + jitter[1]
-            corr = replace(corr, sigma_stroke_um=math.sqrt(max(var_s, 0.0)), sigma_opening_us=math.sqrt(max(var_o, 0.0)),
-                           scale_per_kn=ds_df * N_PER_KN, offset_per_kn_us=do_df * N_PER_KN)
+            var_s = _quadratic(r.d_nu[0], r.d_lh[0], cov) + (cal.stroke_rel_sigma * stroke) ** 2 + jitter[0]
+            var_o = _quadratic(r.d_nu[1], r.d_lh[1], cov) + (cal.opening_sigma_s * US_PER_S) ** 2 + jitter[1]
+            sigma_s, sigma_o = math.sqrt(max(var_s, 0.0)), math.sqrt(max(var_o, 0.0))
+        corr = Correction(scale, offset, stroke, offset + opening, sigma_s, sigma_o, target_stroke, target_opening,
+                          per_kn[0], per_kn[1], f_open_n, True, False, at_limit, t.scale_limits, t.offset_limits_us)
         pt.last, pt.nu, pt.lh_um = corr, nu, lh_um
         return corr
 
     def _table(self, st: _Injector, sim: FastSimulator, nominal: FastSimulator, nu: float, lh_um: float,
                cov: np.ndarray, drive: AmplifierDrive) -> tuple[tuple[float, float, float], ...]:
         """The preload table (preload N, scale, offset µs) for the estimate (``nu``, ``lh_um``): each
-        row computed again in turn, ``ROWS_PER_INJECTION`` an injection (all of them when the model or
-        the drive changed), the others carried to the estimate by their own derivatives in N_u and L_h
+        row computed again in turn, one every ``ROW_PERIOD`` injections (``ROWS_AFTER_CHANGE`` an
+        injection when the model or the drive changed), the others carried to the estimate by their own derivatives in N_u and L_h
         (arithmetic: the stroke is close to linear in both). Until every row has been computed with this
         model and drive, the last complete table (another model's: :meth:`Correction.at` shifts it to
         this correction), empty before the first."""
@@ -393,11 +397,13 @@ class DriveCompensator:
             st.rows, st.next_row = [_Point() for _ in preloads], 0
         stale = [i for i, pt in enumerate(st.rows) if pt.model is not sim or pt.drive is not drive]
         todo = stale[:ROWS_AFTER_CHANGE] if stale else []
-        for _ in range(ROWS_PER_INJECTION if not stale else 0):
+        st.turn += 1
+        if not stale and st.turn % ROW_PERIOD == 0:
             todo.append(st.next_row)
             st.next_row = (st.next_row + 1) % len(preloads)
         for i in todo:
-            self._correct(st.rows[i], sim, nominal, nu, lh_um, cov, preloads[i], drive, derivatives=False)
+            self._correct(st.rows[i], sim, nominal, nu, lh_um, cov, preloads[i], drive, derivatives=False,
+                          refresh=ROW_REFRESH)
         if any(pt.model is not sim or pt.drive is not drive for pt in st.rows):
             return st.table      # the last complete table (another model's) until every row is this one's
         target_stroke, target_opening = self.target_at(nominal)
@@ -417,6 +423,11 @@ class DriveCompensator:
             out.append((f, scale, min(max(target_opening - opening, olo), ohi)))
         st.table = tuple(out)
         return st.table
+
+
+def _quadratic(a: float, b: float, cov: np.ndarray) -> float:
+    """(a, b) cov (a, b)ᵀ of a 2×2 covariance, in scalars (every correction)."""
+    return float(a * a * cov[0, 0] + 2.0 * a * b * cov[0, 1] + b * b * cov[1, 1])
 
 
 def _jitter(st: _Injector, preload_n: float, measured_scale: float, predicted: tuple[float, float]) -> None:

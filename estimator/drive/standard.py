@@ -125,13 +125,12 @@ class AmplifierDrive:
         charging) against this drive over the measured window (:class:`DriveCheck`)."""
         cur = np.asarray(current_a, dtype=float)
         ref = self.samples(dt_s, (cur.size - 1) * dt_s)
-        den = float(ref @ ref)
-        if den <= 0 or not np.all(np.isfinite(cur)):
+        den, cross, norm2 = float(ref @ ref), float(ref @ cur), float(cur @ cur)
+        if den <= 0 or not (math.isfinite(cross) and math.isfinite(norm2)):
             return DriveCheck(math.nan, math.inf, False)
-        scale = float(ref @ cur) / den
-        rest = cur - scale * ref
-        norm = float(np.sqrt(np.mean(cur ** 2)))
-        rel = float(np.sqrt(np.mean(rest ** 2))) / norm if norm > 0 else math.inf
+        scale = cross / den
+        # |cur - scale ref|² = |cur|² - scale (ref·cur), without the residual's array (every injection)
+        rel = math.sqrt(max(norm2 - scale * cross, 0.0) / norm2) if norm2 > 0 else math.inf
         return DriveCheck(scale, rel, bool(rel <= tolerance and scale > 0))
 
 
