@@ -32,6 +32,7 @@ LEARN_INJECTIONS = 4          # injections at the standard drive averaged into a
 SHAPE_TOLERANCE = 0.10        # RMS of the unexplained current / RMS of the current that still agrees
 MIN_PEAK_A = 0.2              # a measured current whose peak is below this drives nothing: not checked
 MAX_LENGTH_S = 2e-3           # a drive table longer than this (s) is refused (an injection lasts < 1 ms)
+MAX_GRIDS = 16                # sampled grids (period, length) and chains a drive keeps
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,6 +101,8 @@ class AmplifierDrive:
             else:
                 got = self.as_drive().current(sample_times(t_end_s, dt_s))
             got.setflags(write=False)
+            if len(self._grids) >= MAX_GRIDS:   # every injection's length can differ: the cache stays bounded
+                self._grids.clear()
             self._grids[key] = got
         return got
 
@@ -115,7 +118,7 @@ class AmplifierDrive:
         if got is None:
             got = chain.actuator_current(raw, dt_s)
             got.setflags(write=False)
-            if len(self._actuator) >= 16:   # a chain per learned model: a few at most
+            if len(self._actuator) >= MAX_GRIDS:   # a chain per learned model: a few at most
                 self._actuator.clear()
             self._actuator[key] = got
         return got

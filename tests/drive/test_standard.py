@@ -127,3 +127,12 @@ def test_a_current_table_is_the_configured_drive(tmp_path):
     with pytest.raises(ConfigError, match="amplifier_drive"):
         EstimatorConfig.from_mapping({"drive_correction": {"amplifier_drive": str(bad)}})
     assert main(["drive-table", str(tmp_path / "missing.csv"), "--out", str(table)]) != 0
+
+
+def test_a_drive_keeps_a_bounded_number_of_grids():
+    """Every injection's window may have another length (a hostile sender's too): the drive's sampled
+    grids stay bounded."""
+    drive = AmplifierDrive.trapezoid()
+    for n in range(100, 400):
+        drive.check(np.ones(n), SAMPLE_PERIOD_S)
+    assert len(drive._grids) <= 16
