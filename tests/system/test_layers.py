@@ -174,3 +174,17 @@ def test_the_units_check_catches_a_bare_factor(tmp_path):
     f = tmp_path / "x.py"
     f.write_text("SCALE = 1e6\n\ndef lh_um(lh_m):\n    return lh_m * 1e6\n")
     assert list(_bare_factors(f)) == [4]
+
+
+def test_every_package_ships_in_the_wheel():
+    """Each folder of the package with an ``__init__.py`` is listed in pyproject's setuptools packages
+    (a folder left out installs nowhere; only the wheel's own test would notice)."""
+    import sys
+
+    if sys.version_info >= (3, 11):
+        import tomllib
+    else:  # pragma: no cover
+        import tomli as tomllib
+    listed = set(tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {".".join(p.parent.relative_to(REPO).parts) for p in (REPO / "estimator").rglob("__init__.py")}
+    assert found <= listed, sorted(found - listed)
