@@ -37,6 +37,7 @@ from estimator.ident.coords import UM_PER_M
 from estimator.ident.measurement import Injection
 from estimator.ident.status import Status
 from estimator.ident.tracker import Tracker, TrackResult
+from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import NOMINAL_PRELOAD_N
 from estimator.units import US_PER_S
@@ -56,7 +57,7 @@ JITTER_MIN = 5                 # injections compared before the jitter enters σ
 JITTER_CLIP = 4.0              # a difference beyond this many RMS (plus the floor, µm and µs) counts as that much
 JITTER_FLOOR = (0.05, 0.5)
 CORRECTION_STATES = ("none", "valid", "held")   # DriveCorrection.State: code = index (the DBC's value table)
-DEFAULT_LIMITS = DriveTarget().scale_limits, DriveTarget().offset_limits_us
+_DEFAULT_TARGET = DriveTarget()
 
 
 @dataclass(frozen=True)
@@ -88,8 +89,8 @@ class Correction:
     valid: bool = False
     held: bool = False
     at_limit: bool = False
-    scale_limits: tuple[float, float] = DEFAULT_LIMITS[0]
-    offset_limits_us: tuple[float, float] = DEFAULT_LIMITS[1]
+    scale_limits: tuple[float, float] = _DEFAULT_TARGET.scale_limits
+    offset_limits_us: tuple[float, float] = _DEFAULT_TARGET.offset_limits_us
     reason: str = ""
     drive_scale: float = math.nan
     table: tuple[tuple[float, float, float], ...] = ()
@@ -164,7 +165,6 @@ class _Injector:
     rows: list[_Point] = field(default_factory=list)   # one per preload of the table
     next_row: int = 0
     turn: int = 0                       # injections with a table
-    table: tuple[tuple[float, float, float], ...] = ()   # the last complete table
     time_s: float = math.nan            # the last injection's time (s)
     ok: _OkEstimate | None = None
     jitter: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])   # samples, mean square (µm², µs²)
@@ -286,7 +286,8 @@ class DriveCompensator:
             if not reason:
                 _jitter(st, this_preload_n, measured, predicted)
         else:
-            drive, reason, measured = self.drive_of(injector_id) or trapezoid(sim.dt_s if sim else 0.5e-6), "", math.nan
+            drive, reason, measured = (self.drive_of(injector_id) or trapezoid(sim.dt_s if sim else SAMPLE_PERIOD_S),
+                                       "", math.nan)
         if drive is None or reason:
             st.last = replace(st.last, held=st.last.valid, reason=reason, drive_scale=measured)
             return st.last
@@ -306,7 +307,6 @@ class DriveCompensator:
             elif st.ok is not None and nominal is not None and math.isfinite(f_open_n):
                 corr = replace(self._again(st, nominal, f_open_n, time_s, drive), held=True,
                                reason="estimate not ok: computed again from the last ok estimate")
-                table = st.last.table
             else:
                 corr = replace(st.last, held=st.last.valid, reason="no ok estimate yet" if not st.last.valid
                                else "estimate not ok")
@@ -404,8 +404,8 @@ class DriveCompensator:
         for i in todo:
             self._correct(st.rows[i], sim, nominal, nu, lh_um, cov, preloads[i], drive, derivatives=False,
                           refresh=ROW_REFRESH)
-        if any(pt.model is not sim or pt.drive is not drive for pt in st.rows):
-            return st.table      # the last complete table (another model's) until every row is this one's
+        if len(stale) > ROWS_AFTER_CHANGE:
+            return st.last.table   # the last complete table (another model's) until every row is this one's
         target_stroke, target_opening = self.target_at(nominal)
         lo, hi = self.target.scale_limits
         olo, ohi = self.target.offset_limits_us
@@ -421,8 +421,7 @@ class DriveCompensator:
                 st.next_row, moved = i, 0.0
             opening = (c.opening_us - c.offset_us) + moved
             out.append((f, scale, min(max(target_opening - opening, olo), ohi)))
-        st.table = tuple(out)
-        return st.table
+        return tuple(out)
 
 
 def _quadratic(a: float, b: float, cov: np.ndarray) -> float:
