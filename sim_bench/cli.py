@@ -15,9 +15,10 @@ from estimator.errors import EstimatorError
 from estimator.io.traces import read_trace, write_trace
 from estimator.model.drive import DRIVES, Drive, named_drive
 from estimator.model.parameters import NOMINAL_PRELOAD_N
-from sim_bench import scenarios, tracking_bench
-from sim_bench.amplifiers import PROFILES as AMPLIFIER_PROFILES
-from sim_bench.targets import TARGETS, missed
+from sim_bench.benches import tracking_bench
+from sim_bench.benches.targets import TARGETS, missed
+from sim_bench.hardware import scenarios
+from sim_bench.hardware.amplifiers import PROFILES as AMPLIFIER_PROFILES
 
 log = logging.getLogger("sim_bench")
 DEFAULT_OUT = Path("bench-results")
@@ -41,7 +42,7 @@ def _add_drive_argument(s: argparse.ArgumentParser, default_text: str) -> None:
 
 def _preload_force(text: str) -> float:
     """``--preload N``: a preload force within the lot's range (N)."""
-    from sim_bench.series_life import PRELOAD_RANGE_N
+    from sim_bench.hardware.series_life import PRELOAD_RANGE_N
 
     try:
         f = float(text)
@@ -109,7 +110,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_speed_sim(args: argparse.Namespace) -> int:
     """Benchmark the fast simulator (candidates per second, batch 1/16/256)."""
-    from sim_bench import speed
+    from sim_bench.benches import speed
 
     report = speed.measure(tuple(args.batch), seconds=args.seconds, drive=_drive(args))
     report["failures"] = missed("speed-sim", {f"candidates_per_s_{r['batch']}": r["candidates_per_s"]
@@ -122,7 +123,7 @@ def cmd_speed_sim(args: argparse.Namespace) -> int:
 
 def cmd_table3(args: argparse.Namespace) -> int:
     """Reproduce Table 3 (PSA No. 1, "sim" column), then identify ten simulated actuators (section 5.4)."""
-    from sim_bench import ident_bench, table3
+    from sim_bench.benches import ident_bench, table3
 
     if args.fit_drive:
         amp = table3.fit_drive_amplitude()
@@ -146,7 +147,7 @@ def cmd_table3(args: argparse.Namespace) -> int:
 
 def cmd_accuracy(args: argparse.Namespace) -> int:
     """Single-injection accuracy against truth and the Cramér–Rao bound."""
-    from sim_bench import ident_bench
+    from sim_bench.benches import ident_bench
 
     scen = {"matched": [False], "mismatch": [True], "both": [False, True]}[args.scenario]
     sweeps = ["random", "near-edge", "high-noise", "spread", "chain", "preload-off"] if args.sweep == "all" else [args.sweep]
@@ -163,7 +164,7 @@ def cmd_accuracy(args: argparse.Namespace) -> int:
 
 def cmd_tracking(args: argparse.Namespace) -> int:
     """The recursive estimator on drift, steps, glitches and warm-ups; exit 1 if a target is missed."""
-    from sim_bench import lot_life, tracking_bench
+    from sim_bench.benches import lot_life, tracking_bench
 
     if (args.preload is not None or args.narrow_after) and args.scenario != "lot-life":
         print("error: --preload and --narrow-after are options of --scenario lot-life", file=sys.stderr)
@@ -193,7 +194,7 @@ def cmd_tracking(args: argparse.Namespace) -> int:
 
 def cmd_speed(args: argparse.Namespace) -> int:
     """Timing of the recursive estimator (warm update, cold start)."""
-    from sim_bench import ident_bench
+    from sim_bench.benches import ident_bench
 
     rep = ident_bench.speed(args.seed, args.injections, drive=_drive(args))
     rep["targets"] = [t._asdict() for t in TARGETS["speed"]]
@@ -206,7 +207,7 @@ def cmd_speed(args: argparse.Namespace) -> int:
 
 def cmd_calibration_traces(args: argparse.Namespace) -> int:
     """Write traces of an actuator without valve at several temperatures, with s3, for eq. 25."""
-    from sim_bench import calibration_traces
+    from sim_bench.hardware import calibration_traces
 
     paths = calibration_traces.write(args.out, args.temps, args.seed, args.noise_v, drive=_drive(args))
     for p in paths:
@@ -224,8 +225,8 @@ def cmd_node(args: argparse.Namespace) -> int:
     from estimator.io.captures import to_message
     from estimator.service.bus import open_bus, resolve, spec_from_args
     from estimator.service.sdnotify import SdNotify
-    from sim_bench import scenarios
-    from sim_bench.node import InjectorNode
+    from sim_bench.hardware import scenarios
+    from sim_bench.hardware.node import InjectorNode
 
     try:
         sc = scenarios.get(args.scenario, injectors=args.injectors, rate_hz=args.rate, seconds=args.seconds,
@@ -276,7 +277,7 @@ def cmd_node(args: argparse.Namespace) -> int:
 
 def cmd_compensation(args: argparse.Namespace) -> int:
     """A lot of series injectors, open loop and closed loop with the drive corrections; exit 1 on a miss."""
-    from sim_bench import compensation
+    from sim_bench.benches import compensation
 
     if not (2 <= args.injectors <= 8) or args.injections < compensation.SETTLED + 20:
         raise EstimatorError(f"--injectors must be 2..8 and --injections at least {compensation.SETTLED + 20}")
@@ -294,7 +295,8 @@ def cmd_compensation(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     """End-to-end bench: daemon + node processes on a real bus, scored against SimTruth."""
-    from sim_bench import bench, scenarios
+    from sim_bench.benches import bench
+    from sim_bench.hardware import scenarios
 
     if args.seconds is not None and not (1.0 <= args.seconds <= 86_400):
         raise EstimatorError(f"--seconds {args.seconds} must be within 1..86400 s")
@@ -319,7 +321,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 def cmd_daemon_bench(args: argparse.Namespace) -> int:
     """Daemon benchmarks: ingest rate, latency at a rate, 2x overload."""
-    from sim_bench import daemon_bench
+    from sim_bench.benches import daemon_bench
 
     ing = daemon_bench.ingest_rate()
     rep = daemon_bench.run_latency_and_overload(args.out, args.rate, args.seconds, 2.0, args.bus, args.self_calibration)
@@ -332,7 +334,7 @@ def cmd_daemon_bench(args: argparse.Namespace) -> int:
 
 def cmd_reliability(args: argparse.Namespace) -> int:
     """The daemon under faults (sample periods, stalls, floods, poisoned state, commands); exit 1 on a loss."""
-    from sim_bench import reliability
+    from sim_bench.benches import reliability
 
     try:
         rep = reliability.run_all(args.out, args.bus, tuple(args.only or ()))
@@ -348,12 +350,12 @@ def cmd_reliability(args: argparse.Namespace) -> int:
 
 def cmd_selfcal(args: argparse.Namespace) -> int:
     """Series injectors calibrated from their own current and voltage; exit 1 if a target is missed."""
-    from sim_bench import selfcal_bench
+    from sim_bench.benches import selfcal_bench
 
     if not 1 <= args.injectors <= 100:
         raise EstimatorError(f"--injectors {args.injectors}: must be within 1..100")
     if args.refusals:
-        from sim_bench import refusal_bench
+        from sim_bench.benches import refusal_bench
 
         if not 1 <= args.refusals <= 1000:
             raise EstimatorError(f"--refusals {args.refusals}: must be within 1..1000")
@@ -378,7 +380,7 @@ def cmd_fleet_bench(args: argparse.Namespace) -> int:
     import os
 
     os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
-    from sim_bench import fleet_bench
+    from sim_bench.benches import fleet_bench
 
     try:
         rep = fleet_bench.run(args.out, args.injectors, tuple(args.workers), args.seed, args.injections,
@@ -394,11 +396,11 @@ def cmd_fleet_bench(args: argparse.Namespace) -> int:
 
 def cmd_lot(args: argparse.Namespace) -> int:
     """A seeded synthetic production lot (CSV traces with serial numbers, and truth.csv)."""
-    from sim_bench.lot import make_lot
+    from sim_bench.hardware.lot import make_lot
 
     series = None
     if args.series:
-        from sim_bench.series_life import LotSpec
+        from sim_bench.hardware.series_life import LotSpec
 
         if not (0.0 < args.spread <= 0.3 and 0.0 <= args.beyond <= 1.0):
             raise EstimatorError(f"--spread {args.spread} must be in (0, 0.3] and --beyond {args.beyond} in [0, 1]")
@@ -417,7 +419,7 @@ def cmd_lot(args: argparse.Namespace) -> int:
 
 
 def cmd_publish(args: argparse.Namespace) -> int:
-    from sim_bench.published import main as publish_main
+    from sim_bench.benches.published import main as publish_main
 
     missing = [d for d in args.dirs if not d.is_dir()]
     if missing:
@@ -428,7 +430,7 @@ def cmd_publish(args: argparse.Namespace) -> int:
 
 def cmd_hub(args: argparse.Namespace) -> int:
     """Serve the loopback CAN hub until interrupted (SIGINT, SIGTERM, SIGHUP stop it and its server)."""
-    from sim_bench.hub import Hub
+    from sim_bench.hardware.hub import Hub
 
     with Hub(args.port) as hub:
         print(f"CAN hub: --bus {hub.spec}", flush=True)
@@ -488,7 +490,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--injectors", type=int, default=8, help="injectors in a lot (default 8)")
     s.add_argument("--lots", type=int, default=1, help="lots per amplifier profile, seeds SEED, SEED+1, ... (default 1)")
     s.add_argument("--amplifier", default="all", choices=(*AMPLIFIER_PROFILES, "all"),
-                   help="the simulated amplifier's standard drive (sim_bench.amplifiers; default all of them)")
+                   help="the simulated amplifier's standard drive (sim_bench.hardware.amplifiers; default all of them)")
     s.add_argument("--injections", type=int, default=150, help="injections per injector (default 150)")
     s.add_argument("--out", type=Path, default=DEFAULT_OUT / "compensation.png", help="figure (default bench-results/compensation.png)")
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "compensation.json", help="JSON report (default bench-results/compensation.json)")
@@ -636,7 +638,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the process exit code. SIGTERM/SIGHUP unwind like Ctrl-C: children are stopped."""
-    from sim_bench.procs import install_stop_signals
+    from sim_bench.hardware.procs import install_stop_signals
 
     install_stop_signals()
     lean_service_imports(sys.argv[1:] if argv is None else argv, ("node", "hub"))

@@ -13,8 +13,8 @@ import pytest  # noqa: E402
 from estimator._compiled.direct_call import verify_types  # noqa: E402
 from estimator.model.fast_sim import FastSimulator  # noqa: E402
 from estimator.model.parameters import InjectorParameters, load_nominal  # noqa: E402
-from sim_bench.hub import Hub  # noqa: E402
-from sim_bench.procs import BusMonitor  # noqa: E402
+from sim_bench.hardware.hub import Hub  # noqa: E402
+from sim_bench.hardware.procs import BusMonitor  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 

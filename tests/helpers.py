@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from estimator.ident.measurement import Injection
-from sim_bench.plant import Plant, PlantConfig
+from sim_bench.hardware.plant import Plant, PlantConfig
 
 _PLANTS: dict[tuple, Plant] = {}
 

@@ -34,7 +34,7 @@ def identification(out: Path) -> list[Path]:
 
     from estimator.ident.measurement import Injection
     from estimator.plots.identification import plot_identification
-    from sim_bench.plant import Plant, PlantConfig
+    from sim_bench.hardware.plant import Plant, PlantConfig
 
     m = Plant(PlantConfig()).measure(17.0, 3e-6, 28.0, np.random.default_rng(SEED))
     return plot_identification(Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n), out / "identification")
@@ -46,7 +46,7 @@ def learning(out: Path) -> Path:
     from estimator.ident.measurement import Injection
     from estimator.pipeline import EstimatorConfig, build_pipeline
     from estimator.plots.estimates import plot_estimates
-    from sim_bench.series_life import LotSpec, draw_lot
+    from sim_bench.hardware.series_life import LotSpec, draw_lot
 
     lives = draw_lot(3, SEED, LotSpec(swap_at=SWAP_AT, swapped=(1,)))
     _, _, processor, _ = build_pipeline(EstimatorConfig())
@@ -73,7 +73,7 @@ def fleet(out: Path) -> Path:
     import shutil
 
     from estimator.fleet.run import run_fleet
-    from sim_bench.lot import make_lot
+    from sim_bench.hardware.lot import make_lot
 
     lot = out / "fleet" / "lot"
     shutil.rmtree(lot, ignore_errors=True)   # a lot of the same seed, written afresh
@@ -83,7 +83,7 @@ def fleet(out: Path) -> Path:
 
 
 def latency(out: Path) -> Path:
-    from sim_bench.daemon_bench import run_latency_and_overload
+    from sim_bench.benches.daemon_bench import run_latency_and_overload
 
     report = run_latency_and_overload(out / "daemon", seconds=3.0)
     if not report.get("histogram_png"):

@@ -7,7 +7,7 @@
     The estimate statuses: word (JSON, CSV), wire code (``EstimateState.Status``) and the DBC's own
     description of the code.
 ``bench-targets``
-    The benches' headline targets, from :data:`sim_bench.targets.TARGETS` (what each bench exits on).
+    The benches' headline targets, from :data:`sim_bench.benches.targets.TARGETS` (what each bench exits on).
 """
 
 from __future__ import annotations
@@ -117,11 +117,11 @@ class BenchTargets(SphinxDirective):
     """Every bench's headline targets, as the benches judge them."""
 
     def run(self) -> list[nodes.Node]:
-        from sim_bench.targets import TARGETS
+        from sim_bench.benches.targets import TARGETS
 
         rows = [[f"``{bench}``", t.what, f"``{t.figure}``", f"{t.op} {t.limit:g} {t.unit}".strip()]
                 for bench, targets in TARGETS.items() for t in targets]
-        return _parse(self, _list_table("Headline targets (sim_bench/targets.py)", ["bench", "figure", "key", "target"],
+        return _parse(self, _list_table("Headline targets (sim_bench/benches/targets.py)", ["bench", "figure", "key", "target"],
                                         rows, "18 52 18 12"))
 
 

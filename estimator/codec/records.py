@@ -194,13 +194,15 @@ class DriveCorrection(Record):
     preload_n: float
     state: int
     at_limit: int
+    trust_limited: int
     MESSAGE: ClassVar[str] = "DriveCorrection"
     OUTPUT: ClassVar[bool] = True
     SIGNALS: ClassVar[dict[str, str]] = {
         "injector_id": "InjectorId", "counter": "InjectionCounter", "scale": "Scale", "offset_us": "Offset",
         "stroke_um": "Stroke", "sigma_stroke_um": "SigmaStroke", "opening_us": "Opening",
         "sigma_opening_us": "SigmaOpening", "scale_per_kn": "ScalePerKn", "offset_per_kn_us": "OffsetPerKn",
-        "preload_n": "Preload", "state": "State", "at_limit": "AtLimit"}
+        "preload_n": "Preload", "state": "State", "at_limit": "AtLimit",
+        "trust_limited": "TrustLimited"}
 
 
 @dataclass(frozen=True)

@@ -90,7 +90,7 @@ def correction_frame(codec: Codec, injector_id: int, counter: int, c: Correction
     return codec.encode(DriveCorrection(injector_id, counter, c.scale, c.offset_us, v(c.stroke_um), v(c.sigma_stroke_um),
                                         v(c.opening_us), v(c.sigma_opening_us), c.scale_per_kn, c.offset_per_kn_us,
                                         v(c.preload_n), CORRECTION_STATES.index(c.state),
-                                        int(c.at_limit)))
+                                        int(c.at_limit), int(c.trust_limited)))
 
 
 def table_frames(codec: Codec, injector_id: int, counter: int, c: Correction, rows: Sequence[int]) -> list[Frame]:

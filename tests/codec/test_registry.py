@@ -89,7 +89,7 @@ def test_counters_and_heartbeat_share_one_field_list():
 
 
 def test_a_bench_scenario_without_targets_cannot_be_registered():
-    from sim_bench import scenarios
+    from sim_bench.hardware import scenarios
 
     with pytest.raises(ValueError, match="no targets"):
         scenarios.register(scenarios.Scenario("untargeted", None))
@@ -100,8 +100,8 @@ def test_a_bench_scenario_without_targets_cannot_be_registered():
 
 
 def test_cli_scenario_choices_come_from_the_registry(capsys):
-    from sim_bench import scenarios
     from sim_bench.cli import build_parser
+    from sim_bench.hardware import scenarios
 
     parser = build_parser()
     for argv in (["bench", "--scenario", "no-such"], ["node", "--scenario", "no-such"]):

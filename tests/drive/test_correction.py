@@ -143,7 +143,7 @@ def test_a_swapped_part_holds_its_correction_until_it_is_learned_again():
     from estimator.ident.status import Status
     from estimator.pipeline import build_pipeline
     from estimator.service.config import DaemonConfig
-    from sim_bench.series_life import LotSpec, draw_lot
+    from sim_bench.hardware.series_life import LotSpec, draw_lot
 
     life = draw_lot(2, 2, LotSpec(swap_at=45, swapped=(1,)))[1]
     assert abs(life.lh_um[0] - life.lh_um[1]) > 2.0            # the new part needs another drive
@@ -199,14 +199,15 @@ def test_the_motion_uncertainty_replaces_the_share_of_n_u_and_l_h_it_stands_for(
     from estimator.ident.selfcal import CalibrationStatus
     from estimator.ident.status import Learning
     from estimator.ident.tracker import Tracker
+    from estimator.model.drive import STANDARD_AMPLITUDE_A, StandardDrive
     from estimator.model.fast_sim import FastSimulator
     from estimator.model.parameters import CalibrationUncertainty, load_nominal
-    from sim_bench.plant import Plant, PlantConfig
+    from sim_bench.hardware.plant import Plant, PlantConfig
 
     params = replace(load_nominal(), calibration=CalibrationUncertainty(nu_rel_sigma=0.005, lh_sigma_m=0.2e-6,
                                                                         stroke_rel_sigma=0.001))
     unstated = replace(params, calibration=replace(params.calibration, stroke_rel_sigma=0.0))
-    plant = Plant(PlantConfig())
+    plant = Plant(PlantConfig(window_s=200e-6))   # the whole charge: the truth the correction predicts
     first_window = CalibrationStatus(Learning.MONITORING, source="learned", refined=False)
     refined = replace(first_window, refined=True)
     cases = ((params, None, lambda s: s < 0.06), (unstated, None, lambda s: s > 0.15),
@@ -214,16 +215,20 @@ def test_the_motion_uncertainty_replaces_the_share_of_n_u_and_l_h_it_stands_for(
     for stated, status, expect in cases:
         rng = np.random.default_rng(7)
         tracker = Tracker(sim=FastSimulator(stated))
+        learning = _Statuses({0: status}) if status is not None else None
         comp = compensator()
-        for k in range(8):
-            m = plant.measure(17.5, 3e-6, 100.0, rng)
+        c = Correction()
+        for k in range(14):   # driven with each correction: the scale reaches levels the model was checked at
+            drive = StandardDrive(STANDARD_AMPLITUDE_A * c.scale) if c.valid else None
+            m = plant.measure(17.5, 3e-6, 100.0, rng, drive)
             inj = Injection(m.current_a, m.voltage_v, m.dt_s, 100.0, 0, k, math.nan, 0.1 * k)
             res = tracker.update(inj)
+            if k >= 7:
+                tracker.learning = learning   # the statuses the correction reads, set after the update
+                c = correction_after(comp, tracker, inj, res)
+                tracker.learning = None
         assert res.status.value == "ok" and res.sigma_lh_m >= 0.2e-6
-        if status is not None:
-            tracker.learning = _Statuses({0: status})
-        c = correction_after(comp, tracker, inj, res)
-        assert c.valid and expect(c.sigma_stroke_um), (status, c.sigma_stroke_um)
+        assert c.valid and not c.trust_limited and expect(c.sigma_stroke_um), (status, c.sigma_stroke_um)
 
 
 class _Statuses:
@@ -259,3 +264,42 @@ def test_the_sigma_covers_the_injection_to_injection_jitter_and_one_odd_injectio
     c = comp.update(0, True, other, 18.0, 4.0, COV, 100.0, sim, current_a=c.scale * plant_current, dt_s=0.5e-6,
                     this_preload_n=100.0)
     assert c.sigma_opening_us ** 2 < before ** 2 - 0.2 ** 2
+
+
+def test_the_correction_moves_only_as_far_as_the_model_was_checked(sim):
+    """A model checked only at the standard drive: a warm part with a long idle stroke needs ≈ 1.3× its
+    current, but the correction goes one ``TRUST_STEP`` beyond the checked levels, says so, publishes
+    what that drive gives with σ widened for the extrapolation, and reaches the target step by step
+    as ok estimates at the new levels confirm the model; an estimate that is not ok checks nothing; a
+    new model starts at the level it was first seen ok at; without a measured current nothing limits."""
+    from estimator.drive.correction import TRUST_STEP, respond
+    from estimator.drive.standard import AmplifierDrive
+
+    drive = AmplifierDrive.trapezoid()
+    plant_current = drive.samples(0.5e-6, 200e-6)
+    free = compensator().update(0, True, sim, 20.5, 8.0, COV, 100.0, sim)
+    assert free.valid and not free.trust_limited and free.scale > 1.0 + TRUST_STEP + 0.03, free
+    comp = compensator()
+    c = comp.update(0, True, sim, 20.5, 8.0, COV, 100.0, sim, current_a=plant_current, dt_s=0.5e-6)
+    assert c.trust_limited and not c.at_limit and c.scale == pytest.approx(1.0 + TRUST_STEP, abs=1e-3), c
+    assert c.checked == pytest.approx((1.0, 1.0), abs=1e-3)
+    assert c.stroke_um == pytest.approx(respond(sim, c.scale, 20.5, 8.0, 100.0, drive)[0], abs=0.02)
+    assert c.stroke_um < c.target_stroke_um - 1.0
+    assert c.sigma_stroke_um > free.sigma_stroke_um + 0.05     # the extrapolation is in σ
+    steps = 0
+    while c.trust_limited:
+        before = c.scale
+        c = comp.update(0, True, sim, 20.5, 8.0, COV, 100.0, sim, current_a=c.scale * plant_current, dt_s=0.5e-6)
+        assert c.scale <= before + TRUST_STEP + 1e-6
+        steps += 1
+        assert steps < 6
+    assert c.scale == pytest.approx(free.scale, abs=0.01) and c.stroke_um == pytest.approx(c.target_stroke_um, abs=0.02)
+    assert c.sigma_stroke_um > free.sigma_stroke_um + 0.02    # not checked at this level yet
+    c = comp.update(0, True, sim, 20.5, 8.0, COV, 100.0, sim, current_a=c.scale * plant_current, dt_s=0.5e-6)
+    assert c.sigma_stroke_um == pytest.approx(free.sigma_stroke_um, rel=0.05)  # now it is
+    checked = c.checked
+    held = comp.update(0, False, sim, 20.5, 8.0, COV, 100.0, sim, current_a=1.45 * plant_current, dt_s=0.5e-6)
+    assert held.held and held.checked == checked                         # not ok: nothing checked at 1.45
+    other = SimulatorPool().get(0.5e-6 * (1 + 1e-9))   # stands for another model of the injector
+    c = comp.update(0, True, other, 20.5, 8.0, COV, 100.0, sim, current_a=1.2 * plant_current, dt_s=0.5e-6)
+    assert c.checked == pytest.approx((1.2, 1.2), abs=1e-3)

@@ -14,8 +14,8 @@ from estimator.drive.standard import AmplifierDrive, DriveLearner, from_recordin
 from estimator.ident.simulators import SimulatorPool
 from estimator.model.chain import MeasurementChain
 from estimator.model.drive import SAMPLE_PERIOD_S
-from sim_bench.amplifiers import amplifier
-from sim_bench.plant import Plant, PlantConfig
+from sim_bench.hardware.amplifiers import amplifier
+from sim_bench.hardware.plant import Plant, PlantConfig
 
 COV = np.diag([0.01 ** 2, 0.05 ** 2])
 WINDOW_S = 200e-6     # holds the whole charge

@@ -19,7 +19,7 @@ from estimator.fleet.run import run_fleet  # noqa: E402
 from estimator.pipeline import build_tracker  # noqa: E402
 from estimator.pipeline.estimates import iter_estimates  # noqa: E402
 from estimator.service.config import DaemonConfig  # noqa: E402
-from sim_bench.lot import make_lot  # noqa: E402
+from sim_bench.hardware.lot import make_lot  # noqa: E402
 
 from ..conftest import REPO  # noqa: E402
 from ..helpers import COLD_MIN_EVALUATIONS, WARM_MAX_EVALUATIONS, injection_messages  # noqa: E402
@@ -141,7 +141,7 @@ def test_a_worker_reuses_freed_memory_despite_the_nannys_trim_threshold():
 def test_fleet_bench_scores_a_lot_with_several_traces_per_injector(tmp_path):
     """fleet-bench's lot with two traces per injector: every row scored against the truth, and the
     second trace of each injector a warm update (its own lot directory, beside the one-trace lot)."""
-    from sim_bench import fleet_bench
+    from sim_bench.benches import fleet_bench
     rep = fleet_bench.run(tmp_path, injectors=3, workers=(1,), seed=4, injections=2)
     run = rep["runs"][0]
     assert rep["injections_per_injector"] == 2 and run["injections"] == 6 and run["errors"] == 0
@@ -163,7 +163,7 @@ def test_fleet_bench_scores_a_lot_of_captures(tmp_path):
     """fleet-bench's capture lot (one BLF per injector, its injections as the node's frames): every
     injection scored against the truth, the rows of a capture equal its replay (the worker's shared
     codec and simulator pool carry no state between captures), later injections warm updates."""
-    from sim_bench import fleet_bench
+    from sim_bench.benches import fleet_bench
     rep = fleet_bench.run(tmp_path, injectors=3, workers=(1,), seed=4, injections=3, captures=True)
     run = rep["runs"][0]
     assert rep["inputs"] == "captures" and run["injections"] == 9 and run["errors"] == 0
@@ -185,7 +185,7 @@ def test_a_series_lot_is_learned_on_the_cluster_and_its_part_beyond_tolerance_re
     """sim_bench lot --series: three series parts (one beyond tolerance) through the fleet with its
     default configuration: every injector learns its own model (rows and summary carry the learning
     state), the part beyond tolerance is in the lot report's reject line, the others are not."""
-    from sim_bench.series_life import LotSpec
+    from sim_bench.hardware.series_life import LotSpec
 
     truth = make_lot(tmp_path / "lot", 3, 24, seed=21, series=LotSpec(beyond_fraction=0.34))
     rows = list(csv.DictReader(open(truth)))

@@ -16,8 +16,8 @@ from estimator.ident.electrical import calibrate_electrical
 from estimator.ident.measurement import Injection
 from estimator.io.traces import write_trace
 from estimator.model.parameters import InjectorParameters, load_nominal
-from sim_bench import series_part
-from sim_bench.plant import Plant, PlantConfig
+from sim_bench.hardware import series_part
+from sim_bench.hardware.plant import Plant, PlantConfig
 
 from ..conftest import REPO
 
@@ -238,7 +238,7 @@ def test_the_uncertainty_a_calibration_leaves_is_in_every_sigma_and_is_not_avera
 
 
 def _nominal_batch(current_noise_a: float) -> list[Injection]:
-    from sim_bench.plant import AdcConfig
+    from sim_bench.hardware.plant import AdcConfig
     rng = np.random.default_rng(21)
     plant = Plant(PlantConfig(window_s=200e-6, adc=AdcConfig(current_noise_a=current_noise_a)))
     out = []
@@ -293,7 +293,7 @@ def _write_life(tmp_path, life, n, prefix):
 def test_cli_refuses_a_batch_without_writing_a_file_and_flags_a_part_beyond_tolerance(tmp_path):
     """A hysteresis part: exit 1, 'refused' on stderr, no parameter file. A part with a mounting
     stiffness 15-20 % off: its file is written and the JSON names the parameter out_of_tolerance."""
-    from sim_bench.refusal_bench import _life
+    from sim_bench.benches.refusal_bench import _life
 
     run = [sys.executable, "-m", "estimator", "calibrate", "--electrical"]
     hyst = _write_life(tmp_path, _life(2000, hysteresis=True), 16, "h")

@@ -22,8 +22,8 @@ TRUTH = (16.6, 2.4)     # N/V, µm
 
 
 def _injection(sim, lh_um: float = TRUTH[1], seed: int = 1) -> Injection:
-    from sim_bench.ident_bench import _injection as to_injection
-    from sim_bench.plant import Plant, PlantConfig
+    from sim_bench.benches.ident_bench import _injection as to_injection
+    from sim_bench.hardware.plant import Plant, PlantConfig
     plant = Plant(PlantConfig())
     return to_injection(plant.measure(TRUTH[0], lh_um * 1e-6, F_OPEN_N, np.random.default_rng(seed)))
 

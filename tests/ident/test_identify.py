@@ -41,7 +41,7 @@ def test_sigma_covers_the_measured_currents_noise(sim, monkeypatch):
     """The simulation is driven by the measured current: at 0.02 A of current noise the N_u errors were
     1.8 times their voltage-noise-only sigma. With the current's noise in sigma they are covered."""
     from estimator.ident import idle_stroke
-    from sim_bench.plant import AdcConfig, Plant, PlantConfig
+    from sim_bench.hardware.plant import AdcConfig, Plant, PlantConfig
 
     def z_rms() -> float:
         plant = Plant(PlantConfig(window_s=150e-6, adc=AdcConfig(current_noise_a=0.02)))
@@ -284,7 +284,7 @@ def test_a_local_fit_that_does_not_explain_the_trace_falls_back_to_the_global_se
     """A hysteresis plant at low noise leaves a residual the robust cost does not absorb: the local
     fit fails the check and the estimate is the global search's, bit for bit, its simulations
     counted on top."""
-    from sim_bench.plant import AdcConfig
+    from sim_bench.hardware.plant import AdcConfig
     inj, _ = measured(15.3, 4.3, 31, mismatch=True, adc=AdcConfig(voltage_noise_v=0.05))
     est = identify(inj, sim)
     ref = identify(inj, sim, IdentConfig(cold_start="global"))

@@ -16,7 +16,7 @@ from estimator.ident.tracker import Tracker
 from estimator.pipeline.processor import Processor
 from estimator.service.config import DaemonConfig
 from estimator.service.state_store import load_learning, save_states
-from sim_bench.series_life import LotSpec, draw_lot
+from sim_bench.hardware.series_life import LotSpec, draw_lot
 
 
 def _life(seed: int, swap_at: int | None = None, beyond: float = 0.0):

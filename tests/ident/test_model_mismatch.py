@@ -18,8 +18,8 @@ from estimator.ident.tracker import Tracker, TrackerState
 from estimator.model.chain import MeasurementChain, lowpass, shift, unfilter
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import InjectorParameters, load_nominal
-from sim_bench.plant import Plant, PlantConfig
-from sim_bench.series_part import STRUCTURAL, TYPICAL_CHAIN, SeriesPart, draw, scaled
+from sim_bench.hardware.plant import Plant, PlantConfig
+from sim_bench.hardware.series_part import STRUCTURAL, TYPICAL_CHAIN, SeriesPart, draw, scaled
 
 
 def _inj(m) -> Injection:
@@ -175,7 +175,7 @@ def test_tracker_on_series_parts_never_ok_and_sigma_covers_the_bias():
     """Six seeded series injectors (structural parameters ±10 %) from a cold start: the tracker publishes
     no ok while its filtered L_h is more than 0.3 µm off, and the published sigma covers the error
     (it did not when the model error entered the filter as noise: RMS(error/sigma) 4.1)."""
-    from sim_bench import tracking_bench
+    from sim_bench.benches import tracking_bench
 
     s = tracking_bench.tracking("spread-injector", seed=3, injections=30)["summary"]
     assert s["ok_off"] == 0 and s["mismatch_fraction"] > 0.8
@@ -215,7 +215,7 @@ def test_a_mismatched_injector_is_reacquired_by_a_local_fit_not_the_global_searc
     from estimator.ident import recursive as tracker_mod
     from estimator.ident.measurement import Injection
     from estimator.ident.tracker import Tracker
-    from sim_bench.daemon_bench import injection_pool
+    from sim_bench.benches.daemon_bench import injection_pool
 
     pool = injection_pool(Codec(), injectors=3, per_injector=24, series=True)
 

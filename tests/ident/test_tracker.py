@@ -104,7 +104,7 @@ def test_cold_start_near_the_range_edges_is_not_trapped(sim, nu):
 
 def test_large_sigma_is_uncertain_not_ok(sim):
     tr = Tracker(sim=sim)
-    inj, _ = measured(17.0, 4.0, 2100, adc=__import__("sim_bench.plant", fromlist=["AdcConfig"]).AdcConfig(
+    inj, _ = measured(17.0, 4.0, 2100, adc=__import__("sim_bench.hardware.plant", fromlist=["AdcConfig"]).AdcConfig(
         voltage_noise_v=1.0))
     r = tr.update(at(inj, 0.0))
     assert r.sigma_lh_m * 1e6 > 0.25 and r.status == Status.UNCERTAIN and "sigma" in r.reason

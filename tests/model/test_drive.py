@@ -23,12 +23,12 @@ from estimator.model.drive import (
     standard_drive,
 )
 from estimator.model.fast_sim import PLATEAU_WINDOW_S, FastSimulator
-from sim_bench import scenarios
-from sim_bench import tracking_bench as tb
+from sim_bench.benches import tracking_bench as tb
 from sim_bench.cli import build_parser
 from sim_bench.cli import main as sim_main
-from sim_bench.node import InjectionSource
-from sim_bench.plant import Plant, PlantConfig
+from sim_bench.hardware import scenarios
+from sim_bench.hardware.node import InjectionSource
+from sim_bench.hardware.plant import Plant, PlantConfig
 
 
 @dataclass(frozen=True)

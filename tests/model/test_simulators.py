@@ -142,7 +142,7 @@ def test_valve_hovering_at_its_threshold_does_not_chatter(sim, nu, lh_um, phase)
     """Charge held while the valve is at its opening threshold and the piston rings: the reset
     v4 := v3 would send the plunger into its seat (Zeno); the model lifts it from rest instead and,
     after a re-seat, asks for a positive net lift-off force. Both simulators agree."""
-    from sim_bench.plant import PlantConfig, true_current
+    from sim_bench.hardware.plant import PlantConfig, true_current
 
     t = sample_times(300e-6)
     cur = np.where(t <= 100e-6 + 1e-12, true_current(t, PlantConfig(), phase), 0.0)
@@ -156,7 +156,7 @@ def test_valve_hovering_at_its_threshold_does_not_chatter(sim, nu, lh_um, phase)
 
 def test_plant_window_longer_than_the_plateau_window():
     """A measuring window past 490 µs (the end of Table 3's plateau window) is simulated in full."""
-    from sim_bench.plant import Plant, PlantConfig
+    from sim_bench.hardware.plant import Plant, PlantConfig
 
     m = Plant(PlantConfig(window_s=600e-6)).measure(17.0, 3e-6, 28.0, np.random.default_rng(1))
     assert m.current_a.size == 1201 and np.isfinite(m.voltage_v).all() and np.isfinite(m.stroke_m)

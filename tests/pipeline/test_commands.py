@@ -79,7 +79,7 @@ def test_output_frames_are_encoded_when_asked_for_and_equal_the_eager_encoding()
     from estimator.pipeline import build_pipeline
     from estimator.pipeline.processor import output_frames
     from estimator.service.config import DaemonConfig
-    from sim_bench.plant import Plant, PlantConfig
+    from sim_bench.hardware.plant import Plant, PlantConfig
 
     codec, ingest, processor, clock = build_pipeline(DaemonConfig(self_calibration=None))
     m = Plant(PlantConfig(window_s=100e-6)).measure(17.0, 3e-6, 30.0, np.random.default_rng(1))

@@ -9,7 +9,7 @@ import pytest
 from estimator.codec.records import Codec, EstimateState, ValvePrediction
 from estimator.ident.measurement import Injection
 from estimator.pipeline import EstimatorConfig, build_pipeline
-from sim_bench.plant import Plant, PlantConfig
+from sim_bench.hardware.plant import Plant, PlantConfig
 
 
 def test_json_row_and_frames_render_one_record():

@@ -25,8 +25,8 @@ from estimator.service.calibration_worker import BackgroundCalibrator
 from estimator.service.config import ConfigError, DaemonConfig
 from estimator.service.daemon import Daemon
 from estimator.service.state_store import load_calibrations, save_states
-from sim_bench import series_part
-from sim_bench.plant import Plant, PlantConfig
+from sim_bench.hardware import series_part
+from sim_bench.hardware.plant import Plant, PlantConfig
 
 LH_UM = 3.0
 PRELOADS = (28.0, 60.0, 100.0, 150.0, 220.0, 300.0)

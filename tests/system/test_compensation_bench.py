@@ -1,11 +1,11 @@
-"""The drive-compensation bench's verdicts (sim_bench.compensation): σ judged over every lot's parts,
+"""The drive-compensation bench's verdicts (sim_bench.benches.compensation): σ judged over every lot's parts,
 spreads and settling per lot."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from sim_bench import compensation
+from sim_bench.benches import compensation
 
 TARGET = 22.0
 

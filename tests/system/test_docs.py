@@ -135,9 +135,9 @@ def _page_rows(row: str, lines: list[str]) -> list[str]:
 
 
 def test_every_published_figure_has_one_row_on_the_performance_page():
-    """Each figure :data:`sim_bench.published.FIGURES` knows names the start of one table line of the
+    """Each figure :data:`sim_bench.benches.published.FIGURES` knows names the start of one table line of the
     performance page (a row renamed or split leaves its figures unchecked otherwise)."""
-    from sim_bench.published import FIGURES
+    from sim_bench.benches.published import FIGURES
 
     lines = (DOCS / "performance.md").read_text(encoding="utf-8").splitlines()
     rows = {f.row for f in FIGURES if f.row is not None}
@@ -152,7 +152,7 @@ def test_the_published_figures_are_what_the_readme_and_the_performance_page_stat
     row for. Publishing a figure measured again fails here until both say it."""
     import json
 
-    from sim_bench.published import FIGURES, number
+    from sim_bench.benches.published import FIGURES, number
 
     figures = json.loads((DOCS / "figures.json").read_text(encoding="utf-8"))
     known = {f"{f.bench}: {f.name}": f for f in FIGURES}
@@ -176,8 +176,8 @@ def test_the_published_figures_are_what_the_readme_and_the_performance_page_stat
 
 def test_the_readme_targets_are_the_benches_own():
     """The target the README states for a bench with headline targets is one of that bench's own
-    (sim_bench.targets, which the bench exits on and the performance page renders)."""
-    from sim_bench.targets import TARGETS
+    (sim_bench.benches.targets, which the bench exits on and the performance page renders)."""
+    from sim_bench.benches.targets import TARGETS
 
     bench = None
     checked = 0

@@ -20,8 +20,8 @@ from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, Command, EstimateState, EstimatorCommand, EstimatorStatus
 from estimator.io.captures import to_message
 from estimator.service.bus import open_bus
-from sim_bench.procs import DaemonProcess, rss_mb
-from sim_bench.reliability import STALL_CONFIG, stalled_injection
+from sim_bench.benches.reliability import STALL_CONFIG, stalled_injection
+from sim_bench.hardware.procs import DaemonProcess, rss_mb
 
 from ..conftest import REPO
 from ..helpers import measured
@@ -185,7 +185,7 @@ def _alive(pid: int) -> bool:
 
 
 def test_bench_stops_hub_daemon_and_node_on_sigterm(tmp_path):
-    from sim_bench.procs import wait_until
+    from sim_bench.hardware.procs import wait_until
     p = subprocess.Popen([sys.executable, "-m", "sim_bench", "bench", "--seconds", "120", "--quiet", "--no-plots",
                           "--out", str(tmp_path)], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

@@ -26,6 +26,8 @@ FORBIDDEN = {
     "estimator/service": {"sim_bench", "estimator.plots"} | FLEET | ENTRY,
     "estimator/plots": {"sim_bench"} | FLEET | ENTRY,
     "estimator/fleet": {"sim_bench"} | ENTRY,
+    # the simulated hardware knows nothing of the benches that score it
+    "sim_bench/hardware": {"sim_bench.benches", "sim_bench.cli", "sim_bench.entry"},
 }
 #: the modules the package's root holds on purpose, each with what it must not import: what every layer
 #: shares imports no layer; the entry points and the command lines may import any

@@ -8,8 +8,8 @@ import pytest
 from estimator.codec.assembler import Completed
 from estimator.codec.ingest import Ingest
 from estimator.codec.records import Codec, SimTruth
-from sim_bench import scenarios
-from sim_bench.node import InjectorNode, NodeStats, apply_faults
+from sim_bench.hardware import scenarios
+from sim_bench.hardware.node import InjectorNode, NodeStats, apply_faults
 
 
 @pytest.fixture(scope="module")
@@ -115,12 +115,12 @@ def test_the_node_drives_an_injector_with_its_published_correction(codec):
         return next(codec.decode(f) for f in node.frames_for(injector, 0, 0.0) if codec.decode(f).__class__ is SimTruth)
     plain = truth_of(InjectorNode(lambda f: None, sc, 5, codec), 1)
     node = InjectorNode(lambda f: None, sc, 5, codec)
-    node.take_correction(DriveCorrection(1, 0, 1.2, -10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 28.0, 1, 0))
+    node.take_correction(DriveCorrection(1, 0, 1.2, -10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 28.0, 1, 0, 0))
     corrected = truth_of(node, 1)
     assert node.source.applied == 1
     assert corrected.stroke_um > plain.stroke_um + 2.0                   # 20 % more charge in the 100 µs window
     assert corrected.opening_us < plain.opening_us - 10.0               # charged 10 µs earlier, and faster
-    node.take_correction(DriveCorrection(1, 0, 1.2, -10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 28.0, 0, 0))   # state none
+    node.take_correction(DriveCorrection(1, 0, 1.2, -10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 28.0, 0, 0, 0))   # state none
     assert truth_of(node, 1).stroke_um == pytest.approx(plain.stroke_um, abs=0.5) and node.source.applied == 1
 
 
@@ -135,7 +135,7 @@ def test_the_correction_table_reaches_the_node_row_by_row(codec):
     from estimator.ident.measurement import Injection
     from estimator.pipeline import build_pipeline
     from estimator.pipeline.config import EstimatorConfig
-    from sim_bench.plant import Plant
+    from sim_bench.hardware.plant import Plant
 
     _, _, processor, _ = build_pipeline(EstimatorConfig())
     processor.compensator = DriveCompensator(DriveTarget(amplifier_drive="trapezoid"))

@@ -16,7 +16,7 @@ from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateQuality, EstimateState, ValvePrediction
 from estimator.io.captures import to_frame, to_message
 from estimator.service.bus import open_bus
-from sim_bench.procs import DaemonProcess, wait_until
+from sim_bench.hardware.procs import DaemonProcess, wait_until
 
 from ..conftest import REPO
 from ..helpers import WARM_MAX_EVALUATIONS, measured

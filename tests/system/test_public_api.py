@@ -38,7 +38,7 @@ def test_the_api_page_is_built_from_all():
 
 
 def test_the_docstring_example(tmp_path):
-    from sim_bench.plant import Plant, PlantConfig
+    from sim_bench.hardware.plant import Plant, PlantConfig
 
     m = Plant(PlantConfig()).measure(17.0, 3.0e-6, 28.0, np.random.default_rng(1))
     path = tmp_path / "shot.csv"

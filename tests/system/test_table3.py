@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from estimator.model.drive import STANDARD_AMPLITUDE_A
-from sim_bench import table3
+from sim_bench.benches import table3
 
 
 def test_standard_drive_amplitude_is_the_fitted_one(sim):

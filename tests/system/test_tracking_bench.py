@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from sim_bench import tracking_bench as tb
+from sim_bench.benches import tracking_bench as tb
 from sim_bench.cli import main as sim_main
 
 

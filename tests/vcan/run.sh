@@ -21,13 +21,13 @@ export NUMBA_CPU_NAME=generic
 from estimator.model.drive import sample_times, standard_drive
 from estimator.model.fast_sim import FastSimulator
 from estimator.ident.tracker import Tracker
-from sim_bench.plant import Plant, PlantConfig
+from sim_bench.hardware.plant import Plant, PlantConfig
 import numpy as np
 cur = standard_drive(sample_times(100e-6))
 FastSimulator().simulate(cur, [16.0, 17.0], [-0.5e-6, 3e-6])
 Tracker().warm_up()        # what the daemon runs before READY: cold start, warm updates
 Plant(PlantConfig()).warm_up()
-from sim_bench.plant import pi_hysteresis
+from sim_bench.hardware.plant import pi_hysteresis
 pi_hysteresis(np.linspace(0, 1e-3, 10))
 PYEOF
 mkdir -p bench-results

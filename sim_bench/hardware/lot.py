@@ -25,8 +25,8 @@ from estimator.io.traces import write_trace
 from estimator.model.drive import Drive, StandardDrive
 from estimator.model.parameters import NOMINAL_PRELOAD_N
 from estimator.pipeline.config import EstimatorConfig
-from sim_bench.plant import Measurement, Plant, PlantConfig
-from sim_bench.series_life import LotSpec, draw_lot
+from sim_bench.hardware.plant import Measurement, Plant, PlantConfig
+from sim_bench.hardware.series_life import LotSpec, draw_lot
 
 NU_MEAN, NU_SD = 17.5, 0.3
 LH_MEAN, LH_SD = 3.5, 0.6
@@ -40,7 +40,7 @@ def make_lot(out: Path, injectors: int, injections: int = 1, seed: int = 11, win
     """Write the lot's traces into ``out`` (one file per injection; with ``captures`` one BLF capture per
     injector) and ``truth.csv``; returns the truth path. Every injector is driven with ``drive``
     (default the standard drive). The truth and the measurements do not depend on ``captures``.
-    ``series``: the injectors are series parts of that lot (:mod:`sim_bench.series_life`: their own
+    ``series``: the injectors are series parts of that lot (:mod:`sim_bench.hardware.series_life`: their own
     structure, one amplifier chain, warm-up, rail-pressure walk, wear, swaps, parts beyond tolerance)."""
     if not (1 <= injectors <= 100_000 and 1 <= injections <= 1000):
         raise ValueError(f"--injectors {injectors} must be 1..100000 and --injections {injections} 1..1000")

@@ -1,7 +1,7 @@
 """Series injectors through their life: the operating conditions a learning estimator meets in a car.
 
 A :class:`Life` is one injector position of a lot: the series part mounted there (every structural
-parameter within the lot's spread of Tables 1-2, :mod:`sim_bench.series_part`; a configurable share
+parameter within the lot's spread of Tables 1-2, :mod:`sim_bench.hardware.series_part`; a configurable share
 of parts beyond the datasheet tolerance), the lot-wide amplifier chain (its own anti-aliasing filter
 and I/U skew), a warm-up that moves N_u, a rail pressure that wanders between idle and full load
 (preload force 28-300 N, a bounded random walk), slow wear of the idle stroke and, optionally, the
@@ -23,9 +23,9 @@ import numpy as np
 from estimator.ident.measurement import Injection
 from estimator.model.chain import MeasurementChain
 from estimator.model.parameters import NOMINAL_PRELOAD_N
-from sim_bench import series_part
-from sim_bench.amplifiers import STANDARD, Amplifier
-from sim_bench.plant import Measurement, Plant, PlantConfig
+from sim_bench.hardware import series_part
+from sim_bench.hardware.amplifiers import STANDARD, Amplifier
+from sim_bench.hardware.plant import Measurement, Plant, PlantConfig
 
 PRELOAD_RANGE_N = (NOMINAL_PRELOAD_N, 300.0)   # idle to full load
 PRELOAD_STEP = 0.35          # the rail pressure's walk: a step of up to 35 % of the range per injection

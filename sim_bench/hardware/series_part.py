@@ -5,7 +5,7 @@ valve; series parts differ by 5-15 %. A :class:`SeriesPart` draws every structur
 ``±spread`` (uniform, relative), and optionally adds what a real test bench adds: the amplifier's
 anti-aliasing filters and I/U skew, a preload force in the header that is off the true one (an ECU
 computes it from rail pressure), and the hysteresis/series-resistance mismatch of
-:class:`sim_bench.plant.PlantConfig`.
+:class:`sim_bench.hardware.plant.PlantConfig`.
 """
 
 from __future__ import annotations

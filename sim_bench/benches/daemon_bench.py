@@ -25,11 +25,11 @@ from estimator.io.captures import to_frame, to_message
 from estimator.model.parameters import NOMINAL_PRELOAD_N
 from estimator.service.bus import open_bus
 from estimator.service.latency import STAGES, WINDOW_S
-from sim_bench import series_part
-from sim_bench.bench import resolve_bus
-from sim_bench.plant import Measurement, Plant, PlantConfig
-from sim_bench.procs import DaemonProcess, rss_mb
-from sim_bench.targets import missed
+from sim_bench.benches.bench import resolve_bus
+from sim_bench.benches.targets import missed
+from sim_bench.hardware import series_part
+from sim_bench.hardware.plant import Measurement, Plant, PlantConfig
+from sim_bench.hardware.procs import DaemonProcess, rss_mb
 
 SERIES_PRELOADS_N = (NOMINAL_PRELOAD_N, 60.0, 100.0, 150.0, 220.0, 300.0)   # the rail pressure cycling (series pool)
 
@@ -206,7 +206,7 @@ def _phase(b: Any, codec: Codec, pool: list, rate: float, seconds: float, w: _Wa
 
 def failures(ing: dict, rep: dict) -> list[str]:
     """The targets missed (``daemon-bench`` or ``daemon-bench --self-calibration`` in
-    :data:`sim_bench.targets.TARGETS`): at the rate asked for, not in the overload phase."""
+    :data:`sim_bench.benches.targets.TARGETS`): at the rate asked for, not in the overload phase."""
     if rep.get("self_calibration"):
         return missed("daemon-bench --self-calibration", {
             "ingest_frames_per_s": ing["frames_per_s"],

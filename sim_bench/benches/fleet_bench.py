@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from estimator.fleet.run import run_fleet
-from sim_bench.lot import make_lot
+from sim_bench.hardware.lot import make_lot
 
 
 def _serial(ident: str, truth: dict) -> str:
@@ -23,10 +23,10 @@ def _serial(ident: str, truth: dict) -> str:
 def simulation_floor(rows: list[dict], kernel_seconds: float = 1.0) -> dict:
     """How much of a worker's time the simulations alone must take: the simulations per injection
     (the rows' ``evaluations``: every candidate simulated, the valve prediction as one) times the
-    simulator's best cost per candidate (:func:`sim_bench.speed.measure` at batch 256, 100 µs window,
+    simulator's best cost per candidate (:func:`sim_bench.benches.speed.measure` at batch 256, 100 µs window,
     timed for ``kernel_seconds``), and the injections/s per core that leaves at most, whatever the
     rest of the pipeline costs and however the candidates of several injectors were batched."""
-    from sim_bench.speed import measure
+    from sim_bench.benches.speed import measure
 
     ev = np.array([r["evaluations"] for r in rows if isinstance(r.get("evaluations"), (int, float))], dtype=float)
     us = measure((256,), seconds=kernel_seconds)["results"][0]["us_per_candidate"]

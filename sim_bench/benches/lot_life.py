@@ -1,6 +1,6 @@
 """The tracking bench's ``lot-life`` scenario: a lot of series injectors through their life, learning on.
 
-Twelve seeded positions of one lot (:mod:`sim_bench.series_life`): series parts within ±10 % of
+Twelve seeded positions of one lot (:mod:`sim_bench.hardware.series_life`): series parts within ±10 % of
 Tables 1-2 on one amplifier chain, two of them beyond the datasheet tolerance, a warm-up, a wandering
 rail pressure, slow wear, and the part at one position swapped half-way under the same injector id.
 Each position runs through the tracker with the default settings (learning on, calibrations inline so
@@ -29,8 +29,8 @@ import numpy as np
 from estimator.ident.config import TrackerConfig
 from estimator.ident.selfcal import SelfCalConfig
 from estimator.ident.tracker import Tracker
-from sim_bench.series_life import LotSpec, draw_lot
-from sim_bench.table import Column, keyed, render, verdict
+from sim_bench.benches.table import Column, keyed, render, verdict
+from sim_bench.hardware.series_life import LotSpec, draw_lot
 
 POSITIONS, INJECTIONS, SWAP_AT, SWAPPED = 12, 80, 40, (9,)
 BEYOND_FRACTION = 2 / 12

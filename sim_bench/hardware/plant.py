@@ -114,7 +114,7 @@ class Plant:
     """Simulates measured injections; one instance per plant grid (it caches transition matrices).
 
     ``params``: the injector's true structural parameters (default Tables 1-2; a series part's own,
-    see :mod:`sim_bench.series_part`)."""
+    see :mod:`sim_bench.hardware.series_part`)."""
 
     def __init__(self, cfg: PlantConfig | None = None, params: InjectorParameters | None = None) -> None:
         self.cfg = cfg or PlantConfig()

@@ -14,7 +14,7 @@ from estimator.io.traces import write_trace
 from estimator.model.drive import SAMPLE_PERIOD_S, Drive, StandardDrive, sample_times
 from estimator.model.parameters import load_nominal
 from estimator.model.psa_lti import simulate_psa
-from sim_bench.scenarios import nu_of_temperature
+from sim_bench.hardware.scenarios import nu_of_temperature
 
 
 def write(out_dir: Path, temperatures_c: list[float], seed: int = 5, noise_v: float = 0.02,

@@ -22,9 +22,9 @@ from estimator.codec.frame import Frame
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, DriveCorrection, DriveCorrectionRow, SimTruth
 from estimator.drive.correction import Correction
-from sim_bench.amplifiers import Amplifier, Scaled
-from sim_bench.plant import Measurement, Plant, PlantConfig
-from sim_bench.scenarios import Scenario
+from sim_bench.hardware.amplifiers import Amplifier, Scaled
+from sim_bench.hardware.plant import Measurement, Plant, PlantConfig
+from sim_bench.hardware.scenarios import Scenario
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +62,7 @@ class InjectionSource:
         self.applied = 0                          # injections driven with a correction
         self.lives = []
         if scenario.series_lot:
-            from sim_bench.series_life import LotSpec, draw_lot
+            from sim_bench.hardware.series_life import LotSpec, draw_lot
 
             amp = Amplifier("scenario", scenario.drive)   # the scenario's standard drive, scaled by a correction
             spec = LotSpec(swap_at=scenario.swap_at, swapped=(1,), window_s=scenario.window_s, amplifier=amp)
@@ -178,7 +178,8 @@ class InjectorNode:
         self.source.corrections[iid] = Correction(
             rec.scale, rec.offset_us, rec.stroke_um, rec.opening_us, rec.sigma_stroke_um, rec.sigma_opening_us,
             scale_per_kn=rec.scale_per_kn, offset_per_kn_us=rec.offset_per_kn_us, preload_n=rec.preload_n,
-            valid=rec.state in (1, 2), held=rec.state == 2, at_limit=bool(rec.at_limit), table=_table(rows))
+            valid=rec.state in (1, 2), held=rec.state == 2, at_limit=bool(rec.at_limit),
+            trust_limited=bool(rec.trust_limited), table=_table(rows))
 
     def frames_for(self, injector: int, n: int, t: float) -> list[Frame]:
         """All frames of injection n of an injector at time t, faults applied, SimTruth last."""

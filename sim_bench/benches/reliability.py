@@ -30,9 +30,9 @@ from estimator.ident.measurement import Injection
 from estimator.io.captures import to_message
 from estimator.model.parameters import NOMINAL_PRELOAD_N
 from estimator.service.bus import open_bus
-from sim_bench.bench import resolve_bus
-from sim_bench.plant import Plant, PlantConfig
-from sim_bench.procs import REPO, BusMonitor, DaemonProcess, rss_mb, watched_daemon
+from sim_bench.benches.bench import resolve_bus
+from sim_bench.hardware.plant import Plant, PlantConfig
+from sim_bench.hardware.procs import REPO, BusMonitor, DaemonProcess, rss_mb, watched_daemon
 
 
 def _injections(n: int, seed: int) -> list[Injection]:

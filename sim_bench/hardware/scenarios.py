@@ -1,6 +1,6 @@
 """Bench scenarios: what the simulated injectors do over time, and what goes wrong on the bus.
 
-The vocabulary shared by every bench (this end-to-end bench and :mod:`sim_bench.tracking_bench`): a
+The vocabulary shared by every bench (this end-to-end bench and :mod:`sim_bench.benches.tracking_bench`): a
 scenario has a ``name``, its ``targets`` (required: a scenario without targets cannot be built), the
 ``drive`` its amplifier follows (:mod:`estimator.model.drive`), a ``description``, and
 ``truth(injector, k, t, rng) -> Truth`` for injection ``k`` of an injector at time ``t``; each bench
@@ -143,7 +143,7 @@ class Scenario:
     window_s: float = 100e-6
     decimation: int = 1                      # send every n-th sample (slower buses)
     pool: int = 0                            # >0: precompute this many injections per injector and cycle
-    series_lot: bool = False                 # the injectors are series parts of one lot (sim_bench.series_life):
+    series_lot: bool = False                 # the injectors are series parts of one lot (sim_bench.hardware.series_life):
                                              # their own structure and rail-pressure walk, one amplifier chain
     swap_at: int | None = None               # series lot: injector 1's part is swapped at this injection
     settle: int = SETTLE                     # injections of each injector before the targets apply

@@ -2,10 +2,10 @@
 and closed loop (each injection driven with the injector's last published drive correction), with
 learning on and the estimator's default configuration (``python -m sim_bench compensation``).
 
-The lot (:mod:`sim_bench.series_life`): parts within the lot's structural spread, idle strokes
+The lot (:mod:`sim_bench.hardware.series_life`): parts within the lot's structural spread, idle strokes
 1-9 µm with up to 0.5 µm of wear, a warm-up from 15.6 to ≈ 20.6 N/V, the rail pressure wandering
 between idle and full load (28-300 N), the lot's amplifier chain, and one part swapped at injection
-40. It runs on each amplifier profile (:mod:`sim_bench.amplifiers`): the estimator is not told which,
+40. It runs on each amplifier profile (:mod:`sim_bench.hardware.amplifiers`): the estimator is not told which,
 it learns each injector's standard drive from the measured current. Each run sees the same parts,
 truths and noise in three loops: ``open`` (the standard drive), ``closed`` (each correction computed
 for the next injection's preload force, as an ECU that knows its rail pressure asks for it) and
@@ -17,8 +17,9 @@ of charging (the correction's offset plus the plant's own).
 Reported per injector and across each lot: the spread (max - min) and SD of the true opening instant
 and plateau stroke at each injection, before learning (the first injections) and after (the last
 ``SETTLED`` of the life), how many injections after the model's adoption the stroke takes to stay on
-target, overshoot, the share of injections at a drive limit, corrections marked valid after an
-estimate that was not ``ok``; and, over all the lots' parts, whether the predicted σ covers the
+target, overshoot, the share of injections at a drive limit and of corrections stopped by their trust
+region, corrections marked valid after an estimate that was not ``ok``, parts that went
+``model_mismatch`` under their own correction but not under the standard drive; and, over all the lots' parts, whether the predicted σ covers the
 achieved error (a learned model's error is a bias, one draw per part: eight parts alone say little
 about it).
 """
@@ -34,9 +35,9 @@ from estimator.drive.correction import Correction, DriveCompensator
 from estimator.ident.measurement import Injection
 from estimator.ident.status import Learning, Status
 from estimator.pipeline.config import EstimatorConfig
-from sim_bench.amplifiers import PROFILES, amplifier
-from sim_bench.series_life import LotSpec, draw_lot
-from sim_bench.targets import TARGETS, limit
+from sim_bench.benches.targets import TARGETS, limit
+from sim_bench.hardware.amplifiers import PROFILES, amplifier
+from sim_bench.hardware.series_life import LotSpec, draw_lot
 
 INJECTORS = 8              # a lot: an engine's injectors
 LOTS = 1                   # lots per amplifier profile (seeds seed, seed + 1, ...): whether σ covers a part's bias is
@@ -66,6 +67,8 @@ class Run:
     adopted_at: list[int | None]  # injection at which each injector's own model was adopted
     at_limit: np.ndarray | None = None   # the correction that drove this injection was at a limit
     valid_not_ok: int = 0         # corrections published valid (not held) after an estimate that was not ok
+    mismatch: np.ndarray | None = None       # the estimate was model_mismatch, after the model's adoption
+    trust_limited: np.ndarray | None = None  # the correction that drove this injection stopped at its trust region
 
 
 def lot_spec(amp: str = "standard") -> LotSpec:
@@ -89,7 +92,8 @@ def run_loop(closed: bool, seed: int, injectors: int = INJECTORS, injections: in
     shape = (injectors, injections)
     nan = np.full(shape, np.nan)
     out = Run(nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy(), np.zeros(shape, bool),
-              [None] * injectors, np.zeros(shape, bool))
+              [None] * injectors, np.zeros(shape, bool), mismatch=np.zeros(shape, bool),
+              trust_limited=np.zeros(shape, bool))
     rngs = [np.random.default_rng(life.seed) for life in lives]
     walks = [life.preload_walk(injections + 1, np.random.default_rng(life.seed + 1)) for life in lives]
     last: dict[int, Correction] = {}
@@ -113,6 +117,8 @@ def run_loop(closed: bool, seed: int, injectors: int = INJECTORS, injections: in
             out.applied[i, k] = use
             assert out.at_limit is not None
             out.at_limit[i, k] = use and corr.at_limit
+            assert out.trust_limited is not None and out.mismatch is not None
+            out.trust_limited[i, k] = use and corr.trust_limited
             if use:
                 out.predicted_stroke_um[i, k] = corr.stroke_um
                 out.sigma_stroke_um[i, k] = corr.sigma_stroke_um
@@ -131,6 +137,9 @@ def run_loop(closed: bool, seed: int, injectors: int = INJECTORS, injections: in
             if pub.result.status == Status.OK and out.adopted_at[i] is None and st is not None \
                     and st.state == Learning.IDLE and k > 5:
                 out.adopted_at[i] = k     # the configured model explains it: nothing to learn
+            # estimated with the adopted model (the injection that adopts one was estimated with the last)
+            adopted = out.adopted_at[i]
+            out.mismatch[i, k] = adopted is not None and k > adopted and pub.result.status == Status.MODEL_MISMATCH
     return out
 
 
@@ -154,6 +163,10 @@ def summarise(run: Run, target_stroke: float) -> dict:
         "opening_sd_us_settled": float(np.median(np.std(run.opening_us[:, late], axis=0))),
         "at_limit_settled": float(np.mean(run.at_limit[:, late])) if run.at_limit is not None else 0.0,
         "valid_not_ok": run.valid_not_ok,
+        "trust_limited_settled": float(np.mean(run.trust_limited[:, late])) if run.trust_limited is not None else 0.0,
+        "trust_limited_share": float(np.mean(run.trust_limited[run.applied])) if run.trust_limited is not None
+        and run.applied.any() else 0.0,
+        "mismatch_after_adoption": [int(x) for x in run.mismatch.sum(axis=1)] if run.mismatch is not None else [],
     }
     per = []
     z_all: dict[str, list[np.ndarray]] = {"stroke": [], "opening": []}
@@ -212,8 +225,9 @@ def run(seed: int = 1, injectors: int = INJECTORS, injections: int = INJECTIONS,
             runs = {"open": run_loop(False, lot_seed, injectors, injections, amp=amp),
                     "closed": run_loop(True, lot_seed, injectors, injections, amp=amp),
                     "closed_bus": run_loop(True, lot_seed, injectors, injections, ecu=False, amp=amp)}
-            rep["lots"].append({"seed": lot_seed, "amplifier": amp,
-                                **{name: summarise(r, target[0]) for name, r in runs.items()}})
+            lot = {"seed": lot_seed, "amplifier": amp, **{name: summarise(r, target[0]) for name, r in runs.items()}}
+            lot["own_mismatch"] = own_mismatch(runs)
+            rep["lots"].append(lot)
             if n == 0:
                 rep["series"] = {name: {"stroke_um": runs[name].stroke_um.round(4).tolist(),
                                         "opening_us": runs[name].opening_us.round(3).tolist()}
@@ -222,6 +236,20 @@ def run(seed: int = 1, injectors: int = INJECTORS, injections: int = INJECTIONS,
     rep.update(pooled_z(rep["lots"]))
     rep["failures"] = failures(rep)
     return rep
+
+
+def own_mismatch(runs: dict[str, Run]) -> dict[str, list[int]]:
+    """Per closed loop, the injectors whose estimates went ``model_mismatch`` after their model's adoption
+    while the same part, truths and noise driven with the standard drive did not: their own correction
+    drove them where their model does not hold."""
+    open_ = runs["open"].mismatch
+    assert open_ is not None
+    out = {}
+    for name in ("closed", "closed_bus"):
+        m = runs[name].mismatch
+        assert m is not None
+        out[name] = [i for i in range(m.shape[0]) if m[i].any() and not open_[i].any()]
+    return out
 
 
 def pooled_z(lots: list[dict]) -> dict[str, float | None]:
@@ -253,6 +281,9 @@ def failures(rep: dict) -> list[str]:
                 out.append(f"{where}: {100 * c['at_limit_settled']:.1f} % of the settled injections at a drive limit")
             if c.get("valid_not_ok", 0):
                 out.append(f"{where}: {c['valid_not_ok']} corrections valid after an estimate that was not ok")
+            for i in lot.get("own_mismatch", {}).get(loop, []):
+                out.append(f"{where}: injector {i} went model_mismatch under its own correction "
+                           "(not with the standard drive)")
             if loop != "closed":
                 continue
             for p in c["injectors"]:
@@ -275,17 +306,23 @@ def format_report(rep: dict) -> str:
              f"opening {rep['target_opening_us']:.2f} µs",
              f"{'':<34} {'stroke spread µm':>30} {'opening spread µs':>30}",
              f"{'lot  amplifier          loop':<34} {'first 10':>10} {'settled':>9} {'p95':>9} {'first 10':>10} "
-             f"{'settled':>9} {'p95':>9} {'at limit':>9}"]
+             f"{'settled':>9} {'p95':>9} {'at limit':>9} {'trust':>7}"]
     for lot in rep["lots"]:
         for name in ("open", "closed", "closed_bus"):
             s, o = lot[name]["stroke_spread_um"], lot[name]["opening_spread_us"]
             lines.append(f"{lot['seed']:<4} {lot.get('amplifier', 'standard'):<18} {name:<10} "
                          f"{s['first10_median']:>10.3f} {s['settled_median']:>9.3f} {s['settled_p95']:>9.3f} "
                          f"{o['first10_median']:>10.2f} {o['settled_median']:>9.2f} {o['settled_p95']:>9.2f} "
-                         f"{100 * lot[name].get('at_limit_settled', 0.0):>8.1f}%")
+                         f"{100 * lot[name].get('at_limit_settled', 0.0):>8.1f}% "
+                         f"{100 * lot[name].get('trust_limited_share', 0.0):>6.1f}%")
     lines.append("closed: each correction computed for the next injection's preload force (an ECU); closed_bus: "
                  "the correction published after each injection, applied at the next one's preload force (an "
-                 "amplifier on the bus); at limit: settled injections driven by a correction at a drive limit")
+                 "amplifier on the bus); at limit: settled injections driven by a correction at a drive limit; trust: "
+                 "corrected injections whose correction stopped where its model had been checked")
+    for lot in rep["lots"]:
+        own = lot.get("own_mismatch", {})
+        lines.append(f"lot {lot['seed']}: injectors model_mismatch under their own correction (not with the "
+                     f"standard drive): closed {own.get('closed', [])}, closed_bus {own.get('closed_bus', [])}")
     lines.append("closed loop per injector: adopted at / settled after / overshoots / max |stroke error| settled / "
                  "RMS(error/σ) of the predicted stroke, opening")
 

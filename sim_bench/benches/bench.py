@@ -32,10 +32,10 @@ from estimator.codec.records import (
 )
 from estimator.ident.status import ESTIMATED_WORDS
 from estimator.service.bus import BusSetupError, check_socketcan
-from sim_bench import scenarios
-from sim_bench.hub import Hub
-from sim_bench.procs import BusMonitor, DaemonProcess, check_stop, rss_mb, spawn, stop_process
-from sim_bench.table import verdict
+from sim_bench.benches.table import verdict
+from sim_bench.hardware import scenarios
+from sim_bench.hardware.hub import Hub
+from sim_bench.hardware.procs import BusMonitor, DaemonProcess, check_stop, rss_mb, spawn, stop_process
 
 SETTLE = scenarios.SETTLE
 
@@ -331,7 +331,7 @@ def _finish_score(s: dict, rows: list[dict], sc: scenarios.Scenario, out_dir: Pa
     (out_dir / f"bench-{sc.name}.json").write_text(json.dumps({"score": s, "rows": rows}, indent=1, default=float))
     if plots:
         try:
-            from sim_bench.bench_plots import plot_bench
+            from sim_bench.benches.bench_plots import plot_bench
             s["plots"] = [str(p) for p in plot_bench(rows, sc, out_dir, seed)]
         except ImportError:
             s["plots"] = []

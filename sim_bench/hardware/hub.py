@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 from estimator.errors import EstimatorError
-from sim_bench.procs import spawn, stop_process
+from sim_bench.hardware.procs import spawn, stop_process
 
 
 class HubError(EstimatorError):

@@ -2,7 +2,7 @@
 
 ``python -m sim_bench selfcal --refusals N`` draws ``N`` seeded good series parts (every structural
 parameter within ±10 % of Tables 1-2; every other one behind the typical amplifier chain; a warm-up,
-a wandering rail pressure and wear within each batch: :mod:`sim_bench.series_life`), and for each
+a wandering rail pressure and wear within each batch: :mod:`sim_bench.hardware.series_life`), and for each
 
 - the offline calibration (``calibrate --electrical`` on the first 30 injections): refused or not,
   and the parameters it reports ``out_of_tolerance``;
@@ -25,9 +25,9 @@ from estimator.ident.electrical import calibrate_electrical, confirmed_out_of_to
 from estimator.ident.selfcal import CalibrationWindow, SelfCalConfig, self_calibrate
 from estimator.model.chain import NO_CHAIN
 from estimator.model.parameters import load_nominal
-from sim_bench import series_part
-from sim_bench.plant import Plant, PlantConfig
-from sim_bench.series_life import Life, LotSpec, draw_lot
+from sim_bench.hardware import series_part
+from sim_bench.hardware.plant import Plant, PlantConfig
+from sim_bench.hardware.series_life import Life, LotSpec, draw_lot
 
 OFFLINE_BATCH = 30
 FALSE_SHARE = 0.01

@@ -2,7 +2,7 @@
 and voltage, and are then judged on injections the calibration never saw.
 
 Each injector draws every structural parameter within ±10 % of Tables 1-2
-(:mod:`sim_bench.series_part`), its own idle stroke (1.5-6 µm) and coupling-factor offset, and makes
+(:mod:`sim_bench.hardware.series_part`), its own idle stroke (1.5-6 µm) and coupling-factor offset, and makes
 60 injections while it warms up (N_u rising by 3.8 N/V) and the rail pressure cycles (preload force
 28-300 N, :data:`PRELOADS`); 0.1 V noise, 200 µs sent. Variants:
 
@@ -37,9 +37,9 @@ from estimator.ident.selfcal import CalibrationStatus, SelfCalConfig
 from estimator.ident.tracker import Tracker
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import NOMINAL_PRELOAD_N, InjectorParameters, load_nominal
-from sim_bench import series_part
-from sim_bench.plant import Plant, PlantConfig
-from sim_bench.table import Column, keyed, render, verdict
+from sim_bench.benches.table import Column, keyed, render, verdict
+from sim_bench.hardware import series_part
+from sim_bench.hardware.plant import Plant, PlantConfig
 
 VARIANTS = ("plain", "chain", "mismatch")
 INJECTIONS, CALIBRATE_FIRST = 60, 30

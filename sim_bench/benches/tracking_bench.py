@@ -8,7 +8,7 @@ injection's own estimate, or the held estimate of a rejected one) against the ra
 estimates of the same injections.
 
 A scenario with ``series_parts`` runs that many seeded series injectors (every structural parameter
-within ±10 % of Tables 1–2, :mod:`sim_bench.series_part`), each from a cold start with its own N_u
+within ±10 % of Tables 1–2, :mod:`sim_bench.hardware.series_part`), each from a cold start with its own N_u
 offset and L_h; it is judged on what a user of such a part needs: no ``ok`` published while the
 filtered L_h is off by more than ``ok_within_um``, and a filtered σ that covers the error.
 """
@@ -29,10 +29,10 @@ from estimator.ident.tracker import Tracker
 from estimator.model.drive import Drive, StandardDrive
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import NOMINAL_PRELOAD_N
-from sim_bench import series_part
-from sim_bench.plant import Plant, PlantConfig
-from sim_bench.scenarios import Registry, Truth
-from sim_bench.table import Column, keyed, plant, render, verdict
+from sim_bench.benches.table import Column, keyed, plant, render, verdict
+from sim_bench.hardware import series_part
+from sim_bench.hardware.plant import Plant, PlantConfig
+from sim_bench.hardware.scenarios import Registry, Truth
 
 F_OPEN_N = NOMINAL_PRELOAD_N
 GLITCH_CURRENT_GAIN = 1.2     # a current-sensor gain error of 20 % that the CRC cannot see

@@ -1,8 +1,8 @@
 """The benches' headline targets, one table: each bench exits 1 when it misses one of its own, and the
 performance page renders this table (``bench-targets`` in the documentation), so a target has one
 home. Per-scenario targets (the end-to-end, tracking and accuracy scenarios') stay with their
-scenarios in their registries (:mod:`sim_bench.scenarios`, :mod:`sim_bench.tracking_bench`,
-:mod:`sim_bench.ident_bench`), each scenario unable to register without them.
+scenarios in their registries (:mod:`sim_bench.hardware.scenarios`, :mod:`sim_bench.benches.tracking_bench`,
+:mod:`sim_bench.benches.ident_bench`), each scenario unable to register without them.
 
 A target is (figure, ``<=`` or ``>=``, limit, unit, what it is); :func:`missed` judges a bench's
 figures against its rows.

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sim_bench.scenarios import Scenario
+from sim_bench.hardware.scenarios import Scenario
 
 
 def plot_bench(rows: list[dict], sc: Scenario, out_dir: Path, seed: int) -> list[Path]:
@@ -12,7 +12,7 @@ def plot_bench(rows: list[dict], sc: Scenario, out_dir: Path, seed: int) -> list
     from estimator.ident.measurement import Injection
     from estimator.plots.figures import pyplot, save
     from estimator.plots.identification import plot_identification
-    from sim_bench.node import InjectionSource
+    from sim_bench.hardware.node import InjectionSource
 
     plt = pyplot()
     fig, ax = plt.subplots(2, 1, figsize=(9, 7), sharex=True)

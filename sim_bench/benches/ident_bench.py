@@ -20,9 +20,10 @@ from estimator.ident.tracker import Tracker
 from estimator.model.drive import Drive
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import NOMINAL_PRELOAD_N, load_nominal
-from sim_bench import series_part, targets
-from sim_bench.plant import AdcConfig, Measurement, Plant, PlantConfig
-from sim_bench.table import Column, keyed, plant, render
+from sim_bench.benches import targets
+from sim_bench.benches.table import Column, keyed, plant, render
+from sim_bench.hardware import series_part
+from sim_bench.hardware.plant import AdcConfig, Measurement, Plant, PlantConfig
 
 _PSA = load_nominal().psa
 NU_RANGE = (_PSA.nu_min_n_per_v, _PSA.nu_max_n_per_v)   # Table 1: 15-21 N/V from 0 to 100 degC
@@ -58,7 +59,7 @@ def accuracy(n: int = 60, seed: int = 1, mismatch: bool = False, window_s: float
 
     Sweeps: ``random`` truths over the ranges, ``near-edge`` N_u near the range's ends, ``high-noise``
     0.3 V; ``spread`` a new series part per injection (every structural parameter within ±10 %,
-    :mod:`sim_bench.series_part`), ``spread-chain`` the same behind a typical measurement chain (300 kHz
+    :mod:`sim_bench.hardware.series_part`), ``spread-chain`` the same behind a typical measurement chain (300 kHz
     on U, I one sample late) the estimator does not know; ``chain`` the nominal injector behind that
     chain, which the estimator's parameters do model; ``preload-off`` the exact injector at a preload
     force drawn over 28-300 N whose header (the ECU's value) is 10-15 % off, up or down.
@@ -267,35 +268,36 @@ def speed(seed: int = 4, injections: int = 300, drive: Drive | None = None) -> d
     t0 = time.perf_counter()
     tracker.warm_up()       # as the daemon does before it serves: the warm path's compiled code loaded
     warm_up = time.perf_counter() - t0
-    tracker.update(_injection(meas[0]))
-    warm, cpu = [], []
-    t_all = time.perf_counter()
-    for m in meas[1:]:
-        inj = _injection(m)
-        t0, c0 = time.perf_counter(), time.thread_time()
-        tracker.update(inj)
-        warm.append(time.perf_counter() - t0)
-        cpu.append(time.thread_time() - c0)
-    total = time.perf_counter() - t_all
-    # the same injections through the daemon's processor, with the drive correction after each update
+    # the same injections through the daemon's processor, with the drive correction after each update,
+    # timed in turn with the bare tracker's so that the machine's drift falls on both alike
     from estimator.codec.ingest import Counters
     from estimator.codec.records import Codec
     from estimator.drive.correction import DriveCompensator
     from estimator.pipeline.processor import Processor
 
     processor = Processor(Codec(), Tracker(TrackerConfig(), sim), Counters(), compensator=DriveCompensator())
+    tracker.update(_injection(meas[0]))
     processor.estimate(_injection(meas[0]))
-    with_correction = []
+    warm, cpu, with_correction = [], [], []
+    busy = 0.0
     for m in meas[1:]:
         inj = _injection(m)
+        t0, c0 = time.perf_counter(), time.thread_time()
+        tracker.update(inj)
+        warm.append(time.perf_counter() - t0)
+        cpu.append(time.thread_time() - c0)
+        busy += warm[-1]
         t0 = time.perf_counter()
         processor.estimate(inj)
         with_correction.append(time.perf_counter() - t0)
+    total = busy
     w = np.array(warm) * 1e3
     return {"benchmark": "speed", "seed": seed, "injections": injections,
             "warm_median_ms": float(np.median(w)), "warm_p99_ms": float(np.percentile(w, 99)),
             "warm_cpu_median_ms": 1e3 * float(np.median(cpu)),
             "warm_with_correction_median_ms": 1e3 * float(np.median(with_correction)),
+            # the pairs' difference, each pair timed back to back (the median of the differences)
+            "correction_added_ms": 1e3 * float(np.median(np.array(with_correction) - np.array(warm))),
             "cold_median_ms": 1e3 * float(np.median(cold)), "cold_max_ms": 1e3 * float(np.max(cold)),
             "first_call_ms": 1e3 * first_call, "warm_up_ms": 1e3 * warm_up,
             "injections_per_s": (injections - 1) / total}
@@ -304,9 +306,9 @@ def speed(seed: int = 4, injections: int = 300, drive: Drive | None = None) -> d
 #: what ``speed`` must reach (ms): the warm update's median, the drive correction's addition to it, the
 #: cold start's median
 def speed_failures(rep: dict) -> list[str]:
-    """The speed targets missed (``speed`` in :data:`sim_bench.targets.TARGETS`)."""
+    """The speed targets missed (``speed`` in :data:`sim_bench.benches.targets.TARGETS`)."""
     got = {"warm_median_ms": rep["warm_median_ms"], "cold_median_ms": rep["cold_median_ms"],
-           "correction_added_ms": rep["warm_with_correction_median_ms"] - rep["warm_median_ms"]}
+           "correction_added_ms": rep["correction_added_ms"]}
     return targets.missed("speed", got)
 
 
@@ -321,4 +323,5 @@ def format_speed(rep: dict) -> str:
         f"{rep['first_call_ms']:.0f} ms, not counted as a cold start; the tracker's warm-up before the "
         f"warm updates, as the daemon's: {rep.get('warm_up_ms', float('nan')):.0f} ms, not counted)",
         f"warm update with the drive correction (the daemon's processor): median "
-        f"{rep['warm_with_correction_median_ms']:.2f} ms"])
+        f"{rep['warm_with_correction_median_ms']:.2f} ms, {rep['correction_added_ms']:.3f} ms more than the "
+        f"bare update timed beside it (median of the pairs' differences)"])
