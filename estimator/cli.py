@@ -419,6 +419,22 @@ def cmd_drive_table(args: argparse.Namespace) -> int:
     return 1 if bad or odd else 0
 
 
+def cmd_a2l(args: argparse.Namespace) -> int:
+    """Write the A2L of the daemon's XCP slave (what GET_ID serves) for a calibration tool."""
+    from estimator import __version__
+    from estimator.codec.records import load_database
+    from estimator.service.xcp.a2l import NAME, a2l_bytes
+
+    out = args.out or Path(f"{NAME}.a2l")
+    data = a2l_bytes(load_database(args.dbc) if args.dbc else load_database(), __version__)
+    try:
+        out.write_bytes(data)
+    except OSError as exc:
+        raise SystemExit(f"error: cannot write {out}: {exc.strerror or exc}") from None
+    print(f"{out}: A2L for the XCP slave ([estimator.xcp]), {len(data)} bytes")
+    return 0
+
+
 def cmd_dbc_path(args: argparse.Namespace) -> int:
     """Print the path of the packaged DBC (for cantools decode/monitor/plot)."""
     from estimator.codec.database import default_dbc_path
@@ -575,6 +591,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--serial", action="store_true", help="in this process only")
     s.add_argument("--quiet", action="store_true", help="say nothing when the cache is complete already")
     s.set_defaults(func=cmd_compile)
+
+    s = sub.add_parser("a2l", help="write the A2L of the daemon's XCP slave (measurements from the DBC, "
+                                   "characteristics from the configuration)")
+    s.add_argument("--out", type=Path, default=None, help="output file (default ./injector_estimator.a2l)")
+    s.add_argument("--dbc", type=Path, default=None, help="CAN database (default: the packaged dbc/injector.dbc)")
+    s.set_defaults(func=cmd_a2l)
 
     s = sub.add_parser("check-dbc", help="validate the DBC against the contract")
     s.add_argument("--dbc", type=Path, default=None, help="CAN database (default: the packaged dbc/injector.dbc)")

@@ -332,6 +332,17 @@ def cmd_daemon_bench(args: argparse.Namespace) -> int:
     return 1 if failures else 0
 
 
+def cmd_xcp_bench(args: argparse.Namespace) -> int:
+    """The daemon with its XCP slave: DAQ at a rate, hostile datagrams; exit 1 on a miss."""
+    from sim_bench.benches import xcp_bench
+
+    rep = xcp_bench.run(args.out, args.rate, args.seconds, args.bus)
+    print(xcp_bench.format_report(rep))
+    print("PASS" if not rep["failures"] else "FAIL: " + "; ".join(rep["failures"]))
+    _write_json(args.json_out, rep)
+    return 1 if rep["failures"] else 0
+
+
 def cmd_reliability(args: argparse.Namespace) -> int:
     """The daemon under faults (sample periods, stalls, floods, poisoned state, commands); exit 1 on a loss."""
     from sim_bench.benches import reliability
@@ -519,6 +530,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", type=Path, default=DEFAULT_OUT / "daemon", help="directory for the figures (default bench-results/daemon)")
     s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "daemon-bench.json", help="JSON report (default bench-results/daemon-bench.json)")
     s.set_defaults(func=cmd_daemon_bench)
+
+    s = sub.add_parser("xcp-bench", help="daemon with its XCP slave: DAQ on the injection event at 200 injections/s "
+                                         "with a pyxcp master, then 10,000 hostile datagrams")
+    s.add_argument("--rate", type=float, default=200.0, help="injections per second (all injectors)")
+    s.add_argument("--seconds", type=float, default=10.0, help="seconds per phase (default 10)")
+    s.add_argument("--bus", default=None, help="INTERFACE:CHANNEL (default: vcan0 if present, else a loopback hub)")
+    s.add_argument("--out", type=Path, default=DEFAULT_OUT / "xcp", help="directory for the logs (default bench-results/xcp)")
+    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "xcp-bench.json",
+                   help="JSON report (default bench-results/xcp-bench.json)")
+    s.set_defaults(func=cmd_xcp_bench)
 
     s = sub.add_parser("fleet-bench", help="fleet on a synthetic lot at 1 and 2 workers: throughput, accuracy")
     s.add_argument("--injectors", type=int, default=1000, help="injectors in the synthetic lot (default 1000)")

@@ -46,6 +46,7 @@ class Counters:
     frames_unknown: int = 0
     frames_total: int = 0
     commands_applied: int = 0
+    xcp_writes: int = 0
     worker_errors: int = 0
     stale: int = 0
     injections_shed: int = 0

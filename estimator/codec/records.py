@@ -273,13 +273,14 @@ class EstimatorHealth(Record):
     worker_errors: int = 0
     pending_injections: int = 0
     injectors: int = 0
+    xcp_writes: int = 0
     MESSAGE: ClassVar[str] = "EstimatorHealth"
     OUTPUT: ClassVar[bool] = True
     SIGNALS: ClassVar[dict[str, str]] = {
         "commands_applied": "CommandsApplied", "stale": "EstimatesStale", "injections_shed": "InjectionsShed",
         "simulators_built": "SimulatorsBuilt", "simulators_evicted": "SimulatorsEvicted",
         "builds_refused": "BuildsRefused", "worker_errors": "WorkerErrors",
-        "pending_injections": "PendingInjections", "injectors": "InjectorsTracked"}
+        "pending_injections": "PendingInjections", "injectors": "InjectorsTracked", "xcp_writes": "XcpWrites"}
 
 
 #: the heartbeat's rolling counters, in DBC order: the one list of them (``ingest.Counters`` is built from it)

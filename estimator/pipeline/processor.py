@@ -73,7 +73,7 @@ def result_row(res: TrackResult, injector_id: int, counter: int, time_s: float,
 
 #: EstimatorHealth's rolling counters (the rest are gauges)
 HEALTH_COUNTERS = ("commands_applied", "stale", "injections_shed", "simulators_built", "simulators_evicted",
-                   "builds_refused", "worker_errors")
+                   "builds_refused", "worker_errors", "xcp_writes")
 
 
 def _wrap_masks(codec: Codec, record: type[EstimatorStatus] | type[EstimatorHealth],
@@ -344,7 +344,8 @@ class Processor:
         built = sum(p.built for p in pools)
         counts = {"commands_applied": c.commands_applied, "stale": c.stale, "injections_shed": c.injections_shed,
                   "simulators_built": built, "simulators_evicted": built - sum(len(p) for p in pools),
-                  "builds_refused": sum(p.over_budget for p in pools), "worker_errors": c.worker_errors}
+                  "builds_refused": sum(p.over_budget for p in pools), "worker_errors": c.worker_errors,
+                  "xcp_writes": c.xcp_writes}
         return self.codec.encode(EstimatorHealth(
             **{k: v & self._health_masks[k] for k, v in counts.items()},
             pending_injections=min(pending_injections, 0xFFFF), injectors=min(len(self.tracker.states), 255)))

@@ -39,6 +39,23 @@ __all__ = ["DEPRECATED", "SECTIONS", "ConfigError", "DaemonConfig", "read_table"
 
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
 
+
+@dataclass(frozen=True)
+class XcpConfig:
+    """``[estimator.xcp]``: the XCP-on-Ethernet slave (UDP), off unless ``mode = "on"``. It listens on
+    ``host``:``port`` (loopback unless configured otherwise: an open port lets anyone who reaches it read
+    every measurement and, with ``writes``, change the calibratable keys)."""
+
+    host: str = "127.0.0.1"
+    port: int = 5555
+    writes: bool = True                 # false: the working page is read-only
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.port, int) and 0 <= self.port <= 65535):
+            raise ValueError(f"port = {self.port!r}: must be 0..65535 (0: any free port)")
+        if not self.host:
+            raise ValueError("host: an address to listen on, e.g. 127.0.0.1")
+
 SERVICE_RULES: dict[str, Check] = {
     "bus": text_or_none,
     "bitrate": rate_or_none,
@@ -72,6 +89,7 @@ class DaemonConfig(EstimatorConfig):
     status_period_s: float = 0.1        # EstimatorStatus heartbeat (10 Hz)
     persist_period_s: float = 5.0       # state written at least this often (and at shutdown)
     log_level: str = "INFO"
+    xcp: XcpConfig | None = None        # [estimator.xcp]; None: mode = "off" (the default)
 
     RULES: ClassVar[dict[str, Check]] = {**ESTIMATOR_RULES, **SERVICE_RULES}
     PATH_KEYS: ClassVar[tuple[str, ...]] = (*EstimatorConfig.PATH_KEYS, "state_dir")
@@ -97,6 +115,24 @@ class DaemonConfig(EstimatorConfig):
         return int(getattr(logging, self.log_level))
 
     @classmethod
+    def from_mapping(cls, table: dict[str, Any], where: str = "config") -> DaemonConfig:
+        """:meth:`EstimatorConfig.from_mapping` with the daemon's own sub-table ``[estimator.xcp]`` (off
+        unless its ``mode = "on"``)."""
+        from estimator.pipeline.config import build_section
+
+        table = dict(table)
+        sub = table.pop("xcp", {})
+        if not isinstance(sub, dict):
+            raise ConfigError(f"[estimator.xcp]: must be a table, not {show(sub)}")
+        sub = dict(sub)
+        mode = sub.pop("mode", "off")
+        if mode not in ("on", "off"):
+            raise ConfigError(f"[estimator.xcp] mode = {show(mode)}: must be one of 'on', 'off'")
+        xcp = build_section(XcpConfig, "xcp", sub)
+        cfg = super().from_mapping(table, where)
+        return replace(cfg, xcp=xcp if mode == "on" else None)
+
+    @classmethod
     def _convert(cls, values: dict[str, Any]) -> None:
         if "state_dir" not in values and os.environ.get("STATE_DIRECTORY"):
             values["state_dir"] = os.environ["STATE_DIRECTORY"].split(":")[0]
@@ -109,5 +145,5 @@ class DaemonConfig(EstimatorConfig):
         return replace(self, bus=bus)
 
 
-assert set(DaemonConfig.RULES) | {"tracker", "self_calibration", "drive_correction"} == \
+assert set(DaemonConfig.RULES) | {"tracker", "self_calibration", "drive_correction", "xcp"} == \
     {f.name for f in fields(DaemonConfig)}, "every daemon key needs a rule"

@@ -25,6 +25,7 @@ from dataclasses import dataclass, replace
 
 import can
 
+from estimator import __version__
 from estimator.codec.assembler import Completed
 from estimator.codec.frame import Frame
 from estimator.errors import EstimatorError
@@ -41,6 +42,9 @@ from estimator.service.fair_queue import FairQueue
 from estimator.service.latency import Stats
 from estimator.service.sdnotify import SdNotify
 from estimator.service.state_store import keep_rejected, load_all, lock_state_dir, save_states
+from estimator.service.xcp.a2l import NAME as A2L_NAME
+from estimator.service.xcp.a2l import a2l_bytes
+from estimator.service.xcp.slave import XcpSlave
 from estimator.units import US_PER_S
 
 log = logging.getLogger(__name__)
@@ -93,11 +97,12 @@ class QueueListener(can.Listener):  # type: ignore[misc]  # python-can is not fo
 
 
 # keys a SIGHUP cannot change (they shape the bus connection and the memory already allocated)
+XCP_EVENT_INJECTION, XCP_EVENT_10HZ = 0, 1   # the slave's DAQ event channels
 RELOAD_MIN_S = 0.5   # the worker applies a reloaded configuration at most this often
 INGEST_BATCH = 256   # frames the worker assembles between two identifications (≈ 1.3 ms at most)
 ESTABLISHED_AFTER = 10   # injections accepted since its last reset: the worker serves such an injector first
 RESTART_KEYS = ("bus", "bitrate", "data_bitrate", "fd", "bus_options", "dbc", "state_dir", "queue_frames",
-                "max_injectors")
+                "max_injectors", "xcp")
 
 
 @dataclass(frozen=True)
@@ -145,6 +150,7 @@ class Daemon:
         self._lock_fd: int | None = None   # the state directory's lock, held until the process ends
         # complete injections waiting for the worker, estimated by fair share between injectors
         self.waiting: FairQueue[tuple[Completed, float, float]] = FairQueue()
+        self.xcp: XcpSlave | None = None    # the calibration tool's view (bound in _serve)
 
     @property
     def tracker(self) -> Tracker:
@@ -190,7 +196,10 @@ class Daemon:
 
     def _send(self, frames: list[Frame]) -> None:
         assert self._bus is not None
+        xcp = self.xcp
         for fr in frames:
+            if xcp is not None:
+                xcp.store(fr.arbitration_id, fr.data)
             delay = 0.001
             for attempt in range(4):
                 try:
@@ -289,6 +298,8 @@ class Daemon:
             self.stats.add(t_prev, t_sent - arrived, (queued, assembled, t_est - t_prev, t_sent - t_est))
             self.send(pub.frames[1:])
             self._dirty = True
+            if self.xcp is not None:
+                self.xcp.event(XCP_EVENT_INJECTION)
         self.waiting.charge(injector, time.monotonic() - t_prev)
 
     def _heartbeat(self) -> None:
@@ -302,6 +313,8 @@ class Daemon:
                 self.send([self.processor.status_frame(len(self._listener.queue), total,
                                                        time.monotonic() - self.started, stages),
                            self.processor.health_frame(len(self.waiting))])
+                if self.xcp is not None:
+                    self.xcp.event(XCP_EVENT_10HZ)
             except Exception:   # never let the heartbeat die with a traceback per tick
                 self.rlog.log(logging.ERROR, "heartbeat", "heartbeat error (continuing)", exc_info=True)
             self.stop.wait(self.cfg.status_period_s)
@@ -331,9 +344,23 @@ class Daemon:
             return
         with self._reload_lock:
             superseded, self._pending_cfg = self._pending_cfg, _Pending(prepared)
+        if self.xcp is not None:
+            self.xcp.reload(new)   # the calibration tool's pages start from the file again
         gone = superseded.reload.calibrator if superseded is not None and superseded.reload is not None else None
         if gone is not None and gone is not self.calibrator and (prepared is None or gone is not prepared.calibrator):
             gone.close()   # a calibration process started for a reload that never took effect
+
+    def calibrate(self, new: DaemonConfig) -> None:
+        """XCP thread: a configuration a calibration tool wrote (the working page), checked and built off
+        the real-time path like a reload; the worker takes it between two injections, all at once."""
+        for k, check in type(new).RULES.items():   # the configuration's own limits
+            problem = check(getattr(new, k, None)) if hasattr(new, k) else None
+            if problem:
+                raise ValueError(f"{k}: {problem}")
+        prepared = self._prepare(new)
+        with self._reload_lock:
+            self._pending_cfg = _Pending(prepared)
+        self.ingest.counters.xcp_writes += 1
 
     def _prepare(self, new: DaemonConfig) -> _Reload | None:
         """Main thread: everything a reload needs built off the real-time path (the tracker on the
@@ -444,6 +471,9 @@ class Daemon:
         """The bus, the worker and the heartbeat until stopped."""
         spec = resolve(self.cfg.bus_spec())
         self.bus_name = str(spec)
+        if self.cfg.xcp is not None:
+            self.xcp = self._xcp_slave()
+            self.xcp.start()
         with open_bus(spec) as bus:
             self._bus = bus
             self._listener = QueueListener(self.cfg.queue_frames)
@@ -480,9 +510,24 @@ class Daemon:
                 self.stop.set()
                 worker.join(timeout=1.0)
                 beat.join(timeout=1.0)
+                if self.xcp is not None:
+                    self.xcp.close()
                 self.persist()
                 log.info("estimator stopped: %s", self.summary())
         return 0
+
+    def _xcp_slave(self) -> XcpSlave:
+        """The XCP slave on ``[estimator.xcp]``'s address, its A2L written from this DBC and configuration."""
+        assert self.cfg.xcp is not None
+        x = self.cfg.xcp
+        try:
+            slave = XcpSlave(self.codec.db, lambda: self.cfg, self.cfg, self.calibrate,
+                             a2l_bytes(self.codec.db, __version__), x.host, x.port, x.writes,
+                             ident=f"{A2L_NAME} {__version__}", name=A2L_NAME)
+        except OSError as exc:
+            raise ConfigError(f"[estimator.xcp] {x.host}:{x.port}: cannot listen there: {exc}") from None
+        log.info("XCP on UDP %s:%d (writes %s)", *slave.address, "allowed" if x.writes else "refused")
+        return slave
 
     def status_line(self) -> str:
         """``systemctl status`` line: bus and the counters that matter at a glance."""

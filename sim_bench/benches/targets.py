@@ -47,6 +47,13 @@ TARGETS: dict[str, tuple[Target, ...]] = {
                                                      "≤ 10 ms as the median of five)"),
         Target("adopted_p99_ms", "<=", 5.0, "ms", "daemon p99 once they have adopted their models"),
     ),
+    "xcp-bench": (
+        Target("daq_p99_ms", "<=", 5.0, "ms", "daemon p99 at 200 injections/s with a master running DAQ"),
+        Target("daq_lost", "<=", 0, "packets", "estimates without their DAQ packet, and DAQ overruns"),
+        Target("hostile_uncounted", "<=", 0, "datagrams", "of 10,000 hostile ones, neither answered nor counted"),
+        Target("after_flood_p99_ms", "<=", 5.0, "ms", "daemon p99 after them"),
+        Target("daemon_down", "<=", 0, "", "the daemon stopped serving, or did not exit 0"),
+    ),
     "fleet-bench": (
         Target("rms_lh_um", "<=", 0.1, "µm", "the lot's L_h error against its truth, RMS, every worker count"),
         Target("good_flagged", "<=", 0, "injectors", "good injectors flagged as outliers"),

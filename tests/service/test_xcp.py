@@ -1,0 +1,249 @@
+"""The XCP slave in-process, on a real UDP socket on 127.0.0.1: the commands, their errors, the pages,
+the A2L (checked by a2ltool), and hostile datagrams (estimator.service.xcp)."""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import struct
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimator.codec.records import Codec
+from estimator.service.config import DaemonConfig
+from estimator.service.xcp import protocol as p
+from estimator.service.xcp.a2l import a2l_bytes, render
+from estimator.service.xcp.memory import CAL_BASE, apply_page, characteristics, measurements, page_bytes, slot_layout
+from estimator.service.xcp.slave import XcpSlave
+
+pytestmark = pytest.mark.timeout(120)
+CODEC = Codec()
+
+
+class Client:
+    """A raw XCP-on-UDP master: one request, one response (or None on timeout)."""
+
+    def __init__(self, address: tuple[str, int]) -> None:
+        self.address = address
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(10.0)
+        self.ctr = 0
+
+    def __call__(self, *packet: int | bytes) -> bytes:
+        raw = b"".join(bytes((x,)) if isinstance(x, int) else x for x in packet)
+        self.sock.sendto(p.frame(self.ctr, raw), self.address)
+        self.ctr += 1
+        data, _ = self.sock.recvfrom(65535)
+        got = p.packets(data)
+        assert got is not None and len(got) == 1
+        return got[0][1]
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+@pytest.fixture()
+def slave():
+    applied: list[DaemonConfig] = []
+    cfg = DaemonConfig()
+    s = XcpSlave(CODEC.db, lambda: applied[-1] if applied else cfg, cfg, applied.append, a2l_bytes(CODEC.db, "t"),
+                 port=0)
+    s.applied = applied   # type: ignore[attr-defined]
+    s.start()
+    yield s
+    s.close()
+
+
+@pytest.fixture()
+def client(slave):
+    c = Client(slave.address)
+    yield c
+    c.close()
+
+
+def err(code: int) -> bytes:
+    return bytes((p.ERR, code))
+
+
+def set_mta(client, address: int) -> None:
+    assert client(p.SET_MTA, b"\0\0\0", struct.pack("<I", address)) == b"\xff"
+
+
+def char(name: str):
+    return next(c for c in characteristics() if c.name == name)
+
+
+def test_connect_answers_as_the_standard_says_and_nothing_before_it(slave, client):
+    client.sock.settimeout(0.5)
+    with pytest.raises(TimeoutError):
+        client(p.GET_STATUS)                               # not connected: not answered, counted
+    assert slave.counters.dropped == 1
+    client.sock.settimeout(10.0)
+    r = client(p.CONNECT, 0)
+    assert r[0] == p.RES and r[1] == 0x05 and r[3] == p.MAX_CTO and struct.unpack_from("<H", r, 4)[0] == p.MAX_DTO
+    assert client(p.GET_STATUS)[:2] == b"\xff\x00"
+    assert client(p.SYNCH) == err(p.ERR_CMD_SYNCH)
+    assert client(p.GET_SEED, 0, 0) == err(p.ERR_CMD_UNKNOWN)     # no protection: no seed and key
+    assert client(p.GET_COMM_MODE_INFO)[0] == p.RES
+    assert client(p.DISCONNECT) == b"\xff"
+
+
+def test_every_characteristic_reads_as_the_configuration_says(slave, client):
+    client(p.CONNECT, 0)
+    cfg = DaemonConfig()
+    for c in characteristics():
+        r = client(p.SHORT_UPLOAD, c.size, 0, 0, struct.pack("<I", c.address))
+        assert r[0] == p.RES
+        value = struct.unpack("<" + c.fmt, r[1:])[0]
+        assert value == pytest.approx(c.get(cfg), rel=1e-6), c.name
+
+
+def test_a_write_takes_whole_values_within_the_configurations_limits(slave, client):
+    client(p.CONNECT, 0)
+    sigma = char("ident.sigma_limit_lh_um")
+    set_mta(client, sigma.address)
+    assert client(p.DOWNLOAD, 4, struct.pack("<f", 0.5)) == b"\xff"
+    assert slave.applied[-1].tracker.ident.sigma_limit_lh_um == pytest.approx(0.5)
+    assert slave.counters.writes == 1
+    r = client(p.SHORT_UPLOAD, 4, 0, 0, struct.pack("<I", sigma.address))
+    assert struct.unpack("<f", r[1:])[0] == pytest.approx(0.5)              # read back from the working page
+    set_mta(client, sigma.address)
+    assert client(p.DOWNLOAD, 4, struct.pack("<f", 500.0)) == err(p.ERR_OUT_OF_RANGE)   # beyond its range
+    set_mta(client, sigma.address)
+    assert client(p.DOWNLOAD, 2, b"\0\0") == err(p.ERR_OUT_OF_RANGE)        # half a value: never
+    lo = char("drive_correction.scale_min")
+    set_mta(client, lo.address)
+    # both limits in one write, all at once: a pair the configuration refuses (low above high) is refused whole
+    assert client(p.DOWNLOAD, 8, struct.pack("<ff", 1.4, 1.2)) == err(p.ERR_OUT_OF_RANGE)
+    set_mta(client, lo.address)
+    assert client(p.DOWNLOAD, 8, struct.pack("<ff", 0.6, 1.4)) == b"\xff"
+    assert slave.applied[-1].drive_correction.scale_limits == pytest.approx((0.6, 1.4))
+    assert len(slave.applied) == 2 and slave.counters.writes == 2
+
+
+def test_the_reference_page_is_the_files_and_read_only(slave, client):
+    client(p.CONNECT, 0)
+    sigma = char("ident.sigma_limit_lh_um")
+    set_mta(client, sigma.address)
+    client(p.DOWNLOAD, 4, struct.pack("<f", 0.5))
+    assert client(p.SET_CAL_PAGE, 0x02, 0, 1) == b"\xff"                  # XCP looks at the reference page
+    r = client(p.SHORT_UPLOAD, 4, 0, 0, struct.pack("<I", sigma.address))
+    assert struct.unpack("<f", r[1:])[0] == pytest.approx(0.25)
+    set_mta(client, sigma.address)
+    assert client(p.DOWNLOAD, 4, struct.pack("<f", 0.3)) == err(p.ERR_WRITE_PROTECTED)
+    assert client(p.SET_CAL_PAGE, 0x01, 0, 1) == b"\xff"                  # the estimator uses the file's values
+    assert slave.applied[-1].tracker.ident.sigma_limit_lh_um == pytest.approx(0.25)
+    assert client(p.GET_CAL_PAGE, 0x01, 0) == b"\xff\x00\x00\x01"
+    assert client(p.SET_CAL_PAGE, 0x03, 0, 0) == b"\xff"                  # and the working page again, one step
+    assert slave.applied[-1].tracker.ident.sigma_limit_lh_um == pytest.approx(0.5)
+    assert client(p.SET_CAL_PAGE, 0x03, 0, 7) == err(p.ERR_PAGE_NOT_VALID)
+    assert client(p.COPY_CAL_PAGE, 0, 1, 0, 0) == b"\xff"                 # reference -> working
+    assert slave.applied[-1].tracker.ident.sigma_limit_lh_um == pytest.approx(0.25)
+    assert client(p.COPY_CAL_PAGE, 0, 0, 0, 1) == err(p.ERR_WRITE_PROTECTED)
+
+
+def test_writes_off_makes_the_working_page_read_only():
+    cfg = DaemonConfig()
+    s = XcpSlave(CODEC.db, lambda: cfg, cfg, lambda c: None, b"", port=0, writes=False)
+    s.start()
+    c = Client(s.address)
+    try:
+        c(p.CONNECT, 0)
+        set_mta(c, CAL_BASE)
+        assert c(p.DOWNLOAD, 4, struct.pack("<f", 14.0)) == err(p.ERR_WRITE_PROTECTED)
+        assert s.counters.writes == 0
+    finally:
+        c.close()
+        s.close()
+
+
+def test_memory_outside_the_map_and_daq_out_of_sequence_are_errors(slave, client):
+    client(p.CONNECT, 0)
+    set_mta(client, 0x0500_0000)
+    assert client(p.UPLOAD, 4) == err(p.ERR_ACCESS_DENIED)
+    assert client(p.UPLOAD, 0) == err(p.ERR_OUT_OF_RANGE)
+    assert client(p.FREE_DAQ) == b"\xff"
+    assert client(p.WRITE_DAQ, 0xFF, 4, 0, struct.pack("<I", CAL_BASE)) == err(p.ERR_SEQUENCE)
+    assert client(p.ALLOC_DAQ, 0, struct.pack("<H", 1)) == b"\xff"
+    assert client(p.START_STOP_DAQ_LIST, 1, struct.pack("<H", 0)) == err(p.ERR_DAQ_CONFIG)   # nothing in it
+    assert client(p.SET_DAQ_LIST_MODE, 0x10, struct.pack("<HH", 0, 9), 1, 0) == err(p.ERR_OUT_OF_RANGE)
+    assert client(p.DOWNLOAD) == err(p.ERR_CMD_SYNTAX)                   # too short to be a command
+
+
+def test_the_a2l_is_served_by_get_id_and_passes_a2ltool(slave, client, tmp_path):
+    client(p.CONNECT, 0)
+    r = client(p.GET_ID, 4)
+    length = struct.unpack_from("<I", r, 4)[0]
+    got = b""
+    while len(got) < length:
+        got += client(p.UPLOAD, min(254, length - len(got)))[1:]
+    assert got == a2l_bytes(CODEC.db, "t")
+    tool = shutil.which("a2ltool", path=str(Path(sys.executable).parent)) or shutil.which("a2ltool")
+    assert tool, "a2ltool (the test extra) is not installed"
+    f = tmp_path / "x.a2l"
+    f.write_bytes(got)
+    out = subprocess.run([tool, str(f), "--check", "--strict"], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and "No problems found" in out.stdout + out.stderr, out.stdout + out.stderr
+
+
+def test_a2l_dbc_and_configuration_agree():
+    """Each A2L measurement is a DBC signal with its conversion and range; each characteristic's limits
+    are ones the configuration accepts, and just beyond them it refuses (or the DBC cannot carry)."""
+    text = render(CODEC.db)
+    for m in measurements(CODEC.db):
+        sig = CODEC.db.get_message_by_name(m.message).get_signal_by_name(m.signal)
+        assert f"/begin MEASUREMENT {m.name} " in text
+        assert (m.factor, m.offset) == (sig.scale, sig.offset)
+        shift = (m.bit_mask & -m.bit_mask).bit_length() - 1
+        assert 8 * (m.address - min(a for (fid, _), a in slot_layout(CODEC.db).items()
+                                    if fid == CODEC.db.get_message_by_name(m.message).frame_id
+                                    and _ == m.injector)) + shift == sig.start
+    cfg = DaemonConfig()
+    chars = characteristics()
+    paired = ("drive_correction.scale_", "drive_correction.offset_")   # a low/high pair: checked as a pair
+    for c in chars:
+        assert f"/begin CHARACTERISTIC {c.name} " in text
+
+        def accepted(value: float, c=c) -> bool:
+            page = bytearray(page_bytes(cfg, chars))
+            struct.pack_into("<" + c.fmt, page, c.offset, value if c.fmt == "f" else int(value))
+            try:
+                apply_page(cfg, bytes(page), chars)
+                return True
+            except (ValueError, PermissionError):
+                return False
+        if not c.name.startswith(paired):
+            assert accepted(c.lo) and accepted(c.hi), c.name
+        assert not accepted(c.hi + max(1.0, abs(c.hi))), c.name
+        if c.fmt == "f":
+            assert not accepted(float("nan")), c.name
+    assert apply_page(cfg, page_bytes(replace(cfg, stale_after_ms=1.0), chars), chars).stale_after_ms == 1.0
+
+
+def test_hostile_datagrams_cost_one_count_each_and_the_slave_serves_on(slave, client):
+    """10,000 random datagrams from another peer (some of them well-formed commands): each is counted,
+    none ends the slave, and the master is answered after every batch."""
+    rng = np.random.default_rng(5)
+    hostile = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    hostile.bind(("127.0.0.1", 0))
+    sent = 0
+    try:
+        for _ in range(100):
+            for _ in range(100):
+                n = int(rng.integers(0, 300))
+                raw = rng.integers(0, 256, n, dtype=np.uint8).tobytes()
+                if rng.uniform() < 0.5 and n >= 1:   # half of them framed, so the commands behind are tried
+                    raw = p.frame(int(rng.integers(0, 65536)), raw[:p.MAX_CTO])
+                hostile.sendto(raw, slave.address)
+                sent += 1
+            assert client(p.CONNECT, 0)[0] == p.RES     # processed in order: the batch is behind us
+    finally:
+        hostile.close()
+    assert slave.counters.datagrams == sent + 100
+    assert slave._thread.is_alive()
