@@ -229,6 +229,8 @@ FIGURES: tuple[Figure, ...] = (
            headline=True),
     Figure("speed", "warm_with_correction_median_ms", lambda r: r["warm_with_correction_median_ms"], 3,
            "| the same through the daemon's processor", headline=True),
+    Figure("speed", "correction_added_ms", lambda r: r["correction_added_ms"], 3,
+           "| the same through the daemon's processor"),
     Figure("speed", "cold_median_ms", lambda r: r["cold_median_ms"], 2, "| cold start, median", headline=True),
     Figure("speed", "first_call_ms", lambda r: r["first_call_ms"], 0, "| first identification in a process"),
     # the daemon
@@ -264,6 +266,15 @@ FIGURES: tuple[Figure, ...] = (
            "| a stranger's well-formed", spread=True),
     Figure("reliability", "command-flood: commands_applied", _part("rows", "command-flood", "commands_applied"), 0,
            "| 1,000 reset commands", spread=True),
+    # the XCP slave
+    Figure("xcp-bench", "without_client_p99_ms", _part("without_client", "daemon_latency_p99_ms"), 2,
+           "| XCP slave on, no client"),
+    Figure("xcp-bench", "daq_p99_ms", _part("daq", "daemon_latency_p99_ms"), 2, "| one master, DAQ on the injection"),
+    Figure("xcp-bench", "daq_lost", lambda r: float(max(r["daq"]["estimates"] - r["daq"]["daq_packets"], 0)
+                                                    + r["slave"]["overruns"]), 0, "| one master, DAQ on the injection"),
+    Figure("xcp-bench", "hostile_counted", _part("hostile", "counted"), 0, "| 10,000 hostile datagrams"),
+    Figure("xcp-bench", "after_flood_p99_ms", _part("after_flood", "daemon_latency_p99_ms"), 2,
+           "| 10,000 hostile datagrams"),
     # drive compensation
     *_spreads("open", "open_", "| plateau-stroke spread, open loop", 2, "| opening-instant spread, open loop", 1),
     *_spreads("closed", "", "| the same, closed loop (each correction", 3, "| the same, closed loop |", 2),
