@@ -8,10 +8,11 @@ LatencyP99) and from outside (feeder's trailer send -> EstimateState received, w
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -104,6 +105,27 @@ class _Watcher(threading.Thread):
                 self.got_status.set()
             elif isinstance(rec, ModelCalibration):
                 self.calibrations.append((now, rec))
+
+
+@contextlib.contextmanager
+def watched_daemon(bus: str, codec: Codec, log: Path, config: Path | None = None) -> Iterator[tuple[DaemonProcess, Any, _Watcher]]:
+    """A daemon on ``bus`` (``config``: its configuration file), ready (READY=1 and a heartbeat), with a
+    bus of the bench's own and a watcher of the daemon's output on it; on exit the watcher ends, then
+    the daemon (stop it earlier to collect its exit code)."""
+    d = DaemonProcess(bus, log, config=config).start()
+    try:
+        with open_bus(bus) as b:
+            w = _Watcher(b, codec)
+            w.start()
+            try:
+                if not d.notify.wait_for("READY=1", 120, d.alive) or not w.got_status.wait(60):
+                    raise RuntimeError(f"daemon did not start: {d.why()}")
+                yield d, b, w
+            finally:
+                w.stop.set()
+                w.join(timeout=2)
+    finally:
+        d.stop()
 
 
 def _feed(bus, codec: Codec, pool, rate: float, seconds: float, watcher: _Watcher) -> dict:
@@ -230,13 +252,8 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
     bus, hub = resolve_bus(bus, out_dir)
     report: dict = {"bus": bus, "rate_per_s": rate, "seconds": seconds, "self_calibration": self_calibration}
     # the daemon's default configuration: learning on (the nominal injectors never start it)
-    d = DaemonProcess(bus, out_dir / "daemon-bench.log").start()
     try:
-        with open_bus(bus) as b:
-            w = _Watcher(b, codec)
-            w.start()
-            if not d.notify.wait_for("READY=1", 120, d.alive) or not w.got_status.wait(60):
-                raise RuntimeError(f"daemon did not start: {d.why()}")
+        with watched_daemon(bus, codec, out_dir / "daemon-bench.log") as (d, b, w):
             _warm_up(b, codec, pool, rate, w, self_calibration)
             phases = [("nominal", rate)] + ([("adopted", rate)] if self_calibration else []) + \
                 [("overload", rate * overload_factor)]
@@ -244,12 +261,9 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
                 if phase == "adopted":   # until every injector has adopted its model and had its refinement
                     report["learned_after_s"] = _feed_until_learned(b, codec, pool, rate, w, LEARN_TIMEOUT_S)
                 report[phase] = _phase(b, codec, pool, r, seconds, w, d)
-            w.stop.set()
-            w.join(timeout=2)
-        report["daemon_exit"] = d.stop(timeout=10)
+            report["daemon_exit"] = d.stop(timeout=10)
         report["histogram_png"] = latency_histogram(report, out_dir / "latency-histogram.png")
     finally:
-        d.stop()
         if hub is not None:
             hub.stop()
     return report

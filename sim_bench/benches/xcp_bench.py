@@ -20,13 +20,11 @@ from typing import Any
 import numpy as np
 
 from estimator.codec.records import Codec
-from estimator.service.bus import open_bus
 from estimator.service.xcp import protocol as xp
 from estimator.service.xcp.memory import SLAVE_COUNTERS, STATS_BASE, slot_layout
-from sim_bench.benches.daemon_bench import _phase, _warm_up, _Watcher, injection_pool
+from sim_bench.benches.daemon_bench import _phase, _warm_up, injection_pool, watched_daemon
 from sim_bench.benches.table import keyed, render
 from sim_bench.benches.targets import missed
-from sim_bench.hardware.procs import DaemonProcess
 
 HOSTILE = 10_000      # datagrams
 BATCH = 100           # hostile datagrams between two round trips of the master
@@ -105,13 +103,8 @@ def run(out_dir: Path, rate: float = 200.0, seconds: float = 10.0, bus: str | No
     cfg = out_dir / "xcp.toml"
     cfg.write_text(f"[estimator.xcp]\nmode = \"on\"\nport = {port}\n")
     rep: dict = {"benchmark": "xcp-bench", "bus": bus, "rate_per_s": rate, "seconds": seconds, "port": port}
-    d = DaemonProcess(bus, out_dir / "xcp-bench.log", config=cfg).start()
     try:
-        with open_bus(bus) as b:
-            w = _Watcher(b, codec)
-            w.start()
-            if not d.notify.wait_for("READY=1", 120, d.alive) or not w.got_status.wait(60):
-                raise RuntimeError(f"daemon did not start: {d.why()}")
+        with watched_daemon(bus, codec, out_dir / "xcp-bench.log", cfg) as (d, b, w):
             _warm_up(b, codec, pool, rate, w, False)
             rep["without_client"] = _slim(_phase(b, codec, pool, rate, seconds, w, d))
             recorder = _recorder()
@@ -146,12 +139,9 @@ def run(out_dir: Path, rate: float = 200.0, seconds: float = 10.0, bus: str | No
             rep["slave"] = after
             rep["after_flood"] = _slim(_phase(b, codec, pool, rate, seconds, w, d))
             raw(bytes((xp.DISCONNECT,)))
-            w.stop.set()
-            w.join(timeout=2)
-        rep["daemon_alive"] = d.alive()
-        rep["daemon_exit"] = d.stop(timeout=10)
+            rep["daemon_alive"] = d.alive()
+            rep["daemon_exit"] = d.stop(timeout=10)
     finally:
-        d.stop()
         if hub is not None:
             hub.stop()
     rep["failures"] = failures(rep)

@@ -303,3 +303,37 @@ def test_the_correction_moves_only_as_far_as_the_model_was_checked(sim):
     other = SimulatorPool().get(0.5e-6 * (1 + 1e-9))   # stands for another model of the injector
     c = comp.update(0, True, other, 20.5, 8.0, COV, 100.0, sim, current_a=1.2 * plant_current, dt_s=0.5e-6)
     assert c.checked == pytest.approx((1.2, 1.2), abs=1e-3)
+
+
+def test_a_steady_operating_point_is_carried_and_carries_no_error(sim, monkeypatch):
+    """At a steady preload force with a slowly drifting estimate the correction is carried from its last
+    simulation by its derivatives (far fewer simulations than corrections) and stays within 0.02 µm and
+    0.1 µs of a correction simulated anew; a rail-pressure step is simulated."""
+    import estimator.drive.correction as corr_mod
+
+    calls = []
+    counting = [False]
+    real = corr_mod.respond
+
+    def counted(*a, **kw):   # the simulations at the correction's own preload force (the table's are apart)
+        calls.extend([1] if counting[0] and a[4] == 100.0 else [])
+        return real(*a, **kw)
+    monkeypatch.setattr(corr_mod, "respond", counted)
+    comp = compensator()
+    comp.update(0, True, sim, 18.0, 4.0, COV, 100.0, sim)
+    for k in range(24):
+        nu = 18.0 + 0.002 * k
+        counting[0] = True
+        c = comp.update(0, True, sim, nu, 4.0, COV, 100.0, sim)
+        counting[0] = False
+        fresh = compensator().update(0, True, sim, nu, 4.0, COV, 100.0, sim)
+        assert c.stroke_um == pytest.approx(fresh.stroke_um, abs=0.02)
+        assert c.opening_us == pytest.approx(fresh.opening_us, abs=0.1)
+        assert c.scale == pytest.approx(fresh.scale, abs=0.002)
+    carried = len(calls)
+    assert carried <= 2, carried                   # 24 without the carry
+    calls.clear()
+    counting[0] = True
+    comp.update(0, True, sim, 18.05, 4.0, COV, 100.0 + 50.0, sim)
+    comp.update(0, True, sim, 18.05, 4.0, COV, 100.0, sim)
+    assert calls, "a rail-pressure step is simulated, not carried"

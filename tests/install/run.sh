@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # A wheel built from this checkout, installed in a fresh venv, run from outside the checkout:
-# the packaged DBC, --version, check-dbc, compile, identify and track must work without the source tree.
+# the packaged DBC, --version, check-dbc, compile, identify, track and a2l must work without the source tree.
 set -euo pipefail
 REPO="$(cd "$(dirname "$0")/../.." && pwd)"
 PY="$REPO/.venv/bin/python"
@@ -28,4 +28,7 @@ assert 'site-packages' in str(p) and p.exists(), p; print('packaged DBC:', p)"
 assert d['status'] in ('ok', 'uncertain') and abs(d['lh_um'] - 3.3) < 0.2, d; print('identify:', d['status'], d['lh_um'])"
 "$BIN/injector-estimator" track "$WORK/a.csv" "$WORK/b.csv" | wc -l | grep -q 2
 "$BIN/injector-sim" --version > /dev/null
+"$BIN/injector-estimator" a2l --help > /dev/null   # the XCP slave's A2L, written by the installed package
+"$BIN/injector-estimator" a2l --out "$WORK/x.a2l" | grep -q "A2L for the XCP slave" || { echo "a2l failed"; exit 1; }
+grep -q "/begin CHARACTERISTIC ident.sigma_limit_lh_um" "$WORK/x.a2l" || { echo "a2l: no characteristics"; exit 1; }
 echo "install check: ok (wheel $(basename "$WORK"/dist/*.whl))"

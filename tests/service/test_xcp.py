@@ -247,3 +247,24 @@ def test_hostile_datagrams_cost_one_count_each_and_the_slave_serves_on(slave, cl
         hostile.close()
     assert slave.counters.datagrams == sent + 100
     assert slave._thread.is_alive()
+
+
+def test_a_daemon_that_cannot_take_a_write_answers_generic_and_keeps_its_page():
+    cfg = DaemonConfig()
+
+    def fails(_new):
+        raise RuntimeError("the parameter file went away")
+    s = XcpSlave(CODEC.db, lambda: cfg, cfg, fails, b"", port=0)
+    s.start()
+    c = Client(s.address)
+    try:
+        c(p.CONNECT, 0)
+        sigma = char("ident.sigma_limit_lh_um")
+        set_mta(c, sigma.address)
+        assert c(p.DOWNLOAD, 4, struct.pack("<f", 0.5)) == err(p.ERR_GENERIC)
+        r = c(p.SHORT_UPLOAD, 4, 0, 0, struct.pack("<I", sigma.address))
+        assert struct.unpack("<f", r[1:])[0] == pytest.approx(0.25)      # the page is what the daemon uses
+        assert s.counters.writes == 0
+    finally:
+        c.close()
+        s.close()

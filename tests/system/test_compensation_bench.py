@@ -47,3 +47,21 @@ def test_a_part_that_does_not_settle_fails_its_lot():
     rep = _report([late])
     assert any(f.startswith("lot 0 (standard, closed): injector 1 settled after") for f in compensation.failures(rep))
     assert not _report([_run([0.0, 0.0], 0.05)])["lots"][0]["closed"]["injectors"][0]["overshoots"]
+
+
+def test_a_part_that_goes_model_mismatch_only_under_its_own_correction_fails_its_lot():
+    """The same part, truths and noise: model_mismatch after adoption in the closed loop but never with
+    the standard drive is the correction's doing; in both loops alike it is not."""
+    def with_mismatch(at: list[int]) -> compensation.Run:
+        run = _run([0.0, 0.0], 0.05)
+        run.mismatch = np.zeros_like(run.applied)
+        for k in at:
+            run.mismatch[1, k] = True
+        return run
+    runs = {"open": with_mismatch([]), "closed": with_mismatch([70, 71]), "closed_bus": with_mismatch([])}
+    assert compensation.own_mismatch(runs) == {"closed": [1], "closed_bus": []}
+    rep = _report([runs["closed"]])
+    rep["lots"][0]["own_mismatch"] = compensation.own_mismatch(runs)
+    assert any("injector 1 went model_mismatch under its own correction" in f for f in compensation.failures(rep))
+    runs["open"] = with_mismatch([40])
+    assert compensation.own_mismatch(runs) == {"closed": [], "closed_bus": []}

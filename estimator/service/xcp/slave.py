@@ -346,19 +346,28 @@ class XcpSlave:
         page = bytearray(self.pages[WORKING])
         page[at:at + n] = data
         if self.ecu_page == WORKING:
-            try:
-                self.apply(apply_page(self.config(), bytes(page), self.chars))
-            except PermissionError as exc:
-                log.warning("XCP: calibration refused: %s", exc)
-                raise p.XcpError(p.ERR_ACCESS_DENIED) from None
-            except ValueError as exc:
-                log.warning("XCP: calibration refused: %s", exc)
-                raise p.XcpError(p.ERR_OUT_OF_RANGE) from None
+            self._use(bytes(page), p.ERR_OUT_OF_RANGE)
         self.pages[WORKING] = page
         self.mta += n
         self.counters.writes += 1
         log.info("XCP: calibration written: %s", ", ".join(ch.name for ch in whole) or "padding")
         return bytes((p.RES,))
+
+    def _use(self, page: bytes, refused: int) -> None:
+        """Hand the configuration ``page`` holds to the daemon; XcpError ``refused`` for a value out of
+        its range or refused by the configuration, ERR_ACCESS_DENIED for a key whose section is off,
+        ERR_GENERIC (logged) when the daemon could not prepare it."""
+        try:
+            self.apply(apply_page(self.config(), page, self.chars))
+        except PermissionError as exc:
+            log.warning("XCP: calibration refused: %s", exc)
+            raise p.XcpError(p.ERR_ACCESS_DENIED) from None
+        except ValueError as exc:
+            log.warning("XCP: calibration refused: %s", exc)
+            raise p.XcpError(refused) from None
+        except Exception:   # e.g. a parameter file that went away while the daemon prepares the change
+            log.exception("XCP: calibration not applied")
+            raise p.XcpError(p.ERR_GENERIC) from None
 
     # pages
     def _set_cal_page(self, c: bytes) -> bytes:
@@ -370,12 +379,7 @@ class XcpSlave:
         if not mode & 0x03:
             raise p.XcpError(p.ERR_MODE_NOT_VALID)
         if mode & 0x01 and page != self.ecu_page:
-            source = self.pages[page]
-            try:
-                self.apply(apply_page(self.config(), bytes(source), self.chars))
-            except (ValueError, PermissionError) as exc:
-                log.warning("XCP: page switch refused: %s", exc)
-                raise p.XcpError(p.ERR_PAGE_NOT_VALID) from None
+            self._use(bytes(self.pages[page]), p.ERR_PAGE_NOT_VALID)
             self.ecu_page = page
             log.info("XCP: the estimator now uses the %s page", "working" if page == WORKING else "reference")
         if mode & 0x02:
@@ -420,10 +424,7 @@ class XcpSlave:
             raise p.XcpError(p.ERR_WRITE_PROTECTED)
         if src_page != dst_page:
             if self.ecu_page == WORKING:
-                try:
-                    self.apply(apply_page(self.config(), bytes(self.pages[src_page]), self.chars))
-                except (ValueError, PermissionError):
-                    raise p.XcpError(p.ERR_PAGE_NOT_VALID) from None
+                self._use(bytes(self.pages[src_page]), p.ERR_PAGE_NOT_VALID)
             self.pages[WORKING] = bytearray(self.pages[src_page])
             self.counters.writes += 1
         return bytes((p.RES,))
