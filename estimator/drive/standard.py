@@ -30,6 +30,9 @@ from estimator.model.drive import SAMPLE_PERIOD_S, Drive, StandardDrive, TableDr
 
 LEARN_INJECTIONS = 4          # injections at the standard drive averaged into a learned drive
 SHAPE_TOLERANCE = 0.10        # RMS of the unexplained current / RMS of the current that still agrees
+AMPLITUDE_TOLERANCE = 0.02    # a learned drive's injections agree in amplitude (least-squares scale) this well:
+                              # the standard drive repeats to 0.2 %, an amplifier still applying the correction
+                              # of a daemon that restarted does not
 MIN_PEAK_A = 0.2              # a measured current whose peak is below this drives nothing: not checked
 MAX_LENGTH_S = 2e-3           # a drive table longer than this (s) is refused (an injection lasts < 1 ms)
 MAX_GRIDS = 16                # sampled grids (period, length) and chains a drive keeps
@@ -140,7 +143,9 @@ class AmplifierDrive:
 class DriveLearner:
     """The standard drive learned from the measured current of injections the amplifier drove with it:
     the mean of ``needed`` of them (their noise and chopper ripple average out), each checked against the
-    mean so far so that one odd injection does not become the drive."""
+    mean so far, in shape and in amplitude (``AMPLITUDE_TOLERANCE``), so that one odd injection does not
+    become the drive: an amplifier may still apply the last correction of a daemon that restarted until
+    the new one publishes ``State`` none."""
 
     def __init__(self, needed: int = LEARN_INJECTIONS, tolerance: float = SHAPE_TOLERANCE) -> None:
         self.needed = needed
@@ -160,7 +165,8 @@ class DriveLearner:
         if same:
             assert self._sum is not None
             mean = AmplifierDrive(self._sum / self.count, self._dt_s, "learned")
-            if not mean.check(cur, dt_s, self.tolerance).agrees:
+            check = mean.check(cur, dt_s, self.tolerance)
+            if not (check.agrees and abs(check.scale - 1.0) <= AMPLITUDE_TOLERANCE):
                 same = False
         first = self._sum is None
         if not same:

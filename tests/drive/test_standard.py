@@ -136,3 +136,19 @@ def test_a_drive_keeps_a_bounded_number_of_grids():
     for n in range(100, 400):
         drive.check(np.ones(n), SAMPLE_PERIOD_S)
     assert len(drive._grids) <= 16
+
+
+def test_an_injection_still_at_a_restarted_daemons_correction_does_not_enter_the_drive():
+    """After a restart the amplifier may drive one injection with the last correction it got (0.8 here)
+    before the new daemon's first State none: learning starts again from the next one instead of
+    averaging it in (a 5 % low drive would bias every correction after)."""
+    rng = np.random.default_rng(8)
+    std = _plant("standard")
+    cur = [std.measure(17.0, 3e-6, 60.0, rng).current_a for _ in range(5)]
+    learner = DriveLearner(needed=4)
+    learner.add(0.8 * cur[0], SAMPLE_PERIOD_S)
+    assert not learner.add(cur[1], SAMPLE_PERIOD_S) and learner.count == 1
+    for c in cur[2:]:
+        learner.add(c, SAMPLE_PERIOD_S)
+    assert learner.drive is not None
+    assert abs(learner.drive.check(cur[0], SAMPLE_PERIOD_S).scale - 1.0) < 0.005
