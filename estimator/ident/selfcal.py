@@ -250,12 +250,15 @@ def _calibrate(window: CalibrationWindow, base: InjectorParameters, config: Self
     dt = held[0].dt_s
     old, new = FastSimulator(current if current is not None else base, dt), FastSimulator(res.params, dt)
     chi2 = 0.0
-    shifts = []
+    samples = 0
+    shifts, nus = [], []
     for inj in held:
         (r_old, nu_old), (r_new, nu_new) = _held_out_residual(old, inj), _held_out_residual(new, inj)
         sigma = noise_level_v(r_new)
         chi2 += float((r_old @ r_old - r_new @ r_new) / sigma ** 2)
         shifts.append(nu_new - nu_old)
+        nus.append(nu_new)
+        samples += r_new.size
     status.held_out_chi2 = chi2
     sd = float(np.median(res.sigma_nu_n_per_v)) if res.sigma_nu_n_per_v.size else 0.0
     status.nu_shift_z = float(np.mean(shifts)) / sd if sd > 0 else float("nan")   # NaN: no shift to judge
@@ -263,12 +266,34 @@ def _calibrate(window: CalibrationWindow, base: InjectorParameters, config: Self
         status.message = (f"the calibrated model explains the held-out injections no better (chi-square gain "
                           f"{chi2:.1f} <= {config.adopt_chi2:g}) and moves their N_u by {status.nu_shift_z:+.1f} sd")
         return status, None
+    if current is not None and chi2 <= ALIKE_EXCESS * samples:
+        # two learned models that both explain the held-out voltage within the noise (a swapped part's
+        # old model leaves thousands of times the noise) yet disagree on N_u: the voltage does not
+        # decide between them, and the valve's stroke follows N_u
+        params = disagreement(res.params, float(np.mean(shifts)) / float(np.mean(nus)))
+        if params is not res.params:
+            new = FastSimulator(params, dt)
     narrow = window.narrow(config)
     status.state, status.message = Learning.ADOPTED, (f"held-out chi-square gain {chi2:.0f}, N_u moved "
                                                      f"{status.nu_shift_z:+.1f} sd" + (f"; {narrow}" if narrow else ""))
     if narrow:
         status.learned_lo_n, status.learned_hi_n = window.preload_range()
     return status, new
+
+
+ALIKE_EXCESS = 0.5   # held-out chi-square gain per sample below which two models explain the voltage alike
+
+
+def disagreement(params: InjectorParameters, shift_rel: float) -> InjectorParameters:
+    """``params`` whose statement of the predicted stroke's uncertainty covers ``shift_rel``, the
+    relative N_u by which it and the model it replaces disagree on the same injections when the voltage
+    cannot tell them apart (each is as likely; a refinement's own covariance can state 0.3 % where the
+    two are 2 % apart). ``params`` itself when its statement covers it already."""
+    cal = params.calibration
+    spread = min(abs(shift_rel), 1.0) if math.isfinite(shift_rel) else 0.0
+    if spread <= cal.stroke_rel_sigma:
+        return params
+    return replace(params, calibration=replace(cal, stroke_rel_sigma=spread))
 
 
 def _adoptable(chi2: float, shift_z: float, config: SelfCalConfig) -> bool:

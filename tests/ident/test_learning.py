@@ -305,3 +305,19 @@ def test_the_span_a_model_was_learned_over_round_trips_and_decides_where_it_serv
     assert st.serves(100.0, c) and st.serves(75.0, c) and st.serves(127.0, c)
     assert not st.serves(70.0, c) and not st.serves(130.0, c)
     assert CalibrationStatus(Learning.MONITORING).serves(28.0, c)      # a model of every preload force
+
+
+def test_a_refinement_adopted_on_its_n_u_shift_states_the_disagreement_in_its_stroke():
+    """Two learned models the held-out voltage cannot tell apart, 2 % apart in N_u: the one adopted
+    states at least that much uncertainty in the stroke it predicts (its own covariance said 0.3 %,
+    and a part's stroke was then 0.24 µm off with σ 0.04); a statement that covers it already stays."""
+    from dataclasses import replace
+
+    from estimator.ident.selfcal import disagreement
+    from estimator.model.parameters import CalibrationUncertainty, load_nominal
+
+    params = replace(load_nominal(), calibration=CalibrationUncertainty(nu_rel_sigma=0.003, stroke_rel_sigma=0.003))
+    wide = disagreement(params, 0.02)
+    assert wide.calibration.stroke_rel_sigma == 0.02 and wide.calibration.nu_rel_sigma == 0.003
+    assert disagreement(params, -0.001) is params
+    assert disagreement(params, float("nan")) is params
