@@ -25,6 +25,8 @@ from typing import Any
 
 from cantools.database import Database
 
+from estimator.pipeline.config import ConfigError
+
 MEAS_BASE = 0x0001_0000
 SLOT_BYTES = 64                 # one frame payload (CAN FD: 64 bytes at most)
 STATS_BASE = 0x0004_0000        # the slave's own counters, uint32 each (SLAVE_COUNTERS)
@@ -253,15 +255,18 @@ def page_bytes(cfg: Any, chars: list[Characteristic]) -> bytes:
 def apply_page(cfg: Any, page: bytes, chars: list[Characteristic]) -> Any:
     """``cfg`` with every characteristic's value from ``page``; ValueError naming the first value out of
     its range or refused by the configuration's own checks, PermissionError for a key whose section is off."""
+    held = page_bytes(cfg, chars)
     new = cfg
     for c in chars:
+        if page[c.offset:c.offset + c.size] == held[c.offset:c.offset + c.size]:
+            continue   # unchanged (as a page holds it: float32)
         value = struct.unpack_from("<" + c.fmt, page, c.offset)[0]
-        now = struct.unpack("<" + c.fmt, struct.pack("<" + c.fmt, c.get(cfg) if c.fmt == "f" else int(c.get(cfg))))[0]
-        if value == now:   # unchanged (as the page holds it: float32)
-            continue
         if not (math.isfinite(value) and c.lo <= value <= c.hi):
             raise ValueError(f"{c.name} = {value}: outside {c.lo}..{c.hi}")
-        new = c.put(new, value)
+        try:
+            new = c.put(new, value)
+        except ConfigError as exc:   # the configuration's own checks, run as it is built
+            raise ValueError(str(exc)) from None
     return new
 
 

@@ -96,8 +96,8 @@ class XcpSlave:
         self.apply = apply
         self.writes = writes
         self.chars = characteristics()
-        self.pages = [bytearray(page_bytes(reference, self.chars)), page_bytes(reference, self.chars)]
-        self.ecu_page = WORKING
+        self.lock = threading.Lock()    # the DAQ lists and the counter (commands vs events), the pages
+        self.reload(reference)
         self.xcp_page = WORKING
         self.a2l = a2l
         self.ids = {0: ident.encode(), 1: name.encode(), 4: a2l}
@@ -111,14 +111,13 @@ class XcpSlave:
         self.daq: list[_DaqList] = []
         self.daq_ptr: tuple[int, int, int] | None = None
         self.ctr = 0
-        self.lock = threading.Lock()    # the DAQ lists and the counter (commands vs events)
         self.t0 = time.monotonic()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
     def reload(self, cfg: Any) -> None:
-        """The configuration file was read again (SIGHUP): both pages hold its values, the estimator
-        uses the working page."""
+        """Both pages hold ``cfg``'s values, the configuration file's (at start, and after a SIGHUP read
+        it again); the estimator uses the working page."""
         with self.lock:
             self.pages = [bytearray(page_bytes(cfg, self.chars)), page_bytes(cfg, self.chars)]
             self.ecu_page = WORKING
