@@ -316,7 +316,7 @@ class DriveCompensator:
                     st.jitter = [0.0, 0.0, 0.0]
                 _check_level(st, sim, measured)
                 corr = self._correct(st.main, sim, nominal, nu, lh_um, cov, f_open_n, drive, jitter=_jitter_var(st),
-                                     checked=st.checked)
+                                     checked=_checked(st, sim))
                 table = self._table(st, sim, nominal, nu, lh_um, cov, drive)
                 st.ok = _OkEstimate(sim, nu, lh_um, cov, rate_n_per_v_s if math.isfinite(rate_n_per_v_s) else 0.0,
                                     time_s)
@@ -340,7 +340,7 @@ class DriveCompensator:
         dt = time_s - ok.time_s if math.isfinite(time_s) and math.isfinite(ok.time_s) else 0.0
         nu = ok.nu + (ok.rate_n_per_v_s * dt if 0.0 < dt < MAX_INTERVAL_S else 0.0)
         return self._correct(st.main, ok.sim, nominal, nu, ok.lh_um, ok.cov, f_open_n, drive, jitter=_jitter_var(st),
-                             checked=st.checked if st.checked_model is ok.sim else None)
+                             checked=_checked(st, ok.sim))
 
     def _correct(self, pt: _Point, sim: FastSimulator, nominal: FastSimulator, nu: float, lh_um: float,
                  cov: np.ndarray, f_open_n: float, drive: AmplifierDrive, derivatives: bool = True,
@@ -367,8 +367,7 @@ class DriveCompensator:
             if carried is not None:
                 stroke, opening = carried
             else:
-                stroke, opening = respond(sim, scale, nu, lh_um, f_open_n, drive)
-                pt.anchor = (scale, nu, lh_um, f_open_n, stroke, opening)
+                stroke, opening = _simulated(pt, sim, scale, nu, lh_um, f_open_n, drive)
         pt.age += 1
         r = pt.response
         if not (math.isfinite(stroke) and math.isfinite(opening)) or r.d_scale[0] <= 0:
@@ -391,10 +390,9 @@ class DriveCompensator:
                 # bend of the opening instant is not: then the step is simulated)
                 stroke, opening = stroke + r.d_scale[0] * step, opening + r.d_scale[1] * step
                 break
-            stroke, opening = respond(sim, scale, nu, lh_um, f_open_n, drive)
+            stroke, opening = _simulated(pt, sim, scale, nu, lh_um, f_open_n, drive)
             if not (math.isfinite(stroke) and math.isfinite(opening)):
                 raise ValueError("the valve does not open within the scale limits")
-            pt.anchor = (scale, nu, lh_um, f_open_n, stroke, opening)
         short = scale in (lo, hi) and abs(stroke - target_stroke) > 0.01
         at_limit = short and scale in t.scale_limits
         trust_limited = short and not at_limit
@@ -439,11 +437,11 @@ class DriveCompensator:
             st.next_row = (st.next_row + 1) % len(preloads)
         for i in todo:
             self._correct(st.rows[i], sim, nominal, nu, lh_um, cov, preloads[i], drive, derivatives=False, carry=False,
-                          refresh=ROW_REFRESH, checked=st.checked if st.checked_model is sim else None)
+                          refresh=ROW_REFRESH, checked=_checked(st, sim))
         if len(stale) > ROWS_AFTER_CHANGE:
             return st.last.table   # the last complete table (another model's) until every row is this one's
         target_stroke, target_opening = self.target_at(nominal)
-        lo, hi = _trust(self.target.scale_limits, st.checked if st.checked_model is sim else None)
+        lo, hi = _trust(self.target.scale_limits, _checked(st, sim))
         olo, ohi = self.target.offset_limits_us
         out = []
         for i, (f, pt) in enumerate(zip(preloads, st.rows)):
@@ -476,6 +474,19 @@ def _carry(pt: _Point, scale: float, nu: float, lh_um: float, f_open_n: float) -
     if not (abs(d_stroke) < CARRY_STROKE_UM and abs(d_opening) < CARRY_MAIN_OPENING_US):
         return None
     return a[4] + d_stroke, a[5] + d_opening
+
+
+def _simulated(pt: _Point, sim: FastSimulator, scale: float, nu: float, lh_um: float, f_open_n: float,
+               drive: AmplifierDrive) -> tuple[float, float]:
+    """:func:`respond`, kept as ``pt``'s anchor: the point later corrections are carried from."""
+    stroke, opening = respond(sim, scale, nu, lh_um, f_open_n, drive)
+    pt.anchor = (scale, nu, lh_um, f_open_n, stroke, opening)
+    return stroke, opening
+
+
+def _checked(st: _Injector, sim: FastSimulator) -> tuple[float, float] | None:
+    """The scales at which ``sim`` explained the injector's injections (None: none known for it)."""
+    return st.checked if st.checked_model is sim else None
 
 
 def _check_level(st: _Injector, sim: FastSimulator, measured_scale: float) -> None:
