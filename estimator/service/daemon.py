@@ -342,22 +342,24 @@ class Daemon:
             log.error("SIGHUP: configuration not applied, running configuration kept: %s", exc)
             self.notify.notify(f"READY=1\nSTATUS=reload failed: {exc}")
             return
-        with self._reload_lock:
-            superseded, self._pending_cfg = self._pending_cfg, _Pending(prepared)
+        self._hand_over(prepared)
         if self.xcp is not None:
             self.xcp.reload(new)   # the calibration tool's pages start from the file again
-        gone = superseded.reload.calibrator if superseded is not None and superseded.reload is not None else None
-        if gone is not None and gone is not self.calibrator and (prepared is None or gone is not prepared.calibrator):
-            gone.close()   # a calibration process started for a reload that never took effect
 
     def calibrate(self, new: DaemonConfig) -> None:
         """XCP thread: a configuration a calibration tool wrote (the working page), checked and built off
         the real-time path like a reload; the worker takes it between two injections, all at once. (Its
         keys passed the configuration's own checks when it was built.)"""
-        prepared = self._prepare(new)
-        with self._reload_lock:
-            self._pending_cfg = _Pending(prepared)
+        self._hand_over(self._prepare(new))
         self.ingest.counters.xcp_writes += 1
+
+    def _hand_over(self, prepared: _Reload | None) -> None:
+        """A prepared configuration for the worker (a newer one supersedes one it has not taken yet)."""
+        with self._reload_lock:
+            superseded, self._pending_cfg = self._pending_cfg, _Pending(prepared)
+        gone = superseded.reload.calibrator if superseded is not None and superseded.reload is not None else None
+        if gone is not None and gone is not self.calibrator and (prepared is None or gone is not prepared.calibrator):
+            gone.close()   # a calibration process started for a configuration that never took effect
 
     def _prepare(self, new: DaemonConfig) -> _Reload | None:
         """Main thread: everything a reload needs built off the real-time path (the tracker on the

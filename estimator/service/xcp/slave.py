@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from estimator.service.xcp import protocol as p
+from estimator.service.xcp.a2l import NAME as A2L_NAME
 from estimator.service.xcp.memory import (
     A2L_BASE,
     CAL_BASE,
@@ -90,7 +91,7 @@ class XcpSlave:
 
     def __init__(self, db: Any, config: Callable[[], Any], reference: Any, apply: Callable[[Any], None],
                  a2l: bytes, host: str = "127.0.0.1", port: int = 5555, writes: bool = True,
-                 ident: str = "injector_estimator", name: str = "injector_estimator") -> None:
+                 ident: str = A2L_NAME, name: str = A2L_NAME) -> None:
         self.image = MeasurementImage(db)
         self.config = config
         self.apply = apply
