@@ -10,6 +10,7 @@ import socket
 import struct
 import subprocess
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -34,6 +35,16 @@ def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def wait_until(condition, timeout_s: float) -> bool:
+    """Poll ``condition`` until it holds or ``timeout_s`` passes (DTOs arrive on pyxcp's own thread)."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
 
 
 def master(port: int, policy=None):
@@ -98,6 +109,8 @@ def test_a_calibration_tool_measures_and_calibrates_the_running_daemon(hub, moni
             x.startStopDaqList(2, 0)
             x.startStopSynch(1)
             got = feed_and_collect(bus, monitor, codec, injs[:6])
+            # the event fires after the CAN frames are sent: wait for its DTO before stopping DAQ
+            assert wait_until(lambda: len(recorder.frames) >= 6, 10)
             x.startStopSynch(0)
             states = [got[(0, k)]["EstimateState"] for k in range(6)]
             daq = [codec.decode(Frame(0x200, f[5:13])) for f in recorder.frames]
