@@ -66,6 +66,7 @@ SERVICE_RULES: dict[str, Check] = {
     "queue_frames": whole(16, 1_000_000),
     "silent_bus_s": number(0.05, 3600.0),
     "stale_after_ms": number(1.0, 3_600_000.0),
+    "shed_after_ms": number(0.1, 3_600_000.0),
     "status_period_s": number(0.01, 60.0),
     "persist_period_s": number(0.05, 86_400.0),
     "log_level": choice(*LOG_LEVELS),
@@ -86,6 +87,7 @@ class DaemonConfig(EstimatorConfig):
     queue_frames: int = 8192            # bounded input queue, drop-oldest when full
     silent_bus_s: float = 1.0           # wall-clock guard: no frame at all for this long -> pending injections time out
     stale_after_ms: float = 100.0       # an estimate published later than this after its last frame is "stale", never ok
+    shed_after_ms: float = 4.0          # above capacity: an established injector's injection waiting longer is shed
     status_period_s: float = 0.1        # EstimatorStatus heartbeat (10 Hz)
     persist_period_s: float = 5.0       # state written at least this often (and at shutdown)
     log_level: str = "INFO"

@@ -149,7 +149,7 @@ class Daemon:
         self._dirty = False
         self._lock_fd: int | None = None   # the state directory's lock, held until the process ends
         # complete injections waiting for the worker, estimated by fair share between injectors
-        self.waiting: FairQueue[tuple[Completed, float, float]] = FairQueue()
+        self.waiting: FairQueue[tuple[Completed, float, float]] = FairQueue(deadline_s=cfg.shed_after_ms * 1e-3)
         self.xcp: XcpSlave | None = None    # the calibration tool's view (bound in _serve)
 
     @property
@@ -230,7 +230,8 @@ class Daemon:
             self.progress = time.monotonic()
             try:
                 ingested = self._ingest_frames(lst, wait=not self.waiting)
-                taken = self.waiting.take()
+                taken = self.waiting.take(time.monotonic())
+                self._count_expired()
                 if taken is not None:
                     self._estimate(*taken)
                 elif not ingested:
@@ -268,7 +269,7 @@ class Daemon:
                     iid = e.header.injector_id
                     st = self.tracker.states.get(iid)
                     known = st is not None and st.accepted >= ESTABLISHED_AFTER
-                    shed = self.waiting.put(iid, (e, arrived, assembled), known)
+                    shed = self.waiting.put(iid, (e, arrived, assembled), known, arrived)
                     if shed is not None:
                         self.ingest.counters.injections_shed += 1
                         self.rlog.log(logging.WARNING, "shed", "injector %d counter %d shed unestimated: the worker "
@@ -279,6 +280,16 @@ class Daemon:
             if rest:
                 self.processor.handle(rest)
         return n
+
+    def _count_expired(self) -> None:
+        """Count and log (rate-limited) the injections the worker shed because they waited longer than
+        ``shed_after_ms``: above capacity it estimates fewer injections, never later ones."""
+        while self.waiting.expired:
+            _, (e, arrived, _) = self.waiting.expired.popleft()
+            self.ingest.counters.injections_shed += 1
+            self.rlog.log(logging.WARNING, "late", "injector %d counter %d shed unestimated: it waited %.1f ms for "
+                          "the worker (shed_after_ms %.1f): the daemon is above its capacity", e.header.injector_id,
+                          e.header.counter, (time.monotonic() - arrived) * 1e3, self.cfg.shed_after_ms)
 
     def _estimate(self, injector: int, waiting: tuple[Completed, float, float]) -> None:
         """Estimate one complete injection, publish it (``stale`` when it is later than
@@ -401,6 +412,7 @@ class Daemon:
         if new.drive_correction != self.cfg.drive_correction:   # a new target: corrections start again
             self.processor.compensator = build_compensator(new)
         self.ingest.assembler.timeout_s = new.assembly_timeout_ms * 1e-3
+        self.waiting.deadline_s = new.shed_after_ms * 1e-3
         self.clock.silent_bus_s = new.silent_bus_s
         logging.getLogger().setLevel(new.log_level_number)
         self.cfg = new

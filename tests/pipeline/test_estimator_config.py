@@ -40,7 +40,7 @@ def test_the_daemons_configuration_is_the_estimators_with_its_own_keys(tmp_path)
     assert type(daemon.estimator_config()) is EstimatorConfig
     own = {f.name for f in fields(DaemonConfig)} - {f.name for f in fields(EstimatorConfig)}
     assert own == {"bus", "bitrate", "data_bitrate", "fd", "bus_options", "state_dir", "queue_frames",
-                   "silent_bus_s", "stale_after_ms", "status_period_s", "persist_period_s", "log_level", "xcp"}
+                   "silent_bus_s", "stale_after_ms", "shed_after_ms", "status_period_s", "persist_period_s", "log_level", "xcp"}
     # the estimator's configuration knows no bus
     with pytest.raises(ConfigError, match=r"unknown key.*bus"):
         EstimatorConfig.load(path)

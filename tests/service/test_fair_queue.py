@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from estimator.service.fair_queue import FairQueue
@@ -94,3 +95,61 @@ def test_known_injectors_go_before_unknown_ones_whatever_the_tags():
     q.put(2, "new-2")
     q.put(0, "known-1", known=True)
     assert [q.take()[1] for _ in range(4)] == ["known-0", "known-1", "new-1", "new-2"]
+
+
+def test_an_established_injectors_late_injection_is_shed_and_the_next_taken():
+    q: FairQueue[str] = FairQueue(deadline_s=0.004)
+    q.put(0, "old", known=True, arrived=0.000)
+    q.put(0, "new", known=True, arrived=0.005)
+    q.put(1, "stranger", known=False, arrived=0.000)
+    assert q.take(now=0.0065) == (0, "new")          # "old" waited 6.5 ms > 4 ms: shed on the way
+    assert list(q.expired) == [(0, "old")] and q.shed == 1
+    q.charge(0, 0.001)
+    assert q.take(now=1.0) == (1, "stranger")        # a new injector is never shed by age
+    assert q.take(now=1.0) is None and len(q) == 0
+
+
+def test_without_a_deadline_nothing_is_shed_by_age():
+    q: FairQueue[str] = FairQueue()
+    q.put(0, "a", known=True, arrived=0.0)
+    assert q.take(now=100.0) == (0, "a") and not q.expired
+
+
+@pytest.mark.parametrize("offered_per_s", [500.0, 3000.0, 6000.0])
+def test_above_capacity_the_rule_estimates_fewer_injections_never_later_ones(offered_per_s):
+    """A seeded simulation of the worker (no wall clock): eight established injectors at ``offered_per_s``
+    in all, each estimate costing 0.4-1.2 ms (a capacity near 1,250/s). Whatever the load, every
+    injection estimated waited at most the deadline; the queue stays bounded; every injection is
+    estimated, shed or still waiting; every injector keeps its share; below capacity (random arrivals,
+    40 % busy) at most 1 % is shed."""
+    rng = np.random.default_rng(5)
+    deadline = 0.004
+    q: FairQueue[tuple[int, float]] = FairQueue(deadline_s=deadline)
+    arrivals = sorted((float(t), int(rng.integers(8))) for t in rng.uniform(0.0, 2.0, int(offered_per_s * 2.0)))
+    now, k, waits, done, overflow, depth = 0.0, 0, [], {i: 0 for i in range(8)}, 0, 0
+    while k < len(arrivals) or len(q):
+        while k < len(arrivals) and arrivals[k][0] <= now:
+            t, inj = arrivals[k]
+            overflow += q.put(inj, (inj, t), known=True, arrived=t) is not None
+            k += 1
+        depth = max(depth, len(q))
+        taken = q.take(now)
+        if taken is None:
+            if k < len(arrivals):
+                now = arrivals[k][0]
+            continue
+        inj, (_, t) = taken
+        waits.append(now - t)
+        cost = float(rng.uniform(0.0004, 0.0012))
+        now += cost
+        q.charge(inj, cost)
+        done[inj] += 1
+    assert max(waits) <= deadline
+    assert depth <= 8 * q.per_injector
+    assert sum(done.values()) + len(q.expired) + overflow == len(arrivals)
+    estimated = sum(done.values())
+    assert min(done.values()) >= 0.08 * estimated       # fair: each of 8 keeps (about) its eighth
+    if offered_per_s < 1000.0:
+        assert len(q.expired) <= 0.01 * len(arrivals) and overflow == 0
+    else:
+        assert estimated >= 0.8 * 2.0 * 1250.0 / 1.5     # the worker stays busy at its capacity

@@ -4,6 +4,8 @@ counts it. The worker's steps are driven directly (no threads): the order is exa
 
 from __future__ import annotations
 
+import time
+
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimatorHealth
 from estimator.io.captures import to_message
@@ -85,3 +87,25 @@ def test_among_new_injectors_a_flood_waits_behind_itself_and_is_shed_first():
     health = codec.decode(d.processor.health_frame(len(d.waiting)))
     assert isinstance(health, EstimatorHealth)
     assert health.injections_shed == shed and health.pending_injections == 0 and health.injectors == 8
+
+
+def test_above_capacity_a_late_injection_is_shed_counted_and_never_published():
+    """Injector 0 is established; two injections wait while the worker is a second behind: both are
+    older than ``shed_after_ms``, so neither is estimated, both are counted in the health message, and
+    the next injection, on time, is estimated as usual."""
+    d, order = _daemon()
+    codec = Codec()
+    for k in range(ESTABLISHED_AFTER):
+        _send(d, codec, 0, k, 20 + k, 0.001 * k)
+        assert _step(d)
+    for k in (ESTABLISHED_AFTER, ESTABLISHED_AFTER + 1):
+        _send(d, codec, 0, k, 30 + k, 0.02 + 0.001 * k)
+    while d._ingest_frames(d._listener, wait=False):
+        pass
+    assert d.waiting.take(time.monotonic() + 1.0) is None    # the worker comes back 1 s late
+    d._count_expired()
+    assert d.ingest.counters.injections_shed == 2 and len(order) == ESTABLISHED_AFTER
+    health = codec.decode(d.processor.health_frame(len(d.waiting)))
+    assert isinstance(health, EstimatorHealth) and health.injections_shed == 2
+    _send(d, codec, 0, ESTABLISHED_AFTER + 2, 40, 0.03)
+    assert _step(d) and order[-1] == 0
