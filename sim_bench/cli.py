@@ -323,12 +323,39 @@ def cmd_daemon_bench(args: argparse.Namespace) -> int:
     """Daemon benchmarks: ingest rate, latency at a rate, 2x overload."""
     from sim_bench.benches import daemon_bench
 
+    if args.sweep:
+        return _daemon_capacity(args)
+    if args.rates is not None or args.cpu_share is not None:
+        raise EstimatorError("--rates and --cpu-share go with --sweep")
+    args.json_out = args.json_out or DEFAULT_OUT / "daemon-bench.json"
     ing = daemon_bench.ingest_rate()
     rep = daemon_bench.run_latency_and_overload(args.out, args.rate, args.seconds, 2.0, args.bus, args.self_calibration)
     failures = daemon_bench.failures(ing, rep)
     print(daemon_bench.format_report(ing, rep))
     print("PASS" if not failures else "FAIL: " + "; ".join(failures))
     _write_json(args.json_out, {"benchmark": "daemon", "ingest": ing, **rep, "failures": failures})
+    return 1 if failures else 0
+
+
+def _daemon_capacity(args: argparse.Namespace) -> int:
+    """``daemon-bench --sweep``: the capacity; exit 1 below its target (scaled by the CPU share)."""
+    from sim_bench.benches import capacity
+    from sim_bench.benches.targets import missed
+
+    rates = tuple(args.rates) if args.rates else capacity.RATES_PER_S
+    if any(not (0 < r <= 100_000) for r in rates):
+        raise EstimatorError(f"--rates {' '.join(f'{r:g}' for r in rates)}: each must be in 0 ... 100,000 injections/s")
+    if args.cpu_share is not None and not 0.01 <= args.cpu_share <= 1.0:
+        raise EstimatorError(f"--cpu-share {args.cpu_share:g}: must be in 0.01 ... 1")
+    rep = capacity.run(args.out, tuple(sorted(rates)), args.seconds, bus=args.bus, share=args.cpu_share,
+                       series=args.self_calibration)
+    share = args.cpu_share or 1.0
+    failures = missed("daemon-bench --sweep", {"capacity_per_s": rep["capacity_per_s"] / share}) + \
+        capacity.failures(rep)
+    print(capacity.format_report(rep))
+    print("PASS" if not failures else "FAIL: " + "; ".join(failures))
+    _write_json(args.json_out or DEFAULT_OUT / "daemon-capacity.json",
+                {"benchmark": "daemon-capacity", **rep, "failures": failures})
     return 1 if failures else 0
 
 
@@ -528,7 +555,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seconds", type=float, default=10.0, help="seconds per phase (default 10)")
     s.add_argument("--bus", default=None, help="INTERFACE:CHANNEL (default: vcan0 if present, else a loopback hub)")
     s.add_argument("--out", type=Path, default=DEFAULT_OUT / "daemon", help="directory for the figures (default bench-results/daemon)")
-    s.add_argument("--json-out", type=Path, default=DEFAULT_OUT / "daemon-bench.json", help="JSON report (default bench-results/daemon-bench.json)")
+    s.add_argument("--json-out", type=Path, default=None,
+                   help="JSON report (default bench-results/daemon-bench.json, with --sweep daemon-capacity.json)")
+    s.add_argument("--sweep", action="store_true",
+                   help="capacity instead: sweep the offered rate (eight injectors, learning and drive correction on, "
+                        "frames replayed by a sender process) and report the highest rate held; with "
+                        "--self-calibration the injectors are series parts that learn during the sweep")
+    s.add_argument("--rates", type=float, nargs="+", default=None,
+                   help="with --sweep: the rates, injections/s (default 200 500 1000 2000 3000 5000)")
+    s.add_argument("--cpu-share", type=float, default=None,
+                   help="with --sweep: hold the daemon to this share of one core (cgroup CPU bandwidth; needs "
+                        "root), a bench computer 1/share times slower")
     s.set_defaults(func=cmd_daemon_bench)
 
     s = sub.add_parser("xcp-bench", help="daemon with its XCP slave: DAQ on the injection event at 200 injections/s "

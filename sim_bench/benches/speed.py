@@ -50,3 +50,9 @@ def format_table(report: dict) -> str:
     for r in report["results"]:
         lines.append(f"{r['batch']:>6} {r['calls']:>7} {r['candidates_per_s']:>13,.0f} {r['us_per_candidate']:>13.2f}")
     return "\n".join(lines)
+
+
+def yardstick_us_per_candidate(seconds: float = 1.0) -> float:
+    """The machine's speed of the hour: µs per candidate at batch 256 (the figure benches print beside
+    their timings, so that runs from different hours compare)."""
+    return float(measure((256,), seconds=seconds)["results"][0]["us_per_candidate"])

@@ -41,6 +41,11 @@ TARGETS: dict[str, tuple[Target, ...]] = {
         Target("daemon_p99_ms", "<=", 5.0, "ms", "daemon latency p99 at 200 injections/s"),
         Target("external_p99_ms", "<=", 10.0, "ms", "the same seen from another process through the hub"),
     ),
+    "daemon-bench --sweep": (
+        Target("capacity_per_s", ">=", 3000.0, "1/s", "the highest rate held (p99 ≤ 5 ms, every injection "
+                                                       "estimated), learning and correction on; per core: at "
+                                                       "--cpu-share S the capacity / S"),
+    ),
     "daemon-bench --self-calibration": (
         INGEST,
         Target("learning_p99_ms", "<=", 15.0, "ms", "daemon p99 while four series injectors learn (every run; "
