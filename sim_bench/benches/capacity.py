@@ -35,11 +35,11 @@ import numpy as np
 
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateState, EstimatorHealth, EstimatorStatus
-from estimator.io.captures import to_frame, to_message
+from estimator.io.captures import to_message
 from estimator.service.bus import open_bus
 from estimator.service.latency import WINDOW_S
 from sim_bench.benches.bench import resolve_bus
-from sim_bench.benches.daemon_bench import injection_pool
+from sim_bench.benches.daemon_bench import OutputWatcher, injection_pool, paced
 from sim_bench.hardware.cpu_share import cpu_seconds, cpu_share, descendants
 from sim_bench.hardware.procs import DaemonProcess
 
@@ -62,28 +62,19 @@ def _sender_main(bus_spec: str, injections: list[tuple[int, int, list]], conn: A
             if job is None:
                 return
             rate, seconds = job
-            period = 1.0 / rate
             sent: list[tuple[int, int, float]] = []
-            t0 = time.monotonic() + 0.05
-            n, late_s = 0, 0.0
+            t0 = time.monotonic()
+            late_s = 0.0
             c0 = time.process_time()
-            while True:
-                due = t0 + n * period
-                if due - t0 >= seconds:
-                    break
-                now = time.monotonic()
-                if due > now:
-                    time.sleep(due - now)
-                else:
-                    late_s = max(late_s, now - due)
+            for lateness in paced(rate, seconds, 0.05):
+                late_s = max(late_s, lateness)
                 i, c, msgs = injections[k % len(injections)]
                 for m in msgs[:-1]:
                     bus.send(m)
                 sent.append((i, c, time.monotonic()))
                 bus.send(msgs[-1])
-                n += 1
                 k += 1
-            conn.send({"sent": sent, "elapsed_s": time.monotonic() - t0, "cpu_s": time.process_time() - c0,
+            conn.send({"sent": sent, "elapsed_s": time.monotonic() - t0 - 0.05, "cpu_s": time.process_time() - c0,
                        "late_max_s": late_s})
 
 
@@ -101,38 +92,27 @@ def encoded_injections(codec: Codec, injectors: int, seed: int = 7, series: bool
     return out
 
 
-class _Watcher(threading.Thread):
+class _Watcher(OutputWatcher):
     """The daemon's output: when each EstimateState arrived, its heartbeats (status and health)."""
 
     def __init__(self, bus: Any, codec: Codec) -> None:
-        super().__init__(daemon=True)
-        self.bus, self.codec = bus, codec
+        super().__init__(bus, codec)
         self.received: dict[tuple[int, int], list[float]] = {}   # (injector, counter) -> arrival times
         self.status: EstimatorStatus | None = None
         self.health: EstimatorHealth | None = None
         self.beat = threading.Condition()
         self.beats = 0
-        self.stop = threading.Event()
 
-    def run(self) -> None:
-        while not self.stop.is_set():
-            m = self.bus.recv(0.05)
-            if m is None:
-                continue
-            now = time.monotonic()
-            try:
-                rec = self.codec.decode(to_frame(m))
-            except Exception:
-                continue
-            if isinstance(rec, EstimateState):
-                self.received.setdefault((rec.injector_id, rec.counter), []).append(now)
-            elif isinstance(rec, EstimatorHealth):
-                self.health = rec
-            elif isinstance(rec, EstimatorStatus):
-                with self.beat:
-                    self.status = rec
-                    self.beats += 1
-                    self.beat.notify_all()
+    def on_record(self, now: float, rec: Any) -> None:
+        if isinstance(rec, EstimateState):
+            self.received.setdefault((rec.injector_id, rec.counter), []).append(now)
+        elif isinstance(rec, EstimatorHealth):
+            self.health = rec
+        elif isinstance(rec, EstimatorStatus):
+            with self.beat:
+                self.status = rec
+                self.beats += 1
+                self.beat.notify_all()
 
     def next_beat(self, timeout_s: float) -> bool:
         """Wait for the heartbeat after this call (and its health frame, sent with it)."""

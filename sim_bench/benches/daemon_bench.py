@@ -12,7 +12,7 @@ import contextlib
 import math
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +30,7 @@ from sim_bench.benches.bench import resolve_bus
 from sim_bench.benches.targets import missed
 from sim_bench.hardware import series_part
 from sim_bench.hardware.plant import Measurement, Plant, PlantConfig
-from sim_bench.hardware.procs import DaemonProcess, rss_mb
+from sim_bench.hardware.procs import DaemonProcess, rss_mb, wait_until
 
 SERIES_PRELOADS_N = (NOMINAL_PRELOAD_N, 60.0, 100.0, 150.0, 220.0, 300.0)   # the rail pressure cycling (series pool)
 
@@ -74,17 +74,14 @@ def ingest_rate(seconds: float = 2.0) -> dict:
     return {"frames_per_s": count / dt, "frames": count, "completed": completed, "rejected": rejected}
 
 
-class _Watcher(threading.Thread):
-    def __init__(self, bus, codec: Codec) -> None:
+class OutputWatcher(threading.Thread):
+    """Receives the daemon's output on a bus of the bench's own and hands each decoded record to
+    :meth:`on_record` with the time it arrived (undecodable frames are skipped); ``stop`` ends it."""
+
+    def __init__(self, bus: Any, codec: Codec) -> None:
         super().__init__(daemon=True)
         self.bus, self.codec = bus, codec
-        self.sent: dict[tuple[int, int], float] = {}
-        self.latency: list[float] = []
-        self.status: EstimatorStatus | None = None
-        self.estimates = 0
-        self.calibrations: list[tuple[float, ModelCalibration]] = []
         self.stop = threading.Event()
-        self.got_status = threading.Event()
 
     def run(self) -> None:
         while not self.stop.is_set():
@@ -96,16 +93,33 @@ class _Watcher(threading.Thread):
                 rec = self.codec.decode(to_frame(m))
             except Exception:
                 continue
-            if isinstance(rec, EstimateState):
-                self.estimates += 1
-                t = self.sent.pop((rec.injector_id, rec.counter), None)
-                if t is not None:
-                    self.latency.append(now - t)
-            elif isinstance(rec, EstimatorStatus):
-                self.status = rec
-                self.got_status.set()
-            elif isinstance(rec, ModelCalibration):
-                self.calibrations.append((now, rec))
+            self.on_record(now, rec)
+
+    def on_record(self, now: float, rec: Any) -> None:
+        """One record of the daemon's output, received at ``now`` (monotonic s)."""
+
+
+class _Watcher(OutputWatcher):
+    def __init__(self, bus: Any, codec: Codec) -> None:
+        super().__init__(bus, codec)
+        self.sent: dict[tuple[int, int], float] = {}
+        self.latency: list[float] = []
+        self.status: EstimatorStatus | None = None
+        self.estimates = 0
+        self.calibrations: list[tuple[float, ModelCalibration]] = []
+        self.got_status = threading.Event()
+
+    def on_record(self, now: float, rec: Any) -> None:
+        if isinstance(rec, EstimateState):
+            self.estimates += 1
+            t = self.sent.pop((rec.injector_id, rec.counter), None)
+            if t is not None:
+                self.latency.append(now - t)
+        elif isinstance(rec, EstimatorStatus):
+            self.status = rec
+            self.got_status.set()
+        elif isinstance(rec, ModelCalibration):
+            self.calibrations.append((now, rec))
 
 
 @contextlib.contextmanager
@@ -129,21 +143,27 @@ def watched_daemon(bus: str, codec: Codec, log: Path, config: Path | None = None
         d.stop()
 
 
-def _feed(bus, codec: Codec, pool, rate: float, seconds: float, watcher: _Watcher) -> dict:
+def paced(rate: float, seconds: float, start_in_s: float) -> Iterator[float]:
+    """Absolute deadlines ``rate`` per second for ``seconds``, starting ``start_in_s`` from now: sleeps
+    until each is due and yields how late it is served (s, 0 when on time)."""
     period = 1.0 / rate
-    counters = [0] * 8
-    t0 = time.monotonic() + 0.1
-    k = 0
-    late = 0
-    while True:
-        due = t0 + k * period
-        if due - t0 >= seconds:
-            break
+    t0 = time.monotonic() + start_in_s
+    n = 0
+    while n * period < seconds:
+        due = t0 + n * period
         now = time.monotonic()
         if due > now:
             time.sleep(due - now)
-        elif now - due > period:
-            late += 1
+        yield max(0.0, now - due)
+        n += 1
+
+
+def _feed(bus, codec: Codec, pool, rate: float, seconds: float, watcher: _Watcher) -> dict:
+    counters = [0] * 8
+    k = 0
+    late = 0
+    for lateness in paced(rate, seconds, 0.1):
+        late += lateness > 1.0 / rate
         i, m = pool[k % len(pool)]
         c = counters[i]
         counters[i] = (c + 1) % 256
@@ -156,16 +176,6 @@ def _feed(bus, codec: Codec, pool, rate: float, seconds: float, watcher: _Watche
     return {"offered": k, "offered_per_s": k / seconds, "feeder_late": late}
 
 
-def _wait_for(done: Callable[[], bool], timeout_s: float) -> bool:
-    """Poll ``done`` every 20 ms until it holds or ``timeout_s`` passed; whether it holds."""
-    deadline = time.monotonic() + timeout_s
-    while not done():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.02)
-    return True
-
-
 def _warm_up(b: Any, codec: Codec, pool: list, rate: float, w: _Watcher, self_calibration: bool) -> None:
     """The first injection of each injector is a cold start (grid search, ~60 ms); the heartbeat's p99
     covers the last 10 s, so the measured phases start after it. With learning: only the cold starts (a
@@ -174,7 +184,7 @@ def _warm_up(b: Any, codec: Codec, pool: list, rate: float, w: _Watcher, self_ca
     if self_calibration:
         injectors = len({i for i, _ in pool})
         _feed(b, codec, pool, rate, injectors / rate, w)
-        _wait_for(lambda: w.estimates >= injectors, 60.0)
+        wait_until(lambda: w.estimates >= injectors, 60.0)
         time.sleep(WINDOW_S + 0.5)
     else:
         _feed(b, codec, pool, rate, 3.0, w)
@@ -202,7 +212,7 @@ def _phase(b: Any, codec: Codec, pool: list, rate: float, seconds: float, w: _Wa
     # the queue drained (or what overflowed is given up on), then a heartbeat after it: its p99 covers
     # the phase's last 10 s
     target = e0 + fed["offered"]
-    _wait_for(lambda: w.estimates >= target, 5.0)
+    wait_until(lambda: w.estimates >= target, 5.0)
     w.got_status.clear()
     w.got_status.wait(2.0)
     stop_rss.set()

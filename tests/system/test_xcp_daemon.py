@@ -10,7 +10,6 @@ import socket
 import struct
 import subprocess
 import sys
-import time
 import warnings
 from pathlib import Path
 
@@ -22,7 +21,7 @@ from estimator.codec.records import Codec, EstimatorHealth
 from estimator.service.bus import open_bus
 from estimator.service.xcp.a2l import a2l_bytes
 from estimator.service.xcp.memory import characteristics, slot_layout
-from sim_bench.hardware.procs import DaemonProcess
+from sim_bench.hardware.procs import DaemonProcess, wait_until
 
 from ..helpers import measured
 from .test_processes import feed_and_collect
@@ -35,16 +34,6 @@ def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
-
-
-def wait_until(condition, timeout_s: float) -> bool:
-    """Poll ``condition`` until it holds or ``timeout_s`` passes (DTOs arrive on pyxcp's own thread)."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.01)
-    return True
 
 
 def master(port: int, policy=None):
