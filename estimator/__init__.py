@@ -32,19 +32,19 @@ __version__ = "0.3.0"
 #: public name -> the module that defines it
 _HOMES: dict[str, str] = {
     # one injection
-    "identify": "estimator.ident.idle_stroke",
+    "identify": "estimator.ident.fit.idle_stroke",
     "Estimate": "estimator.ident.estimate",
     "Injection": "estimator.ident.measurement",
     "Status": "estimator.ident.status",
     "IdentConfig": "estimator.ident.config",
     # many injections
-    "Tracker": "estimator.ident.tracker",
-    "TrackResult": "estimator.ident.tracker",
+    "Tracker": "estimator.ident.tracking.tracker",
+    "TrackResult": "estimator.ident.tracking.tracker",
     "TrackerConfig": "estimator.ident.config",
     # learning and calibration
     "Learning": "estimator.ident.status",
-    "SelfCalConfig": "estimator.ident.selfcal",
-    "calibrate_electrical": "estimator.ident.electrical",
+    "SelfCalConfig": "estimator.ident.learning.selfcal",
+    "calibrate_electrical": "estimator.ident.learning.electrical",
     # the drive that opens every valve alike
     "DriveCompensator": "estimator.drive.correction",
     "DriveTarget": "estimator.drive.target",

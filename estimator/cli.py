@@ -85,7 +85,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
     """Identify N_u and L_h of one trace (eq. 28)."""
     from estimator.errors import TraceError
     from estimator.ident.estimate import rejected
-    from estimator.ident.idle_stroke import identify
+    from estimator.ident.fit.idle_stroke import identify
 
     config = _config(args)
     params = _params(args)
@@ -120,7 +120,7 @@ def cmd_track(args: argparse.Namespace) -> int:
     from estimator.errors import TraceError
     from estimator.ident.config import TrackerConfig
     from estimator.ident.estimate import rejected
-    from estimator.ident.selfcal import SelfCalConfig
+    from estimator.ident.learning.selfcal import SelfCalConfig
     from estimator.ident.status import Status
     from estimator.pipeline.build import build_compensator, build_tracker
     from estimator.pipeline.config import EstimatorConfig
@@ -154,7 +154,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 
 def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     """The injector's structural parameters from current and voltage alone (no displacement)."""
-    from estimator.ident.electrical import calibrate_electrical, confirmed_out_of_tolerance
+    from estimator.ident.learning.electrical import calibrate_electrical, confirmed_out_of_tolerance
     from estimator.io.mdf import read_injections
 
     meta = {k: str(v) for k, v in (("preload_force_n", args.preload_n), ("temperature_c", args.temperature_c))
@@ -201,7 +201,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     """Calibrate k_p, k_s, R_b and the temperature laws from traces with s3 (eq. 25)."""
     if args.electrical:
         return cmd_calibrate_electrical(args)
-    from estimator.ident.calibration import CalibrationTrace, calibrate, report, to_toml
+    from estimator.ident.learning.calibration import CalibrationTrace, calibrate, report, to_toml
     from estimator.io.traces import injection_from_trace
 
     traces = []

@@ -36,7 +36,7 @@ from estimator.errors import EstimatorError
 from estimator.ident.coords import UM_PER_M
 from estimator.ident.measurement import Injection
 from estimator.ident.status import Status
-from estimator.ident.tracker import Tracker, TrackResult
+from estimator.ident.tracking.tracker import Tracker, TrackResult
 from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import NOMINAL_PRELOAD_N

@@ -53,7 +53,7 @@ def calibrate_group(key: str, paths: tuple[str, ...], params_path: str | None, t
     return a JSON-ready row with the parameter file's text."""
     for k, v in WORKER_ENV.items():
         os.environ.setdefault(k, v)
-    from estimator.ident.electrical import calibrate_electrical
+    from estimator.ident.learning.electrical import calibrate_electrical
     from estimator.io.mdf import read_injections
     from estimator.model.parameters import load_parameters
 

@@ -67,7 +67,7 @@ def warm_worker(cfg: Any) -> bool:
     """Get a worker ready before its first task: its pool and codec built and every compiled kernel
     loaded from numba's cache (:meth:`Tracker.warm_up`), so the run's time splits into the cluster's
     start and the work (``FleetResult.seconds_start``). Returns True (for ``Client.run``)."""
-    from estimator.ident.tracker import Tracker
+    from estimator.ident.tracking.tracker import Tracker
 
     pool, _ = _worker_parts(cfg)
     Tracker(cfg.tracker_config(), pool=pool).warm_up()
@@ -80,7 +80,7 @@ def process_group(key: str | None, paths: tuple[str, ...], cfg: Any, trace_optio
     that cannot be read gives one row with status ``error`` and the reason, and the others go on.
     ``tracker_config``: ``cfg.tracker_config()``, if the caller has it (the same for every group)."""
     from estimator.errors import EstimatorError
-    from estimator.ident.tracker import Tracker
+    from estimator.ident.tracking.tracker import Tracker
     from estimator.pipeline.estimates import iter_estimates, new_pipeline, source_kind
 
     pool, codec = _worker_parts(cfg)

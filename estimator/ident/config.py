@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass, field
 
 from estimator.choices import Choice, ColdStart, Norm, Robust
-from estimator.ident.adequacy import EXCESS_Z_THRESHOLD, STRUCTURE_THRESHOLD
+from estimator.ident.fit.adequacy import EXCESS_Z_THRESHOLD, STRUCTURE_THRESHOLD
 from estimator.model.parameters import InjectorParameters
 from estimator.units import UM_PER_M
 

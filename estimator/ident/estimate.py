@@ -20,10 +20,10 @@ class Estimate:
     ``cov`` is the covariance of (N_u [N/V], L_h [m]) from the Gauss–Newton model and the noise
     level estimated from the residual, plus ``model_error_cov`` (in (N/V, µm)) where the model cannot
     explain the samples (status ``model_mismatch``: the bias that implies, see
-    :mod:`estimator.ident.mismatch`; ``model_error_d`` the difference to the other cost's estimate in
+    :mod:`estimator.ident.fit.mismatch`; ``model_error_d`` the difference to the other cost's estimate in
     (N/V, µm), zero if it was not made); ``structure_chi2`` is the adequacy test's statistic of the plain
     model; ``preload_chi2`` and ``preload_delta_n`` the test of the header's preload force where it was
-    made (:func:`estimator.ident.mismatch.preload_check`), ``preload_shift`` the move the samples' own force implies
+    made (:func:`estimator.ident.fit.mismatch.preload_check`), ``preload_shift`` the move the samples' own force implies
     where it is suspect (in ``model_error_cov``), ``preload_wrong`` whether the header is wrong; ``jtj`` and ``directions`` are in (N/V, µm) coordinates.
     """
 

@@ -33,7 +33,7 @@ class Status(str, Enum):
 
 class Learning(str, Enum):
     """Where an injector's learning of its own model stands (the words of ``ModelCalibration.State``;
-    their codes are the DBC's, ``VAL_ 515 State``). See :mod:`estimator.ident.learning`."""
+    their codes are the DBC's, ``VAL_ 515 State``). See :mod:`estimator.ident.learning.learning`."""
 
     IDLE = "idle"                    # the configured tables explain this injector: nothing to learn
     LEARNING = "learning"            # collecting injections over operating points (progress: batch, preload span)

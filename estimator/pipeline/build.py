@@ -11,9 +11,9 @@ from estimator.codec.bus_clock import BusClock
 from estimator.codec.ingest import Ingest
 from estimator.codec.records import Codec, InjectionHeader, load_database
 from estimator.drive.correction import DriveCompensator
-from estimator.ident.selfcal import Calibrator
+from estimator.ident.learning.selfcal import Calibrator
 from estimator.ident.simulators import SimulatorPool
-from estimator.ident.tracker import Tracker
+from estimator.ident.tracking.tracker import Tracker
 from estimator.pipeline.config import EstimatorConfig, load_amplifier_drive
 from estimator.pipeline.processor import Processor
 

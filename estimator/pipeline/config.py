@@ -37,7 +37,7 @@ from estimator.drive.standard import AmplifierDrive
 from estimator.drive.target import DriveTarget
 from estimator.errors import EstimatorError
 from estimator.ident.config import IdentConfig, TrackerConfig
-from estimator.ident.selfcal import SelfCalConfig
+from estimator.ident.learning.selfcal import SelfCalConfig
 from estimator.pipeline.processor import COMMAND_POLICIES
 from estimator.units import US_PER_S
 

@@ -19,7 +19,7 @@ from typing import Any
 
 from estimator.codec.records import Codec
 from estimator.ident.simulators import SimulatorPool
-from estimator.ident.tracker import Tracker
+from estimator.ident.tracking.tracker import Tracker
 from estimator.io.captures import CAPTURE_SUFFIXES
 from estimator.io.mdf import is_mdf, read_any_trace
 from estimator.io.traces import csv_head, injection_from_trace

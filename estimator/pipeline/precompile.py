@@ -22,7 +22,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from estimator.ident.tracker import Tracker
+    from estimator.ident.tracking.tracker import Tracker
 
 import os
 import subprocess
@@ -35,7 +35,7 @@ MARKER = ".complete"   # in the numba cache directory: every entry point of Trac
 
 def _tracker() -> Tracker:
     """A tracker with the default configuration and its own simulator pool."""
-    from estimator.ident.tracker import Tracker
+    from estimator.ident.tracking.tracker import Tracker
     from estimator.pipeline.build import build_pool
     from estimator.pipeline.config import EstimatorConfig
 
@@ -50,10 +50,10 @@ def warm_cold_start(tracker: Tracker) -> None:
     against, not to fit well."""
     import numpy as np
 
-    from estimator.ident.cold_start import gauss_newton_fit, probe_ring
     from estimator.ident.coords import UM_PER_M
-    from estimator.ident.idle_stroke import _cost_model, predict_valve, search_box
-    from estimator.ident.local_fit import local_fit
+    from estimator.ident.fit.cold_start import gauss_newton_fit, probe_ring
+    from estimator.ident.fit.idle_stroke import _cost_model, predict_valve, search_box
+    from estimator.ident.fit.local_fit import local_fit
     from estimator.ident.measurement import Injection
     from estimator.model.drive import SAMPLE_PERIOD_S, StandardDrive
 

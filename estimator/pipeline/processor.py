@@ -32,10 +32,10 @@ from estimator.codec.records import (
 )
 from estimator.drive.correction import CORRECTION_STATES, Correction, DriveCompensator, correction_after
 from estimator.errors import ParameterError
+from estimator.ident.learning.selfcal import CalibrationStatus
 from estimator.ident.measurement import Injection
-from estimator.ident.selfcal import CalibrationStatus
 from estimator.ident.status import Learning, Status
-from estimator.ident.tracker import Tracker, TrackResult
+from estimator.ident.tracking.tracker import Tracker, TrackResult
 from estimator.pipeline.ratelimit import RateLimitedLog
 from estimator.units import PER_MICRO, UM_PER_M, US_PER_S
 

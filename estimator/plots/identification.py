@@ -8,8 +8,8 @@ import numpy as np
 
 from estimator.errors import EstimatorError
 from estimator.ident.config import IdentConfig
-from estimator.ident.cost import CostModel
-from estimator.ident.idle_stroke import effective_window_s, identify, search_box
+from estimator.ident.fit.cost import CostModel
+from estimator.ident.fit.idle_stroke import effective_window_s, identify, search_box
 from estimator.ident.measurement import Injection
 from estimator.model.fast_sim import FastSimulator
 from estimator.plots.figures import pyplot, save

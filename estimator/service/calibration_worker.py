@@ -1,7 +1,7 @@
 """The daemon's background calibrator: self-calibrations in a process of their own, at low priority.
 
 A batch calibration takes seconds of computing; the injection worker must keep its sub-millisecond
-updates meanwhile. :class:`BackgroundCalibrator` runs :func:`~estimator.ident.selfcal.self_calibrate`
+updates meanwhile. :class:`BackgroundCalibrator` runs :func:`~estimator.ident.learning.selfcal.self_calibrate`
 in one worker process (started with the calibrator, ``spawn``: the daemon has threads, a forked copy
 of them would not be safe), at idle priority (``SCHED_IDLE``; niced where that is not available) so
 that the kernel prefers the daemon's own threads, one calibration at a time. When one finishes, a
@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from estimator.ident.selfcal import (
+from estimator.ident.learning.selfcal import (
     CalibrationOutcome,
     CalibrationStatus,
     CalibrationWindow,

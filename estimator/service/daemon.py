@@ -29,7 +29,7 @@ from estimator import __version__
 from estimator.codec.assembler import Completed
 from estimator.codec.frame import Frame
 from estimator.errors import EstimatorError
-from estimator.ident.tracker import Tracker
+from estimator.ident.tracking.tracker import Tracker
 from estimator.io.captures import to_frame, to_message
 from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.pipeline import build_pipeline, build_pool, build_tracker

@@ -21,8 +21,8 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from estimator.errors import EstimatorError
-from estimator.ident.selfcal import CalibrationStatus
-from estimator.ident.tracker import TrackerState
+from estimator.ident.learning.selfcal import CalibrationStatus
+from estimator.ident.tracking.tracker import TrackerState
 from estimator.model.parameters import InjectorParameters
 
 log = logging.getLogger(__name__)

@@ -13,10 +13,10 @@ from typing import Any
 import numpy as np
 
 from estimator.ident.config import IdentConfig, TrackerConfig
-from estimator.ident.crb import crb, crb_opening_time
-from estimator.ident.idle_stroke import identify
+from estimator.ident.fit.crb import crb, crb_opening_time
+from estimator.ident.fit.idle_stroke import identify
 from estimator.ident.measurement import Injection
-from estimator.ident.tracker import Tracker
+from estimator.ident.tracking.tracker import Tracker
 from estimator.model.drive import Drive
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import NOMINAL_PRELOAD_N, load_nominal

@@ -27,8 +27,8 @@ from typing import Any
 import numpy as np
 
 from estimator.ident.config import TrackerConfig
-from estimator.ident.selfcal import SelfCalConfig
-from estimator.ident.tracker import Tracker
+from estimator.ident.learning.selfcal import SelfCalConfig
+from estimator.ident.tracking.tracker import Tracker
 from sim_bench.benches.table import Column, keyed, render, verdict
 from sim_bench.hardware.series_life import LotSpec, draw_lot
 

@@ -21,8 +21,8 @@ import time
 from dataclasses import replace
 from typing import Any
 
-from estimator.ident.electrical import calibrate_electrical, confirmed_out_of_tolerance
-from estimator.ident.selfcal import CalibrationWindow, SelfCalConfig, self_calibrate
+from estimator.ident.learning.electrical import calibrate_electrical, confirmed_out_of_tolerance
+from estimator.ident.learning.selfcal import CalibrationWindow, SelfCalConfig, self_calibrate
 from estimator.model.chain import NO_CHAIN
 from estimator.model.parameters import load_nominal
 from sim_bench.hardware import series_part

@@ -170,7 +170,7 @@ def flood(bus_spec: str, out: Path, frames: int = 5000, seed: int = 3) -> dict:
 
 def poisoned_state(bus_spec: str, out: Path) -> dict:
     """A state file with one good injector and three poisoned ones; the daemon must start and serve."""
-    from estimator.ident.tracker import Tracker
+    from estimator.ident.tracking.tracker import Tracker
 
     state = out / "state"
     state.mkdir(parents=True, exist_ok=True)

@@ -12,7 +12,7 @@ Each injector draws every structural parameter within ±10 % of Tables 1-2
 - ``mismatch``: the chain plus the hysteresis/series-resistance plant, which no parameter set of the
   model explains: the calibration must say so (and is then not used), the estimates stay honest.
 
-**Offline**: :func:`~estimator.ident.electrical.calibrate_electrical` on the first 30 injections,
+**Offline**: :func:`~estimator.ident.learning.electrical.calibrate_electrical` on the first 30 injections,
 the result written as a parameter file and loaded back as a user would (``--params``); each of the
 last 30 identified alone (cold start) with it and, for comparison, with the nominal parameters.
 Targets (``plain`` and ``chain``): L_h RMS <= 0.1 µm, max <= 0.2 µm, N_u within 0.2 %, each
@@ -30,11 +30,11 @@ from typing import Any
 
 import numpy as np
 
-from estimator.ident.electrical import calibrate_electrical
-from estimator.ident.idle_stroke import identify
+from estimator.ident.fit.idle_stroke import identify
+from estimator.ident.learning.electrical import calibrate_electrical
+from estimator.ident.learning.selfcal import CalibrationStatus, SelfCalConfig
 from estimator.ident.measurement import Injection
-from estimator.ident.selfcal import CalibrationStatus, SelfCalConfig
-from estimator.ident.tracker import Tracker
+from estimator.ident.tracking.tracker import Tracker
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import NOMINAL_PRELOAD_N, InjectorParameters, load_nominal
 from sim_bench.benches.table import Column, keyed, render, verdict

@@ -25,7 +25,7 @@ import numpy as np
 from estimator.ident.config import TrackerConfig
 from estimator.ident.measurement import Injection
 from estimator.ident.status import Status
-from estimator.ident.tracker import Tracker
+from estimator.ident.tracking.tracker import Tracker
 from estimator.model.drive import Drive, StandardDrive
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import NOMINAL_PRELOAD_N

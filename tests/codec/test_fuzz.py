@@ -12,7 +12,7 @@ from estimator.codec.frame import Frame
 from estimator.codec.ingest import Ingest
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec
-from estimator.ident.tracker import Tracker
+from estimator.ident.tracking.tracker import Tracker
 from estimator.pipeline.processor import Processor
 
 from ..helpers import measured

@@ -48,7 +48,7 @@ def test_an_unmeasured_fuel_temperature_is_nan_in_the_record_and_the_dbcs_minimu
 def test_a_restored_state_holds_a_fuel_temperature_the_bus_can_carry():
     """The pipeline's tracker takes the contract's FuelTemperature range from the DBC for the states it
     restores; a library tracker without a contract only asks for a finite one."""
-    from estimator.ident.tracker import Tracker, TrackerState
+    from estimator.ident.tracking.tracker import Tracker, TrackerState
     from estimator.pipeline import build_tracker
     from estimator.service.config import DaemonConfig
     tracker = build_tracker(DaemonConfig())

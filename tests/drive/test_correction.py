@@ -195,10 +195,10 @@ def test_the_motion_uncertainty_replaces_the_share_of_n_u_and_l_h_it_stands_for(
     model learned from a first window only is not trusted with that statement until its refinement."""
 
     from estimator.drive.correction import correction_after
+    from estimator.ident.learning.selfcal import CalibrationStatus
     from estimator.ident.measurement import Injection
-    from estimator.ident.selfcal import CalibrationStatus
     from estimator.ident.status import Learning
-    from estimator.ident.tracker import Tracker
+    from estimator.ident.tracking.tracker import Tracker
     from estimator.model.drive import STANDARD_AMPLITUDE_A, StandardDrive
     from estimator.model.fast_sim import FastSimulator
     from estimator.model.parameters import CalibrationUncertainty, load_nominal

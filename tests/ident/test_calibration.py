@@ -7,8 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from estimator.ident.adaptation import adapt_nu
-from estimator.ident.calibration import CalibrationTrace, calibrate, to_toml
+from estimator.ident.fit.adaptation import adapt_nu
+from estimator.ident.learning.calibration import CalibrationTrace, calibrate, to_toml
 from estimator.ident.measurement import Injection
 from estimator.model.drive import sample_times, standard_drive
 from estimator.model.parameters import InjectorParameters

@@ -65,7 +65,7 @@ def test_compiled_nuisance_span_is_the_numpy_one():
     """The compiled nuisance columns are the numpy formulas bit for bit; the residual energy in their
     span is the least-squares projection's, with raw columns (normal equations) and with the
     orthonormal basis."""
-    from estimator.ident.cost import NUISANCE_THRESHOLDS, model_error_statistic, nuisance_basis, nuisance_columns
+    from estimator.ident.fit.cost import NUISANCE_THRESHOLDS, model_error_statistic, nuisance_basis, nuisance_columns
     from estimator.model.drive import StandardDrive
     rng = np.random.default_rng(3)
     dt = 0.5e-6
@@ -90,7 +90,7 @@ def test_compiled_nuisance_span_is_the_numpy_one():
 def test_noise_level_is_the_middle_absolute_difference(n):
     """The one noise estimate both fit paths use: the upper middle of the sorted |first differences|,
     as a white-noise sigma (MAD of a difference of two samples), floored at 1 mV."""
-    from estimator.ident.cost import MAD_PER_SIGMA, NOISE_FLOOR_V, noise_sigma_v
+    from estimator.ident.fit.cost import MAD_PER_SIGMA, NOISE_FLOOR_V, noise_sigma_v
     rng = np.random.default_rng(n)
     r = rng.normal(0.0, 0.1, n) + np.linspace(0.0, 3.0, n)     # a smooth trend differencing removes
     d = np.sort(np.abs(np.diff(r)))
@@ -129,8 +129,8 @@ def test_search_box_and_noise_kept_per_simulator_weakly():
     import gc
     import weakref
 
-    from estimator.ident import recursive as tr
-    from estimator.ident.idle_stroke import search_box
+    from estimator.ident.fit.idle_stroke import search_box
+    from estimator.ident.tracking import recursive as tr
     from estimator.model.fast_sim import FastSimulator
     config = TrackerConfig()
     s = FastSimulator()
@@ -154,7 +154,7 @@ def test_search_box_and_noise_kept_per_simulator_weakly():
 def test_refine_step_rules_in_floats_are_the_numpy_rules():
     """refine's step sizes and Gauss–Newton tests, written in floats for speed, give what the numpy
     expressions they replace give, NaN, inf, zero and negative variances included."""
-    from estimator.ident.local_fit import _within, next_steps
+    from estimator.ident.fit.local_fit import _within, next_steps
     rng = np.random.default_rng(0)
     tol = (2e-4, 2e-3)
     for _ in range(5000):
@@ -172,7 +172,7 @@ def test_refine_step_rules_in_floats_are_the_numpy_rules():
 
 def _cycle(x: np.ndarray, criterion: float, gn_sigmas: tuple[float, float]):
     """A compiled cycle's outcome at ``x`` with unit variances and a Gauss–Newton step of ``gn_sigmas``."""
-    from estimator.ident.fit_kernel import FIT, KernelFit
+    from estimator.ident.fit.fit_kernel import FIT, KernelFit
     return KernelFit(FIT, 6, np.array(x, dtype=float), np.array([True, True]), np.full((2, 3), np.nan), criterion,
                     0.0, np.eye(2), np.array(gn_sigmas, dtype=float), 1.0, np.eye(2), np.zeros(3), np.nan, np.nan, True,
                     np.eye(2), np.ones(2))
@@ -185,9 +185,9 @@ def test_a_gauss_newton_point_that_confirms_the_minimum_ends_the_warm_refinement
     the Gauss–Newton point costs more than the vertex. If that fit, with its own Jacobian, puts the minimum
     within a quarter sigma of it, the vertex is converged: no second cycle of six simulations (what set
     the p99 of the warm update). Otherwise the second cycle runs as before."""
-    from estimator.ident import local_fit as lf
     from estimator.ident.config import IdentConfig
-    from estimator.ident.search import Box
+    from estimator.ident.fit import local_fit as lf
+    from estimator.ident.fit.search import Box
 
     calls = []
 
@@ -213,7 +213,7 @@ def test_the_warm_model_error_test_is_the_statistic_against_the_raw_columns_to_t
     """cost.plain_model_error (six columns summed in registers) equals model_error_statistic against
     nuisance_columns bit for bit: simulated windows of several lengths and noise levels, a current whose
     first column has unit norm (the orthonormal branch), and another number of thresholds (the general path)."""
-    from estimator.ident import cost
+    from estimator.ident.fit import cost
     from estimator.model.drive import StandardDrive
     rng = np.random.default_rng(3)
     base = StandardDrive().samples(150e-6)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from estimator.errors import ParameterError
-from estimator.ident.electrical import calibrate_electrical
+from estimator.ident.learning.electrical import calibrate_electrical
 from estimator.ident.measurement import Injection
 from estimator.io.traces import write_trace
 from estimator.model.parameters import InjectorParameters, load_nominal
@@ -35,7 +35,7 @@ def test_a_batch_at_several_preload_forces_recovers_the_part_and_its_idle_stroke
     """Seeded series part (every structural parameter within ±10 %): six injections at 28-300 N bring
     the voltage residual to the noise level; with the calibrated parameters a new injection at the
     nominal preload is ok and within 0.2 µm, where the nominal parameters are model_mismatch."""
-    from estimator.ident.idle_stroke import identify, predict_valve
+    from estimator.ident.fit.idle_stroke import identify, predict_valve
     from estimator.model.fast_sim import FastSimulator
 
     _part, plant, rng = _part_and_plant(5)
@@ -156,8 +156,8 @@ def test_self_calibration_adopts_the_injectors_own_model_and_then_it_is_ok():
     """The tracker collects a mismatched injector's injections; once they span the preload forces it
     calibrates, tests the result on held-out injections, adopts it and re-acquires: from then on the
     injector is explained (no model_mismatch) and its L_h is within 0.1 µm."""
-    from estimator.ident.selfcal import SelfCalConfig
-    from estimator.ident.tracker import Tracker
+    from estimator.ident.learning.selfcal import SelfCalConfig
+    from estimator.ident.tracking.tracker import Tracker
 
     _, plant, rng = _part_and_plant(5)
     tracker = Tracker(self_calibration=SelfCalConfig(window=10))
@@ -175,8 +175,8 @@ def test_self_calibration_adopts_the_injectors_own_model_and_then_it_is_ok():
 
 
 def test_self_calibration_stays_idle_on_an_injector_the_model_explains():
-    from estimator.ident.selfcal import SelfCalConfig
-    from estimator.ident.tracker import Tracker
+    from estimator.ident.learning.selfcal import SelfCalConfig
+    from estimator.ident.tracking.tracker import Tracker
 
     rng = np.random.default_rng(8)
     tracker = Tracker(self_calibration=SelfCalConfig(window=5))
@@ -208,8 +208,8 @@ def test_the_uncertainty_a_calibration_leaves_is_in_every_sigma_and_is_not_avera
     same for every injection of the injector, averaging must not shrink it below it."""
     from dataclasses import replace
 
-    from estimator.ident.idle_stroke import identify
-    from estimator.ident.tracker import Tracker
+    from estimator.ident.fit.idle_stroke import identify
+    from estimator.ident.tracking.tracker import Tracker
     from estimator.model.fast_sim import FastSimulator
     from estimator.model.parameters import CalibrationUncertainty
 
@@ -253,7 +253,7 @@ def test_the_pull_of_the_measured_currents_noise_on_the_chain_is_in_its_sigma(mo
     skew smooth away: an exact injector's chain comes out at about 0.2 µs each at 0.02 A of current
     noise. Its reported standard deviation includes that pull; without it the chain was beyond four
     of them."""
-    from estimator.ident import electrical
+    from estimator.ident.learning import electrical
 
     batch = _nominal_batch(0.02)
     res = calibrate_electrical(batch)
@@ -265,8 +265,8 @@ def test_the_pull_of_the_measured_currents_noise_on_the_chain_is_in_its_sigma(mo
 
 
 def test_noise_gain_and_current_noise():
-    from estimator.ident.adequacy import current_noise_a
-    from estimator.ident.electrical import noise_gain
+    from estimator.ident.fit.adequacy import current_noise_a
+    from estimator.ident.learning.electrical import noise_gain
 
     dt = 0.5e-6
     assert noise_gain(0.0, 0.0, dt) == 1.0

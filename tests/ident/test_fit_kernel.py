@@ -8,14 +8,14 @@ import pytest
 from scipy.optimize import least_squares
 
 from estimator.errors import ParameterError
-from estimator.ident import fit_kernel
-from estimator.ident.cold_start import gauss_newton_fit, unchecked_fit
 from estimator.ident.config import IdentConfig
-from estimator.ident.cost import CostModel, noise_sigma_v, nuisance_basis, trapezoid_weights
-from estimator.ident.idle_stroke import search_box
-from estimator.ident.local_fit import local_fit, refine
+from estimator.ident.fit import fit_kernel
+from estimator.ident.fit.cold_start import gauss_newton_fit, unchecked_fit
+from estimator.ident.fit.cost import CostModel, noise_sigma_v, nuisance_basis, trapezoid_weights
+from estimator.ident.fit.idle_stroke import search_box
+from estimator.ident.fit.local_fit import local_fit, refine
+from estimator.ident.fit.search import Box
 from estimator.ident.measurement import Injection
-from estimator.ident.search import Box
 
 F_OPEN_N = 28.0 * 1.25
 TRUTH = (16.6, 2.4)     # N/V, µm
@@ -80,7 +80,7 @@ def test_forward_fit_is_the_gauss_newton_model_of_the_simulators_voltage(sim, ro
 
 
 def fit_kernel_steps() -> np.ndarray:
-    from estimator.ident.local_fit import FD_STEP
+    from estimator.ident.fit.local_fit import FD_STEP
     return FD_STEP
 
 

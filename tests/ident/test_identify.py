@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from estimator.ident.config import IdentConfig
-from estimator.ident.idle_stroke import identify
+from estimator.ident.fit.idle_stroke import identify
 from estimator.ident.measurement import Injection
 
 from ..helpers import measured
@@ -40,7 +40,7 @@ def test_reported_sigma_is_consistent_with_the_scatter(sim):
 def test_sigma_covers_the_measured_currents_noise(sim, monkeypatch):
     """The simulation is driven by the measured current: at 0.02 A of current noise the N_u errors were
     1.8 times their voltage-noise-only sigma. With the current's noise in sigma they are covered."""
-    from estimator.ident import idle_stroke
+    from estimator.ident.fit import idle_stroke
     from sim_bench.hardware.plant import AdcConfig, Plant, PlantConfig
 
     def z_rms() -> float:
@@ -132,7 +132,7 @@ def test_the_sample_period_median_is_numpys_to_the_bit():
 
 @pytest.mark.parametrize("window_s", [100e-6, 150e-6])
 def test_the_plain_cost_shares_the_robust_costs_nuisance_basis_only_over_the_same_samples(sim, window_s):
-    from estimator.ident.cost import CostModel, nuisance_basis
+    from estimator.ident.fit.cost import CostModel, nuisance_basis
 
     inj, _ = measured(17.2, 2.5, 41, window_s=window_s)
     rob = CostModel(sim, inj, window_s, "l2", True)
@@ -166,15 +166,15 @@ def test_l1_norm_option(sim):
 def test_the_plain_and_robust_searches_share_their_grids_without_changing_either(sim, mismatch, window_s):
     """An automatic cold start simulates each grid both costs ask for once (over the longer
     window when the robust one reaches further); each search ends where it ends alone."""
-    from estimator.ident.cold_start import SharedGrid, cold_fit
-    from estimator.ident.idle_stroke import effective_window_s, search_box
+    from estimator.ident.fit.cold_start import SharedGrid, cold_fit
+    from estimator.ident.fit.idle_stroke import effective_window_s, search_box
 
     inj, _ = measured(17.6, 3.3, 21, mismatch=mismatch, window_s=window_s)
     config = IdentConfig(cold_start="global")   # the global search (what a local-first start falls back to)
     box = search_box(config, sim, inj.f_open_n)
 
     def model(robust: bool):
-        from estimator.ident.cost import CostModel
+        from estimator.ident.fit.cost import CostModel
         return CostModel(sim, inj, effective_window_s(config, inj, robust), config.norm, robust)
 
     alone = [model(r) for r in (False, True)]
@@ -196,7 +196,7 @@ def test_the_plain_and_robust_searches_share_their_grids_without_changing_either
 
 def _full_grid_profile_start(f, box, config):
     """The profile search with every row of every zoom column simulated (the reference)."""
-    from estimator.ident.cold_start import _column_minima
+    from estimator.ident.fit.cold_start import _column_minima
     nu = np.linspace(box.lo[0], box.hi[0], config.grid[0])
     lh = np.linspace(box.lo[1], box.hi[1], config.grid[1])
     for zoom in range(config.zooms + 1):
@@ -214,8 +214,8 @@ def test_zoom_columns_simulate_a_window_of_rows_and_find_the_full_grids_start(nu
     """A zoom column simulates only the rows near its neighbours' minima (widened where
     its minimum lands on the window's edge) and the start point is the full grid's, bit for bit,
     for a narrow sloping valley like eq. 28's (slope in µm per N/V)."""
-    from estimator.ident.cold_start import profile_start
-    from estimator.ident.search import Box
+    from estimator.ident.fit.cold_start import profile_start
+    from estimator.ident.fit.search import Box
 
     evaluated = []
 
@@ -236,7 +236,7 @@ def test_zoom_columns_simulate_a_window_of_rows_and_find_the_full_grids_start(nu
 def test_window_widens_until_the_column_minimum_is_inside():
     """A window that misses a column's minimum grows towards it until the minimum and both its
     neighbours are simulated: the same column minima as the whole column."""
-    from estimator.ident.cold_start import _column_minima, _window_profile
+    from estimator.ident.fit.cold_start import _column_minima, _window_profile
 
     nu = np.array([15.0, 16.0, 17.0])
     lh = np.linspace(-2.0, 10.0, 25)
@@ -295,10 +295,10 @@ def test_a_local_fit_that_does_not_explain_the_trace_falls_back_to_the_global_se
 def test_the_check_passes_the_minimum_and_fails_a_point_off_the_valley(sim):
     """excess_residual_z: noise-sized at the minimum of a correct model, far above the acceptance
     limit 0.05 N/V off the valley (where a local fit in another valley would stop)."""
-    from estimator.ident.cold_start import excess_residual_z
-    from estimator.ident.cost import CostModel
-    from estimator.ident.idle_stroke import search_box
-    from estimator.ident.local_fit import local_fit
+    from estimator.ident.fit.cold_start import excess_residual_z
+    from estimator.ident.fit.cost import CostModel
+    from estimator.ident.fit.idle_stroke import search_box
+    from estimator.ident.fit.local_fit import local_fit
     cfg = IdentConfig()
     inj, _ = measured(17.0, 3.0, 46)
     est = identify(inj, sim, IdentConfig(cold_start="global"))
@@ -320,8 +320,8 @@ def test_the_published_fit_is_ringed_and_the_other_only_where_the_choice_is_clos
     """The automatic cold start rings (16 probes) the fit it publishes; the other fit only enters the
     model-error statistic and is ringed too only where that statistic lies within FLIP_MARGIN of the
     threshold. Either way the published estimate is the same."""
-    from estimator.ident import cold_start
-    from estimator.ident.idle_stroke import FLIP_MARGIN
+    from estimator.ident.fit import cold_start
+    from estimator.ident.fit.idle_stroke import FLIP_MARGIN
     rings: list[bool] = []
     real = cold_start.probe_ring
     monkeypatch.setattr(cold_start, "probe_ring", lambda m, f, b: rings.append(m.robust) or real(m, f, b))

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from estimator.ident import kalman
+from estimator.ident.tracking import kalman
 
 NOISE = kalman.ProcessNoise(0.004, 0.02, 0.003, 0.001, 0.002, 0.01, 0.003, 1e-4, 600.0,
                             (9.0, 100.0, 0.04, 0.01))

@@ -10,9 +10,9 @@ import pytest
 
 from estimator.codec.ingest import Counters
 from estimator.codec.records import Codec, Command, EstimatorCommand
-from estimator.ident.selfcal import CalibrationOutcome, CalibrationStatus, SelfCalConfig
+from estimator.ident.learning.selfcal import CalibrationOutcome, CalibrationStatus, SelfCalConfig
 from estimator.ident.status import Learning, Status
-from estimator.ident.tracker import Tracker
+from estimator.ident.tracking.tracker import Tracker
 from estimator.pipeline.processor import Processor
 from estimator.service.config import DaemonConfig
 from estimator.service.state_store import load_learning, save_states
@@ -215,7 +215,7 @@ def test_a_calibration_that_moves_n_u_beyond_its_uncertainty_is_adopted_unless_i
     """The held-out voltage hardly tells apart two models whose structure scales with N_u: a
     calibration is adopted when it explains the held-out injections better, or no worse (by less than
     adopt_chi2) while it moves their N_u by more than adopt_shift_sigmas of its standard deviations."""
-    from estimator.ident.selfcal import _adoptable
+    from estimator.ident.learning.selfcal import _adoptable
 
     c = SelfCalConfig()
     assert _adoptable(c.adopt_chi2 + 1.0, 0.0, c)                       # better
@@ -253,7 +253,7 @@ def test_narrow_after_is_read_from_the_daemons_file():
 def test_a_window_at_one_preload_force_is_calibrated_once_it_has_waited_narrow_after():
     """A full window short of min_preload_spread waits narrow_after more injections, then is ready
     (an injector at one rail pressure learns too); narrow_after = 0 waits for the span for ever."""
-    from estimator.ident.selfcal import CalibrationWindow
+    from estimator.ident.learning.selfcal import CalibrationWindow
 
     c = SelfCalConfig(window=5, held_out=2, narrow_after=3)
     w = CalibrationWindow(c.window)
@@ -313,7 +313,7 @@ def test_a_refinement_adopted_on_its_n_u_shift_states_the_disagreement_in_its_st
     and a part's stroke was then 0.24 µm off with σ 0.04); a statement that covers it already stays."""
     from dataclasses import replace
 
-    from estimator.ident.selfcal import disagreement
+    from estimator.ident.learning.selfcal import disagreement
     from estimator.model.parameters import CalibrationUncertainty, load_nominal
 
     params = replace(load_nominal(), calibration=CalibrationUncertainty(nu_rel_sigma=0.003, stroke_rel_sigma=0.003))

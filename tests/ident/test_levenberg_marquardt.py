@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
-from estimator.ident.levenberg_marquardt import least_squares_lm
+from estimator.ident.fit.levenberg_marquardt import least_squares_lm
 
 
 def _problem(seed: int):

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from estimator.errors import ParameterError
-from estimator.ident.adequacy import assess, noise_level_v, smooth_basis
 from estimator.ident.config import IdentConfig, TrackerConfig
 from estimator.ident.estimate import rejected
-from estimator.ident.idle_stroke import identify
+from estimator.ident.fit.adequacy import assess, noise_level_v, smooth_basis
+from estimator.ident.fit.idle_stroke import identify
 from estimator.ident.measurement import Injection
 from estimator.ident.status import ESTIMATED, Status
-from estimator.ident.tracker import Tracker, TrackerState
+from estimator.ident.tracking.tracker import Tracker, TrackerState
 from estimator.model.chain import MeasurementChain, lowpass, shift, unfilter
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import InjectorParameters, load_nominal
@@ -188,9 +188,9 @@ def test_one_inadequate_injection_among_adequate_ones_does_not_flag_the_injector
     injector's first estimate decides at once."""
     from estimator.ident.config import TrackerConfig
     from estimator.ident.estimate import Estimate
-    from estimator.ident.recursive import _note_mismatch
     from estimator.ident.status import Status
-    from estimator.ident.tracker_state import TrackerState
+    from estimator.ident.tracking.recursive import _note_mismatch
+    from estimator.ident.tracking.tracker_state import TrackerState
 
     cfg = TrackerConfig()
     bad = Estimate(17.0, 4e-6, np.eye(2) * 1e-14, 0.0, 0.0, 1, Status.MODEL_MISMATCH, structure_chi2=80.0,
@@ -212,9 +212,9 @@ def test_a_mismatched_injector_is_reacquired_by_a_local_fit_not_the_global_searc
     residual is no worse than the injector's usual one is kept. The estimates stay where the global
     search puts them (within a fraction of their σ)."""
     from estimator.codec.records import Codec
-    from estimator.ident import recursive as tracker_mod
     from estimator.ident.measurement import Injection
-    from estimator.ident.tracker import Tracker
+    from estimator.ident.tracking import recursive as tracker_mod
+    from estimator.ident.tracking.tracker import Tracker
     from sim_bench.benches.daemon_bench import injection_pool
 
     pool = injection_pool(Codec(), injectors=3, per_injector=24, series=True)
@@ -312,7 +312,7 @@ def test_the_tracker_holds_a_wrong_header_preload_between_its_tests_and_keeps_it
 def test_a_robust_warm_search_that_runs_out_of_cycles_goes_on_instead_of_reacquiring(monkeypatch):
     """A mismatched injector's optimum moves with its operating point: where the warm search stops
     short, it continues from there (≈ 0.5 ms) rather than re-acquiring the injector (2-4 ms)."""
-    import estimator.ident.recursive as tracker_module
+    import estimator.ident.tracking.recursive as tracker_module
 
     rng = np.random.default_rng(8)
     part = SeriesPart({"psa.kg1_n_per_m": 0.9, "psa.kp_n_per_m": 1.1, "valve.kv1_n_per_m": 0.8})
@@ -342,7 +342,7 @@ def test_a_robust_warm_search_that_runs_out_of_cycles_goes_on_instead_of_reacqui
 
 
 def test_the_current_noise_sizing_is_held_between_tests_and_kept_in_the_state():
-    from estimator.ident.recursive import PRELOAD_CHECK_EVERY
+    from estimator.ident.tracking.recursive import PRELOAD_CHECK_EVERY
     rng = np.random.default_rng(5)
     plant = Plant(PlantConfig(window_s=150e-6))
     tr = Tracker(TrackerConfig())

@@ -10,7 +10,7 @@ import pytest
 from estimator.ident.config import TrackerConfig
 from estimator.ident.measurement import Injection
 from estimator.ident.status import Status
-from estimator.ident.tracker import Tracker, TrackerState
+from estimator.ident.tracking.tracker import Tracker, TrackerState
 
 from ..helpers import COLD_MIN_EVALUATIONS, WARM_MAX_EVALUATIONS, measured, record_codes
 
@@ -134,7 +134,7 @@ def test_a_cold_start_that_chose_the_robust_cost_switches_the_mode_at_once(sim, 
     """A first estimate with model error puts the tracker in robust mode with it: the injections after
     it are warm robust updates, none rejected, and the cold start runs once (it used to run twice and
     leave the tracker plain, so the next two injections were rejected as outliers)."""
-    import estimator.ident.recursive as tracker_mod
+    import estimator.ident.tracking.recursive as tracker_mod
     colds = []
     real = tracker_mod._cold_estimate
     monkeypatch.setattr(tracker_mod, "_cold_estimate", lambda *a: colds.append(1) or real(*a))
@@ -150,8 +150,8 @@ def test_a_cold_starts_valve_prediction_is_published_not_made_again(sim, monkeyp
     """The first injection's published contact, opening and stroke are its cold start's own prediction
     (one prediction simulated, not two, the numbers a prediction at the published point gives); a warm
     update's are predicted for its filtered point."""
-    import estimator.ident.recursive as tracker_mod
-    from estimator.ident.idle_stroke import predict_valve
+    import estimator.ident.tracking.recursive as tracker_mod
+    from estimator.ident.fit.idle_stroke import predict_valve
     calls = []
     monkeypatch.setattr(tracker_mod, "predict_valve", lambda *a: calls.append(1) or predict_valve(*a))
     tr = Tracker(sim=sim)
@@ -212,7 +212,7 @@ def test_prior_and_reset(sim):
 
 
 def test_warm_up_runs_a_cold_start_and_compiled_warm_updates_without_touching_the_states(monkeypatch):
-    from estimator.ident import fit_kernel, local_fit
+    from estimator.ident.fit import fit_kernel, local_fit
     codes = record_codes(monkeypatch, local_fit, "run_cycle")
     tr = Tracker(TrackerConfig())
     tr.set_prior(3, 17.0, 2.0)

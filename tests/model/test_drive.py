@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from estimator.errors import TraceError
-from estimator.ident.idle_stroke import predict_valve
+from estimator.ident.fit.idle_stroke import predict_valve
 from estimator.ident.measurement import Injection
 from estimator.io.traces import read_trace
 from estimator.model import drive as drv

@@ -8,7 +8,7 @@ import pytest
 from estimator.codec.ingest import Counters
 from estimator.codec.records import Codec, Command, EstimatorCommand, EstimatorStatus
 from estimator.ident.config import TrackerConfig
-from estimator.ident.tracker import Tracker, TrackerState
+from estimator.ident.tracking.tracker import Tracker, TrackerState
 from estimator.pipeline.processor import Processor
 
 

@@ -10,7 +10,7 @@ from estimator.codec.bus_clock import BusClock
 from estimator.ident.config import TrackerConfig
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.status import Status
-from estimator.ident.tracker import Tracker
+from estimator.ident.tracking.tracker import Tracker
 
 from ..helpers import measured
 

@@ -125,7 +125,7 @@ def test_config_fuzz_never_raises_anything_but_a_config_error():
     Either a valid configuration (every value of the right type and in range) or one ConfigError line
     that names the key (or its table)."""
     from estimator.ident.config import IdentConfig, TrackerConfig
-    from estimator.ident.selfcal import SelfCalConfig
+    from estimator.ident.learning.selfcal import SelfCalConfig
     rng = random.Random(10)
     names = [f.name for f in fields(DaemonConfig)] + ["ident"]
     section_keys = {"ident": [f.name for f in fields(IdentConfig)], "tracker": [f.name for f in fields(TrackerConfig)],

@@ -20,7 +20,7 @@ from estimator.codec.records import (
     EstimatorStatus,
     ValvePrediction,
 )
-from estimator.ident.tracker import Tracker
+from estimator.ident.tracking.tracker import Tracker
 from estimator.io.captures import to_frame, to_message
 from estimator.service.config import DaemonConfig
 from estimator.service.daemon import Daemon

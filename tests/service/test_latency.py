@@ -8,7 +8,7 @@ import pytest
 from estimator.codec.ingest import Counters
 from estimator.codec.records import Codec
 from estimator.ident.config import TrackerConfig
-from estimator.ident.tracker import Tracker
+from estimator.ident.tracking.tracker import Tracker
 from estimator.pipeline.processor import Processor
 from estimator.service.latency import STAGES, Stats
 

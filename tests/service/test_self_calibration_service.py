@@ -15,9 +15,15 @@ import pytest
 from estimator.codec.database import default_dbc_path
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateState, EstimatorStatus, ModelCalibration
+from estimator.ident.learning.selfcal import (
+    STATES,
+    CalibrationOutcome,
+    CalibrationStatus,
+    CalibrationWindow,
+    SelfCalConfig,
+)
 from estimator.ident.measurement import Injection
-from estimator.ident.selfcal import STATES, CalibrationOutcome, CalibrationStatus, CalibrationWindow, SelfCalConfig
-from estimator.ident.tracker import Tracker
+from estimator.ident.tracking.tracker import Tracker
 from estimator.io.captures import to_frame, to_message
 from estimator.model.parameters import load_nominal, scaled
 from estimator.pipeline.processor import calibration_frame

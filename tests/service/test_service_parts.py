@@ -13,7 +13,7 @@ import uuid
 
 import pytest
 
-from estimator.ident.tracker import TrackerState
+from estimator.ident.tracking.tracker import TrackerState
 from estimator.service.bus import BusSetupError, BusSpec, check_socketcan
 from estimator.service.config import ConfigError, DaemonConfig
 from estimator.service.state_store import load_states, save_states

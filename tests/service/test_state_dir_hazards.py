@@ -14,11 +14,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimator.ident import kalman
 from estimator.ident.config import TrackerConfig
-from estimator.ident.recursive import _store
-from estimator.ident.tracker import Tracker, TrackerState
-from estimator.ident.tracker_state import state_bounds
+from estimator.ident.tracking import kalman
+from estimator.ident.tracking.recursive import _store
+from estimator.ident.tracking.tracker import Tracker, TrackerState
+from estimator.ident.tracking.tracker_state import state_bounds
 from estimator.service.config import DaemonConfig
 from estimator.service.daemon import Daemon
 from estimator.service.state_store import (

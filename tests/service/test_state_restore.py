@@ -13,7 +13,7 @@ import random
 import pytest
 
 from estimator.ident.config import TrackerConfig
-from estimator.ident.tracker import Tracker
+from estimator.ident.tracking.tracker import Tracker
 from estimator.service.config import DaemonConfig
 from estimator.service.daemon import Daemon
 from estimator.service.state_store import FORMAT, VERSION, load_states, save_states
@@ -123,7 +123,7 @@ def test_round_trip_of_a_good_file(tmp_path, good_entry):
 
 
 def _saved(tmp_path, entry):
-    from estimator.ident.tracker import TrackerState
+    from estimator.ident.tracking.tracker import TrackerState
     path = tmp_path / "estimator-state.json"
     st = TrackerState.from_dict(entry)
     save_states(path, {0: st, 5: st})

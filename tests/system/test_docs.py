@@ -58,7 +58,7 @@ def test_every_config_key_is_documented():
     page = (DOCS / "guide" / "configuration.md").read_text(encoding="utf-8")
     assert "literalinclude:: ../../systemd/estimator.toml" in page or "{literalinclude} ../../systemd/estimator.toml" in page
     from estimator.ident.config import IdentConfig, TrackerConfig
-    from estimator.ident.selfcal import SelfCalConfig
+    from estimator.ident.learning.selfcal import SelfCalConfig
     for f in dataclasses.fields(DaemonConfig):
         if f.name in SECTIONS:
             continue

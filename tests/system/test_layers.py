@@ -1,4 +1,4 @@
-"""Imports point one way: model/ident (numpy, scipy) <- codec (cantools) <- io (trace files, python-can's
+"""Imports point one way: model/ident (numpy, scipy; inside ident: fit <- learning <- tracking) <- codec (cantools) <- io (trace files, python-can's
 capture files) <- pipeline (configuration, builders, processing, offline runs) <- service (the live bus,
 threads) <- fleet (dask) <- the command lines. Lazy imports inside functions count too."""
 
@@ -19,6 +19,11 @@ FORBIDDEN = {
     "estimator/_compiled": {"cantools", "estimator.model", "estimator.ident", "estimator.codec"} | ABOVE_CODEC,
     "estimator/model": {"cantools", "estimator.ident", "estimator.codec", "logging"} | ABOVE_CODEC,
     "estimator/ident": {"cantools", "estimator.codec", "estimator.drive"} | ABOVE_CODEC,
+    # inside it, rooms: one injection's fit <- an injector's own model <- the recursive estimator
+    "estimator/ident/fit": {"estimator.ident.tracking", "estimator.ident.learning", "cantools", "estimator.codec",
+                            "estimator.drive"} | ABOVE_CODEC,
+    "estimator/ident/learning": {"estimator.ident.tracking", "cantools", "estimator.codec",
+                                 "estimator.drive"} | ABOVE_CODEC,
     "estimator/drive": {"cantools", "estimator.codec"} | ABOVE_CODEC,
     "estimator/codec": ABOVE_CODEC,
     "estimator/io": ABOVE_IO,

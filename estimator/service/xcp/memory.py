@@ -192,7 +192,7 @@ def _limit(key: str, end: int) -> tuple[Callable[[Any], float], Callable[[Any, f
 
 def _learning_mode() -> tuple[Callable[[Any], float], Callable[[Any, float], Any]]:
     def put(cfg: Any, value: float) -> Any:
-        from estimator.ident.selfcal import SelfCalConfig
+        from estimator.ident.learning.selfcal import SelfCalConfig
         if value == 0:
             return replace(cfg, self_calibration=None)
         return cfg if cfg.self_calibration is not None else replace(cfg, self_calibration=SelfCalConfig())

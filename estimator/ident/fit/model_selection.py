@@ -1,6 +1,6 @@
 """Model selection between the plain and the robust cost (likelihood ratio, chi-square with 6 dof).
 
-The robust cost adds the nuisance span (:mod:`estimator.ident.cost`) to the plain model, so the
+The robust cost adds the nuisance span (:mod:`estimator.ident.fit.cost`) to the plain model, so the
 two are nested: under a correct model ``(RSS_plain - RSS_robust) / sigma^2`` is chi-square with as
 many degrees of freedom as the span has columns. Far beyond that, the plain fit is absorbing a
 smooth model error in its (N_u, L_h) and the robust estimate is the one to use.
@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import math
 
-from estimator.ident.cost import CostModel, noise_sigma_v
-from estimator.ident.local_fit import LocalFit
+from estimator.ident.fit.cost import CostModel, noise_sigma_v
+from estimator.ident.fit.local_fit import LocalFit
 
 
 def likelihood_ratio(m_plain: CostModel, f_plain: LocalFit, m_rob: CostModel, f_rob: LocalFit) -> float:

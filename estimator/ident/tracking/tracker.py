@@ -1,7 +1,7 @@
 """The per-injector bank of the recursive estimator (:class:`Tracker`): one state per injector id
-(:mod:`estimator.ident.tracker_state`), each updated by the algorithm of
-:mod:`estimator.ident.recursive`; simulators from a bounded pool; and, with learning on, each
-injector's lifecycle (:class:`~estimator.ident.learning.Learner`) with its own model once it has one."""
+(:mod:`estimator.ident.tracking.tracker_state`), each updated by the algorithm of
+:mod:`estimator.ident.tracking.recursive`; simulators from a bounded pool; and, with learning on, each
+injector's lifecycle (:class:`~estimator.ident.learning.learning.Learner`) with its own model once it has one."""
 
 from __future__ import annotations
 
@@ -12,21 +12,21 @@ import numpy as np
 
 from estimator.choices import ColdStart
 from estimator.ident.config import TrackerConfig
-from estimator.ident.cost import plain_model_error
-from estimator.ident.electrical import beyond_bounds
 from estimator.ident.estimate import rejected
-from estimator.ident.idle_stroke import (
+from estimator.ident.fit.cost import plain_model_error
+from estimator.ident.fit.idle_stroke import (
     identify,
     screen,
 )
-from estimator.ident.learning import Learner
+from estimator.ident.fit.search import Box
+from estimator.ident.learning.electrical import beyond_bounds
+from estimator.ident.learning.learning import Learner
+from estimator.ident.learning.selfcal import CalibrationStatus, Calibrator, SelfCalConfig
 from estimator.ident.measurement import Injection
-from estimator.ident.recursive import TrackResult, publish, update
-from estimator.ident.search import Box
-from estimator.ident.selfcal import CalibrationStatus, Calibrator, SelfCalConfig
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.status import Learning, Status
-from estimator.ident.tracker_state import TrackerState, physical_problem
+from estimator.ident.tracking.recursive import TrackResult, publish, update
+from estimator.ident.tracking.tracker_state import TrackerState, physical_problem
 from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters
@@ -37,7 +37,7 @@ __all__ = ["TrackResult", "Tracker", "TrackerState"]
 class Tracker:
     """The per-injector bank: one :class:`TrackerState` per injector id, simulators from a bounded
     pool, and (with ``self_calibration``) each injector's learning lifecycle
-    (:class:`~estimator.ident.learning.Learner`) with the injector's own model once it has one."""
+    (:class:`~estimator.ident.learning.learning.Learner`) with the injector's own model once it has one."""
 
     def __init__(self, config: TrackerConfig | None = None, sim: FastSimulator | None = None,
                  pool: SimulatorPool | None = None, self_calibration: SelfCalConfig | None = None,

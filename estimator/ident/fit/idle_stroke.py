@@ -8,7 +8,7 @@ local Gauss–Newton fit and refinement (:mod:`.local_fit`), the cold-start opti
 
 Model-error handling (``robust="auto"``): the plain fit and the robust fit (nuisance span of
 current, charge and Prandtl–Ishlinskii ramps of the charge projected out, see
-:mod:`estimator.ident.cost`) are both made; if the plain model's residual is worse than the robust
+:mod:`estimator.ident.fit.cost`) are both made; if the plain model's residual is worse than the robust
 one's by far more than chance allows, the model is wrong in a smooth way and the robust estimate is
 used.
 """
@@ -20,8 +20,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimator.ident.adequacy import Adequacy
-from estimator.ident.cold_start import (
+from estimator.ident.config import IdentConfig
+from estimator.ident.coords import UM_PER_M, cov_to_si
+from estimator.ident.estimate import Estimate, rejected
+from estimator.ident.fit.adequacy import Adequacy
+from estimator.ident.fit.cold_start import (
     SharedGrid,
     bound_tolerance,
     cold_fit,
@@ -32,13 +35,9 @@ from estimator.ident.cold_start import (
     unchecked_fit,
     usable,
 )
-from estimator.ident.config import IdentConfig
-from estimator.ident.coords import UM_PER_M, cov_to_si
-from estimator.ident.cost import CostModel
-from estimator.ident.estimate import Estimate, rejected
-from estimator.ident.local_fit import LocalFit
-from estimator.ident.measurement import Injection
-from estimator.ident.mismatch import (
+from estimator.ident.fit.cost import CostModel
+from estimator.ident.fit.local_fit import LocalFit
+from estimator.ident.fit.mismatch import (
     PreloadCheck,
     current_noise_cov,
     model_error_cov,
@@ -47,8 +46,9 @@ from estimator.ident.mismatch import (
     preload_cov,
     preload_sensitivity,
 )
-from estimator.ident.model_selection import likelihood_ratio, prefers_robust
-from estimator.ident.search import Box
+from estimator.ident.fit.model_selection import likelihood_ratio, prefers_robust
+from estimator.ident.fit.search import Box
+from estimator.ident.measurement import Injection
 from estimator.ident.status import Status
 from estimator.model import dynamics as dyn
 from estimator.model.drive import SAMPLE_PERIOD_REL_TOL, sampled_samples
@@ -132,7 +132,7 @@ def identify(injection: Injection, sim: FastSimulator | None = None, config: Ide
 
     With ``config.cold_start == "local-first"`` a checked local fit from ``start`` (N/V, µm; default
     ``config.start_point``) comes first and the global search runs only where it fails the check
-    (:mod:`estimator.ident.cold_start`); ``evaluations`` counts the simulations of both."""
+    (:mod:`estimator.ident.fit.cold_start`); ``evaluations`` counts the simulations of both."""
     config = config or IdentConfig()
     problem = injection.problem()
     if problem:
@@ -224,7 +224,7 @@ def complement_fit(sim: FastSimulator, injection: Injection, config: IdentConfig
                    fit: LocalFit) -> tuple[np.ndarray | None, int]:
     """The estimate (N/V, µm) of the other cost (robust for a plain ``model``, plain for a robust one)
     on the same samples, by a local fit from ``fit``, and its simulations; None where it fails. The
-    two differ by about as much as a model error moves them (:mod:`estimator.ident.mismatch`)."""
+    two differ by about as much as a model error moves them (:mod:`estimator.ident.fit.mismatch`)."""
     other = _cost_model(sim, injection, config, not model.robust)
     if other.n == model.n:
         other.share_basis(model)
@@ -256,10 +256,10 @@ class Evidence:
     """What else is known about a fit.
 
     ``adequacy`` is the plain model's test on these samples; ``other`` the other cost's estimate
-    (see :mod:`estimator.ident.mismatch`); ``structure`` the plain residual's statistic where
+    (see :mod:`estimator.ident.fit.mismatch`); ``structure`` the plain residual's statistic where
     ``adequacy`` was not tested now. ``model``: the fit's cost model, for the preload force's
     uncertainty and (``check_preload``) the test of the header's preload force
-    (:func:`~estimator.ident.mismatch.preload_check`); ``preload_shift`` (N/V, µm) and
+    (:func:`~estimator.ident.fit.mismatch.preload_check`); ``preload_shift`` (N/V, µm) and
     ``preload_wrong`` are that move and verdict as a recent test of this injector found them, where it
     was not tested now; ``current_cov`` (N/V, µm) the measured current's noise as a recent estimate of
     this injector sized it."""
@@ -298,7 +298,7 @@ def finish(f: Fitted, ev: Evidence | None = None, predict: bool = True) -> Estim
     includes the model error; so is a plain fit whose samples point to another preload force, its
     covariance widened by the move that force implies (also where the force is only suspect, without
     the status). Where the preload force's sensitivity is simulated, the measured current's noise is
-    sized too (:func:`~estimator.ident.mismatch.current_noise_cov`) and enters the covariance; elsewhere
+    sized too (:func:`~estimator.ident.fit.mismatch.current_noise_cov`) and enters the covariance; elsewhere
     ``ev.current_cov`` does. Contact and opening times are those of the fitted window; the stroke needs
     one more, longer simulation (see :func:`predict_valve`)."""
     if not f.fit.success:

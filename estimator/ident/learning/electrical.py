@@ -4,7 +4,7 @@ Tables 1-2 describe one laboratory's injector; a series part's masses and stiffn
 5-15 %, which moves the idle-stroke estimate by micrometres. No displacement sensor is needed to learn
 them: a batch of injections at different preload forces and coupling factors carries the
 information in the voltage alone. This module fits, by bounded least squares
-(:func:`~estimator.ident.levenberg_marquardt.least_squares_lm`),
+(:func:`~estimator.ident.fit.levenberg_marquardt.least_squares_lm`),
 
 - the shared structural parameters ``theta`` as relative factors on the base parameter set (default
   the thirteen of :data:`~estimator.model.parameters.STRUCTURAL`), each with a Gaussian prior of
@@ -42,10 +42,10 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 
 from estimator.errors import EstimatorError
-from estimator.ident.adequacy import SMOOTH_COLUMNS, assess, current_noise_a, noise_level_v
 from estimator.ident.config import IdentConfig
-from estimator.ident.idle_stroke import identify, predict_valve
-from estimator.ident.levenberg_marquardt import LeastSquaresResult, least_squares_lm
+from estimator.ident.fit.adequacy import SMOOTH_COLUMNS, assess, current_noise_a, noise_level_v
+from estimator.ident.fit.idle_stroke import identify, predict_valve
+from estimator.ident.fit.levenberg_marquardt import LeastSquaresResult, least_squares_lm
 from estimator.ident.measurement import Injection
 from estimator.model.chain import MeasurementChain, lowpass, shift
 from estimator.model.fast_sim import FastSimulator
@@ -334,7 +334,7 @@ class _Problem:
 
     def misfit_z(self, f: LeastSquaresResult) -> float:
         """The worst injection's smooth residual structure (chi-square of its lowest cosine components,
-        :func:`~estimator.ident.adequacy.assess`) in standard deviations above its expectation."""
+        :func:`~estimator.ident.fit.adequacy.assess`) in standard deviations above its expectation."""
         return max((assess(r, 2 + self.p // self.b).structure - SMOOTH_COLUMNS) / math.sqrt(2.0 * SMOOTH_COLUMNS)
                    for r in self.voltage_residuals(f))
 

@@ -15,9 +15,9 @@ import numpy as np
 
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M
-from estimator.ident.cost import CostModel
-from estimator.ident.fit_kernel import FIT, KernelFit, run_cycle, run_forward_fit
-from estimator.ident.search import Box, CostFn, line_search
+from estimator.ident.fit.cost import CostModel
+from estimator.ident.fit.fit_kernel import FIT, KernelFit, run_cycle, run_forward_fit
+from estimator.ident.fit.search import Box, CostFn, line_search
 
 FD_STEP = np.array([2e-3, 2e-3])   # finite-difference steps: N/V, µm
 

@@ -11,12 +11,12 @@ is a smooth, unimodal function of N_u. So the search is
    shrinks by ``(zoom_points - 1) / 2`` per zoom), each simulating only the L_h rows between its
    neighbours' minima and a margin (:func:`_window_profile`; 20–45 % fewer simulations per cold start,
    the same start point where a column's cost has one minimum near the valley);
-3. conjugate-direction refinement (:func:`estimator.ident.local_fit.refine`) from the best point.
+3. conjugate-direction refinement (:func:`estimator.ident.fit.local_fit.refine`) from the best point.
 
 That global search costs 450–630 simulations. A *local-first* cold start (the default,
 ``IdentConfig.cold_start``) first fits from a start point (``start_point``, the type's nominal
 values, or the caller's) by Gauss–Newton steps in a trust region (:func:`gauss_newton_fit`; the line
-searches of :func:`~estimator.ident.local_fit.refine` where those stall) and keeps that fit only if it
+searches of :func:`~estimator.ident.fit.local_fit.refine` where those stall) and keeps that fit only if it
 passes a check (:func:`local_first_fit`, :func:`probe_ring`, :func:`excess_residual_z`): converged,
 inside the box, no lower point on a ring around it, and a residual no larger than white noise allows;
 a median of 38-41 simulations for both costs of an automatic start on matched plants (60 on the
@@ -39,10 +39,10 @@ import numpy as np
 
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M
-from estimator.ident.cost import CostModel, noise_sigma_v
-from estimator.ident.fit_kernel import GaussNewtonRules, run_gauss_newton, run_point_costs
-from estimator.ident.local_fit import FD_STEP, LocalFit, cost_fn, from_kernel_fit, refine
-from estimator.ident.search import Box, CostFn
+from estimator.ident.fit.cost import CostModel, noise_sigma_v
+from estimator.ident.fit.fit_kernel import GaussNewtonRules, run_gauss_newton, run_point_costs
+from estimator.ident.fit.local_fit import FD_STEP, LocalFit, cost_fn, from_kernel_fit, refine
+from estimator.ident.fit.search import Box, CostFn
 
 START_STEPS = (0.3, 0.5)   # N/V, µm: first line-search steps where Gauss–Newton stalls (about a lot's series spread)
 START_RADIUS = (1.0, 2.0)   # N/V, µm: first trust region of a local-first fit (a few times a lot's series spread)
@@ -172,7 +172,7 @@ def gauss_newton_fit(model: CostModel, start: np.ndarray, box: Box, config: Iden
                      radius: np.ndarray | None = None, radius_sd: float = 0.0) -> tuple[LocalFit, bool]:
     """Gauss–Newton steps from ``start`` (N/V, µm; clipped into the box) in a trust region; (fit, converged).
 
-    Each step is one :func:`~estimator.ident.local_fit.local_fit` (the point and its two
+    Each step is one :func:`~estimator.ident.fit.local_fit.local_fit` (the point and its two
     forward-difference neighbours): the step is the Gauss–Newton step, shortened to fit ``radius``
     (N/V, µm; default :data:`START_RADIUS`), each radius at least ``radius_sd`` of the first fit's own
     standard deviations (0: as given). A step that lowers the cost is taken and the radius doubles;

@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import least_squares, minimize
 
-from estimator.ident.cost import trapezoid_weights
+from estimator.ident.fit.cost import trapezoid_weights
 from estimator.ident.measurement import Injection
 from estimator.model.drive import sample_count
 from estimator.model.parameters import InjectorParameters, load_nominal

@@ -10,9 +10,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimator.ident.cost import CostModel, noise_sigma_v
+from estimator.ident.fit.cost import CostModel, noise_sigma_v
+from estimator.ident.fit.search import Box, line_search
 from estimator.ident.measurement import Injection
-from estimator.ident.search import Box, line_search
 from estimator.model.fast_sim import FastSimulator
 from estimator.units import UM_PER_M
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from estimator.ident.cost import nuisance_basis
+from estimator.ident.fit.cost import nuisance_basis
 from estimator.model.drive import sample_count
 from estimator.model.fast_sim import FastSimulator
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from estimator._compiled import njit
 from estimator._compiled.direct_call import DirectCall
-from estimator.ident.cost import MAD_PER_SIGMA, NOISE_FLOOR_V
+from estimator.ident.fit.cost import MAD_PER_SIGMA, NOISE_FLOOR_V
 
 SMOOTH_COLUMNS = 24          # cosines 0..23: up to ~115 kHz in a 100 µs window
 LOW_COLUMNS = 8              # cosines 0..7 (up to ~35 kHz): where most structural errors leave their residual

@@ -9,7 +9,7 @@ estimator, per injector id (states: :class:`~estimator.ident.status.Learning`):
     tracker's flag, with its hysteresis) it starts ``learning``.
 ``learning``
     Accepted injections are collected into a bounded window spanning the operating points
-    (:class:`~estimator.ident.selfcal.CalibrationWindow`; progress: ``batch`` and ``preload_span``).
+    (:class:`~estimator.ident.learning.selfcal.CalibrationWindow`; progress: ``batch`` and ``preload_span``).
     Should the tables explain the injector again before the window is ready, back to ``idle``.
 ``calibrating``
     The window was handed to the calibrator (in the daemon a low-priority process: never the
@@ -48,8 +48,7 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
-from estimator.ident.measurement import Injection
-from estimator.ident.selfcal import (
+from estimator.ident.learning.selfcal import (
     CalibrationOutcome,
     CalibrationStatus,
     CalibrationWindow,
@@ -57,6 +56,7 @@ from estimator.ident.selfcal import (
     InlineCalibrator,
     SelfCalConfig,
 )
+from estimator.ident.measurement import Injection
 from estimator.ident.status import ESTIMATED, Learning, Status
 from estimator.model.parameters import InjectorParameters
 

@@ -10,9 +10,9 @@ from typing import Any
 
 import numpy as np
 
-from estimator.ident import kalman
 from estimator.ident.config import TrackerConfig
-from estimator.ident.search import Box
+from estimator.ident.fit.search import Box
+from estimator.ident.tracking import kalman
 
 STATE_VERSION = 2
 

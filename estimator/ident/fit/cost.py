@@ -271,7 +271,7 @@ def trapezoid_weights(n: int, dt_s: float) -> np.ndarray:
 
 
 class Problem(NamedTuple):
-    """One cost window as compiled code reads it (:mod:`estimator.ident.fit_kernel`): the simulator's
+    """One cost window as compiled code reads it (:mod:`estimator.ident.fit.fit_kernel`): the simulator's
     kernel, the window's samples and the cost's settings. Its types never change (float64 C arrays,
     floats, bools), so compiled calls on it can skip numba's dispatch (:class:`DirectCall`)."""
 

@@ -7,7 +7,7 @@ coupling factor): when the window is full, the injection whose operating point i
 one's makes room. Once the window holds enough injections over a wide enough range of preload forces
 (or, at one rail pressure, has been full for ``narrow_after`` more injections without reaching it),
 :func:`self_calibrate` fits the structural parameters to all but the newest ``held_out`` of them
-(:func:`~estimator.ident.electrical.calibrate_electrical`) and tests the result on those held out:
+(:func:`~estimator.ident.learning.electrical.calibrate_electrical`) and tests the result on those held out:
 each is identified with the current and with the calibrated parameters, and the calibrated set is
 adopted only if the calibration explains its own batch and it explains them better by more than
 ``adopt_chi2`` (chi-square units, the sum over the held-out injections of the drop in their residual
@@ -30,10 +30,15 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from estimator.ident.adequacy import noise_level_v
 from estimator.ident.config import IdentConfig
-from estimator.ident.electrical import WINDOW_S, calibrate_electrical, confirmed_out_of_tolerance, measured_voltage
-from estimator.ident.idle_stroke import identify
+from estimator.ident.fit.adequacy import noise_level_v
+from estimator.ident.fit.idle_stroke import identify
+from estimator.ident.learning.electrical import (
+    WINDOW_S,
+    calibrate_electrical,
+    confirmed_out_of_tolerance,
+    measured_voltage,
+)
 from estimator.ident.measurement import Injection
 from estimator.ident.status import CALIBRATION_STATES, Learning
 from estimator.model.fast_sim import FastSimulator
@@ -186,7 +191,7 @@ class CalibrationWindow:
     waited: int = 0       # injections added while full (each made room for itself)
 
     def add(self, inj: Injection, nu_n_per_v: float) -> None:
-        """Keep ``inj`` (its first :data:`~estimator.ident.electrical.WINDOW_S`); when full, drop the
+        """Keep ``inj`` (its first :data:`~estimator.ident.learning.electrical.WINDOW_S`); when full, drop the
         older of the two injections whose operating points are closest."""
         w = inj.window(WINDOW_S)   # copied: a view would keep the whole trace alive
         self.items.append((replace(w, current_a=w.current_a.copy(), voltage_v=w.voltage_v.copy()), float(nu_n_per_v)))

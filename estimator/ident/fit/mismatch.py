@@ -6,7 +6,7 @@ An estimate is ``ok`` only when the model explains the samples. The verdict of o
   left significant structure in the nuisance span (likelihood ratio), and absorbing it keeps the
   estimate near the truth on some model errors (hysteresis, series resistance) but not on others (a
   mounting stiffness 10 % off moves L_h by micrometres with a clean projected residual);
-- a plain fit is a mismatch where its residual fails :func:`estimator.ident.adequacy.assess`.
+- a plain fit is a mismatch where its residual fails :func:`estimator.ident.fit.adequacy.assess`.
 
 The bias of a mismatched fit is unknown; its covariance is estimated from what the data show about
 it: the plain and the robust estimate of the same samples differ by about as much as the model error
@@ -38,11 +38,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimator.ident.adequacy import SMOOTH_COLUMNS, Adequacy, assess, current_noise_a
 from estimator.ident.config import IdentConfig
 from estimator.ident.coords import UM_PER_M
-from estimator.ident.cost import CostModel
-from estimator.ident.local_fit import LocalFit
+from estimator.ident.fit.adequacy import SMOOTH_COLUMNS, Adequacy, assess, current_noise_a
+from estimator.ident.fit.cost import CostModel
+from estimator.ident.fit.local_fit import LocalFit
 
 PRELOAD_STEP = 0.01          # relative step of F_open for its sensitivity
 PRELOAD_SUSPECT_CHI2 = 4.0   # the samples' own preload force two standard deviations off the header's
@@ -121,7 +121,7 @@ def current_noise_cov(model: CostModel, fit: LocalFit, sens: PreloadSensitivity 
     simulated.
 
     The simulation is driven by the *measured* current, so its noise (``sigma_I``, from the current's
-    own second differences, :func:`~estimator.ident.adequacy.current_noise_a`) passes through the
+    own second differences, :func:`~estimator.ident.fit.adequacy.current_noise_a`) passes through the
     model into the simulated voltage. Its direct part, R(N_u) times white noise, is white and already
     in the residual's noise level; its dynamic part (the charge integrating the noise, and the stack's
     answer to it) is a slow random walk the noise level does not see, yet it moves the fit: at 0.02 A

@@ -1,6 +1,6 @@
 """The local fits of the (N_u, L_h) search, compiled (numba): one call per fit.
 
-Every fit the searches make runs here, on a :class:`~estimator.ident.cost.Problem` (one cost
+Every fit the searches make runs here, on a :class:`~estimator.ident.fit.cost.Problem` (one cost
 window as compiled code reads it), and returns a :class:`KernelFit` with named fields:
 
 - :func:`forward_fit`: a point and its two forward-difference neighbours in one batch, the
@@ -12,8 +12,8 @@ window as compiled code reads it), and returns a :class:`KernelFit` with named f
 - :func:`point_costs`: the costs of a batch of points (the cold start's ring probe).
 
 The decisions around them (bracketing line searches where a parabola is not convex, convergence
-of the refinement, the ring, the global search) are Python, in :mod:`~estimator.ident.local_fit`
-and :mod:`~estimator.ident.cold_start`; nothing here has a Python twin. Candidates with L_h <= 0
+of the refinement, the ring, the global search) are Python, in :mod:`~estimator.ident.fit.local_fit`
+and :mod:`~estimator.ident.fit.cold_start`; nothing here has a Python twin. Candidates with L_h <= 0
 start pre-compressed (:func:`kernel.run_batch`). Points the simulator refuses (a non-finite
 current, an N_u outside its range) give ``NOT_SIMULABLE`` and the wrappers raise the simulator's
 own :class:`~estimator.errors.ParameterError`.
@@ -29,8 +29,8 @@ from estimator._compiled import njit
 from estimator._compiled.direct_call import DirectCall, c_float
 from estimator.errors import ParameterError
 from estimator.ident.coords import UM_PER_M
-from estimator.ident.cost import CostModel, Problem, costs_of, noise_sigma, residuals_into
-from estimator.ident.search import TRUST_STEPS, Box, parabola_vertex
+from estimator.ident.fit.cost import CostModel, Problem, costs_of, noise_sigma, residuals_into
+from estimator.ident.fit.search import TRUST_STEPS, Box, parabola_vertex
 from estimator.model import kernel
 
 FIT, PARTIAL, NOT_SIMULABLE = 0, 1, 2

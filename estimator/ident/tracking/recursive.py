@@ -6,8 +6,8 @@ Per injection (:func:`update`, pure: state in, state out):
 2. Raw estimate: from the filter's prediction for this injection (drift rate and temperature slope
    included), line searches along the two conjugate directions kept from the previous injection,
    then a Gauss–Newton check. Cold start (first injection, or re-acquisition): the profile search
-   of :mod:`estimator.ident.cold_start`.
-3. Filter (:mod:`estimator.ident.kalman`): time-aware process noise (per injection and per second
+   of :mod:`estimator.ident.fit.cold_start`.
+3. Filter (:mod:`estimator.ident.tracking.kalman`): time-aware process noise (per injection and per second
    since the injector's last accepted injection), a learned drift rate and temperature slope. An
    innovation inside the chi-square gate updates the filter. One outside it is *in doubt*:
 
@@ -22,7 +22,7 @@ Per injection (:func:`update`, pure: state in, state out):
      step is thus followed from the second injection on, and nothing stale is published as ``ok``.
    - ``max_consecutive_outliers`` doubts in a row that agree with nothing: re-acquire (restart the
      filter at the latest raw estimate).
-4. Model-error mode: the residual's energy in the nuisance span (see :mod:`estimator.ident.cost`)
+4. Model-error mode: the residual's energy in the nuisance span (see :mod:`estimator.ident.fit.cost`)
    decides per injector, with hysteresis, whether to use the robust (projected) cost.
 5. Status: ``ok`` only for a converged estimate whose sigma(L_h) is within ``sigma_limit_lh_um``;
    ``uncertain`` above it.
@@ -40,13 +40,12 @@ import numpy as np
 
 from estimator.choices import Robust
 from estimator.errors import EstimatorError
-from estimator.ident import kalman
-from estimator.ident.cold_start import bound_tolerance
 from estimator.ident.config import TrackerConfig
 from estimator.ident.coords import NuLh
-from estimator.ident.cost import CostModel, plain_model_error
 from estimator.ident.estimate import Estimate, rejected
-from estimator.ident.idle_stroke import (
+from estimator.ident.fit.cold_start import bound_tolerance
+from estimator.ident.fit.cost import CostModel, plain_model_error
+from estimator.ident.fit.idle_stroke import (
     Evidence,
     Fitted,
     check_injection,
@@ -57,13 +56,14 @@ from estimator.ident.idle_stroke import (
     predict_valve,
     search_box,
 )
-from estimator.ident.local_fit import next_steps, refine
+from estimator.ident.fit.local_fit import next_steps, refine
+from estimator.ident.fit.mismatch import model_error_cov, plain_adequacy
+from estimator.ident.fit.model_selection import likelihood_ratio
+from estimator.ident.fit.search import Box
 from estimator.ident.measurement import Injection
-from estimator.ident.mismatch import model_error_cov, plain_adequacy
-from estimator.ident.model_selection import likelihood_ratio
-from estimator.ident.search import Box
 from estimator.ident.status import Status
-from estimator.ident.tracker_state import (
+from estimator.ident.tracking import kalman
+from estimator.ident.tracking.tracker_state import (
     Pending,
     TrackerState,
     process_noise,
