@@ -12,7 +12,8 @@ how many it shed and the p99 of those it estimated.
 The figure must be the daemon's, not the bench's: the injections are sent by a process of their own
 that replays frames encoded before the sweep (no plant simulation, no encoding at run time), and the
 table gives what every process cost per second of the phase (the daemon with its calibration
-process, the sender, the watcher, the loopback hub). A rate the sender could not offer on time is
+process, the sender, the watcher, the loopback hub) and the interface's part of the daemon's: a
+process that only receives the bus as the daemon does is timed per frame before the sweep. A rate the sender could not offer on time is
 marked bench-limited, and the capacity is then "at least" the highest rate held. The machine's speed
 of the hour is the fast simulator's µs per candidate, measured in the same run.
 
@@ -50,6 +51,30 @@ DRAIN_S = 3.0           # after a phase: what is still waiting is estimated (or 
 ON_TIME = 0.95          # the sender offered at least this share of the rate asked for
 
 
+# ---- the bus's own cost: a process that only receives -----------------------------------------
+def _receiver_main(bus_spec: str, conn: Any) -> None:
+    """Child process: receive every frame on the bus and drop it, until told to stop; what it costs
+    is what the daemon pays to the interface before its own work begins."""
+    import can
+
+    with open_bus(bus_spec) as bus:
+        stop = threading.Event()
+        counted = [0]
+
+        class _Count(can.Listener):
+            def on_message_received(self, msg: can.Message) -> None:
+                counted[0] += 1
+        notifier = can.Notifier(bus, [_Count()], timeout=0.05)   # as the daemon receives
+        conn.send("ready")
+        try:
+            while not stop.is_set():
+                if conn.poll(0.2) and conn.recv() is None:
+                    stop.set()
+        finally:
+            notifier.stop()
+        conn.send(counted[0])
+
+
 # ---- the sender: a process of its own replaying encoded frames -------------------------------
 def _sender_main(bus_spec: str, injections: list[tuple[int, int, list]], conn: Any) -> None:
     """Child process: for each (rate, seconds) received, send ``injections`` in turn on absolute
@@ -65,6 +90,7 @@ def _sender_main(bus_spec: str, injections: list[tuple[int, int, list]], conn: A
             sent: list[tuple[int, int, float]] = []
             t0 = time.monotonic()
             late_s = 0.0
+            frames = 0
             c0 = time.process_time()
             for lateness in paced(rate, seconds, 0.05):
                 late_s = max(late_s, lateness)
@@ -73,9 +99,10 @@ def _sender_main(bus_spec: str, injections: list[tuple[int, int, list]], conn: A
                     bus.send(m)
                 sent.append((i, c, time.monotonic()))
                 bus.send(msgs[-1])
+                frames += len(msgs)
                 k += 1
             conn.send({"sent": sent, "elapsed_s": time.monotonic() - t0 - 0.05, "cpu_s": time.process_time() - c0,
-                       "late_max_s": late_s})
+                       "late_max_s": late_s, "frames": frames})
 
 
 def encoded_injections(codec: Codec, injectors: int, seed: int = 7, series: bool = False) -> list[tuple[int, int, list]]:
@@ -162,6 +189,7 @@ def _phase(conn: Any, w: _Watcher, rate: float, seconds: float, procs: dict[str,
                                                           ("queue", "assembly", "estimation", "send")} if st else {},
             "external_p50_ms": float(np.percentile(lat, 50)) if est else math.nan,
             "external_p99_ms": float(np.percentile(lat, 99)) if est else math.nan,
+            "frames_per_s": job["frames"] / job["elapsed_s"],
             "sender_late_max_ms": job["late_max_s"] * 1e3, "bench_limited": bench_limited,
             "cpu_per_s": cpu,
             "held": bool(not bench_limited and p99 <= P99_LIMIT_MS and est == len(sent) and shed == 0
@@ -202,6 +230,29 @@ def capacity(phases: list[dict]) -> tuple[float, bool]:
     return best, at_least
 
 
+def _interface_cost(ctx: Any, bus: str, sender: Any, rate: float, seconds: float = 3.0) -> float:
+    """µs of CPU per frame received through the bus interface: a process that only receives, while the
+    sender offers ``rate`` for ``seconds`` before the daemon starts (so it perturbs nothing measured)."""
+    conn, child = ctx.Pipe()
+    receiver = ctx.Process(target=_receiver_main, args=(bus, child), daemon=True)
+    receiver.start()
+    try:
+        if not conn.poll(60) or conn.recv() != "ready":
+            raise RuntimeError("the bare receiver did not open the bus")
+        c0 = cpu_seconds([receiver.pid])
+        sender.send((rate, seconds))
+        sender.recv()
+        time.sleep(0.2)
+        used = cpu_seconds([receiver.pid]) - c0
+        conn.send(None)
+        frames = conn.recv() if conn.poll(10) else 0
+    finally:
+        receiver.join(5)
+        if receiver.is_alive():
+            receiver.kill()
+    return used / frames * 1e6 if frames else math.nan
+
+
 def run(out_dir: Path, rates: tuple[float, ...] = RATES_PER_S, seconds: float = WINDOW_S,
         injectors: int = INJECTORS, bus: str | None = None, share: float | None = None,
         series: bool = False) -> dict:
@@ -222,6 +273,7 @@ def run(out_dir: Path, rates: tuple[float, ...] = RATES_PER_S, seconds: float = 
     try:
         if not parent.poll(60) or parent.recv() != "ready":
             raise RuntimeError("the sender did not open the bus")
+        report["interface_us_per_frame"] = _interface_cost(ctx, bus, parent, min(rates[0], 200.0))
         d = DaemonProcess(bus, out_dir / "capacity-daemon.log").start()
         try:
             with open_bus(bus) as b, contextlib.ExitStack() as stack:
@@ -284,17 +336,22 @@ def format_report(rep: dict) -> str:
     kind = "series injectors that learn" if rep.get("series") else "injectors"
     lines = [f"daemon capacity on {rep['bus']}: {rep['injectors']} {kind}, learning and drive correction on{share}; {rep['seconds']:g} s per rate; yardstick {rep['yardstick_us_per_candidate']:.1f} µs/candidate",
              f"{'rate/s':>7} {'offered/s':>9} {'estimated':>9} {'shed':>6} {'dropped':>7} {'daemon p99':>10} "
-             f"{'ext p50':>8} {'ext p99':>8} {'CPU s/s: daemon':>15} {'sender':>6} {'watcher':>7} {'hub':>5}  held"]
+             f"{'ext p50':>8} {'ext p99':>8} {'CPU s/s: daemon':>15} {'receiving':>9} {'sender':>6} {'watcher':>7} "
+             f"{'hub':>5}  held"]
+    per_frame_s = rep.get("interface_us_per_frame", math.nan) * 1e-6
     for p in rep["phases"]:
         c = p["cpu_per_s"]
         held = "yes" if p["held"] else ("bench-limited" if p["bench_limited"] else "no")
         lines.append(f"{p['rate_per_s']:>7.0f} {p['offered_per_s']:>9.0f} {p['estimated']:>9} {p['shed']:>6} "
                      f"{p['frames_dropped']:>7} {p['daemon_p99_ms']:>10.2f} {p['external_p50_ms']:>8.2f} "
-                     f"{p['external_p99_ms']:>8.2f} {c['daemon']:>15.2f} {c['sender']:>6.2f} {c['bench']:>7.2f} "
+                     f"{p['external_p99_ms']:>8.2f} {c['daemon']:>15.2f} {p['frames_per_s'] * per_frame_s:>9.2f} {c['sender']:>6.2f} {c['bench']:>7.2f} "
                      f"{c['hub']:>5.2f}  {held}")
     at = "at least " if rep["capacity_at_least"] else ""
     lines.append(f"capacity: {at}{rep['capacity_per_s']:.0f} injections/s (p99 <= {rep['p99_limit_ms']:g} ms, "
                  "every injection estimated)")
     lines.append("daemon p99: last frame arrived -> EstimateState sent (heartbeat, the phase's 10 s); ext: the "
-                 "sender's trailer -> EstimateState at the watcher (adds the hub); watcher = the bench's own process")
+                 "sender's trailer -> EstimateState at the watcher (adds the hub); watcher = the bench's own process; "
+                 f"receiving = the daemon's frames/s x {rep.get('interface_us_per_frame', math.nan):.0f} µs, what a "
+                 "process that only receives the bus as the daemon does paid per frame before the sweep (the "
+                 "interface's part of the daemon's CPU)")
     return "\n".join(lines)

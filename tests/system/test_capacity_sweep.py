@@ -72,7 +72,7 @@ def test_a_short_sweep_on_the_loopback_hub_reports_every_rate(tmp_path: Path):
     assert r.returncode in (0, 1), r.stderr[-2000:]
     rep = json.loads(out.read_text())
     assert [p["rate_per_s"] for p in rep["phases"]] == [50.0, 100.0]
-    assert rep["daemon_exit"] == 0 and rep["yardstick_us_per_candidate"] > 0
+    assert rep["daemon_exit"] == 0 and rep["yardstick_us_per_candidate"] > 0 and rep["interface_us_per_frame"] > 0
     for p in rep["phases"]:
         assert p["offered"] > 0 and p["estimated"] + p["shed"] <= p["offered"]
         assert set(p["cpu_per_s"]) == {"daemon", "bench", "hub", "sender"} and p["cpu_per_s"]["daemon"] > 0
