@@ -5,7 +5,7 @@ its fields to signals, and from them come the contract the DBC is checked agains
 (:data:`CONTRACT`), the message lookup and the frame-identifier dispatch of :class:`Codec`.
 Adding a message means adding it to the DBC and writing one class here (see "Extending" in docs/design.md).
 
-Encoding is strict (cantools ``strict=True``); values outside a signal's range are saturated to
+Encoding is strict (as cantools' ``strict=True``, by :mod:`estimator.codec.packer`); values outside a signal's range are saturated to
 the range first, so a publisher never fails on an extreme value (a cost above 6553.5 µV·s is sent
 as 6553.5). NaN has no wire form: ``ValvePrediction`` carries validity bits, the others send 0 with
 a status that says there is no estimate. Decoding range-checks every value against the DBC.
@@ -26,6 +26,7 @@ from estimator.codec import database
 from estimator.codec.database import MessageSpec
 from estimator.codec.errors import ContractError, MalformedFrame
 from estimator.codec.frame import Frame
+from estimator.codec.packer import packer_for
 from estimator.codec.samples import SampleLayout
 from estimator.ident.status import CALIBRATION_STATES, Status
 
@@ -370,6 +371,7 @@ class Codec:
         samples = self.messages[SampleBlock]
         self.layout = SampleLayout.from_message(samples)
         self._by_id: dict[int, tuple[Message, type[Record]]] = {m.frame_id: (m, rt) for rt, m in self.messages.items()}
+        self._packers = {rt: packer_for(m) for rt, m in self.messages.items()}   # None: cantools encodes it
         self._prefix_signals = [samples.get_signal_by_name(SampleBlock.SIGNALS[n])
                                 for n in ("injector_id", "counter", "block_index")]
         self._prefix_fields = [(sig.start, (1 << sig.length) - 1) for sig in self._prefix_signals]
@@ -431,6 +433,22 @@ class Codec:
     # ---- encode ---------------------------------------------------------------------------
     def encode(self, rec: Record) -> Frame:
         """The frame of a record (saturating values to the signal ranges)."""
+        msg = self.messages[type(rec)]
+        packer = self._packers[type(rec)]
+        if packer is not None:
+            raw: dict[str, Any] = {}
+            for fname, sname in rec.SIGNALS.items():
+                v = getattr(rec, fname)
+                if fname in rec.UNMEASURED_AT_MINIMUM and not (v is not None and math.isfinite(v)):
+                    v = packer.minimum[sname]
+                raw[sname] = v
+            raw.update(rec.extra_signals())
+            return Frame(msg.frame_id, packer.pack_saturated(raw), msg.is_fd)
+        return self.encode_with_cantools(rec)
+
+    def encode_with_cantools(self, rec: Record) -> Frame:
+        """:meth:`encode` by cantools' strict encoder: for a message the packer does not cover, and the
+        reference the packer is tested against."""
         msg = self.messages[type(rec)]
         values: dict[str, float | int] = {}
         for fname, sname in rec.SIGNALS.items():
