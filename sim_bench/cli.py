@@ -558,11 +558,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json-out", type=Path, default=None,
                    help="JSON report (default bench-results/daemon-bench.json, with --sweep daemon-capacity.json)")
     s.add_argument("--sweep", action="store_true",
-                   help="capacity instead: sweep the offered rate (eight injectors, learning and drive correction on, "
+                   help="capacity instead: sweep the offered rate (50 to 5,000 injections/s over eight injectors, learning and drive correction on, "
                         "frames replayed by a sender process) and report the highest rate held; with "
                         "--self-calibration the injectors are series parts that learn during the sweep")
     s.add_argument("--rates", type=float, nargs="+", default=None,
-                   help="with --sweep: the rates, injections/s (default 200 500 1000 2000 3000 5000)")
+                   help="with --sweep: the rates, injections/s (default 50 100 200 500 1000 2000 3000 5000; the sweep "
+                        "ends after two rates in a row not held)")
     s.add_argument("--cpu-share", type=float, default=None,
                    help="with --sweep: hold the daemon to this share of one core (cgroup CPU bandwidth; needs "
                         "root), a bench computer 1/share times slower")

@@ -44,7 +44,8 @@ from sim_bench.benches.daemon_bench import OutputWatcher, injection_pool, paced
 from sim_bench.hardware.cpu_share import cpu_seconds, cpu_share, descendants
 from sim_bench.hardware.procs import DaemonProcess
 
-RATES_PER_S = (200.0, 500.0, 1000.0, 2000.0, 3000.0, 5000.0)
+RATES_PER_S = (50.0, 100.0, 200.0, 500.0, 1000.0, 2000.0, 3000.0, 5000.0)
+PAST_CAPACITY = 2       # the sweep ends after this many rates in a row not held (the rule shown above capacity)
 INJECTORS = 8
 P99_LIMIT_MS = 5.0
 DRAIN_S = 3.0           # after a phase: what is still waiting is estimated (or shed) within this
@@ -108,7 +109,7 @@ def _sender_main(bus_spec: str, injections: list[tuple[int, int, list]], conn: A
 def encoded_injections(codec: Codec, injectors: int, seed: int = 7, series: bool = False) -> list[tuple[int, int, list]]:
     """256 injections per injector, interleaved, as python-can messages (counters 0..255, the rail
     pressure cycling; ``series``: series parts): encoded once, replayed by the sender."""
-    pool = injection_pool(codec, injectors=injectors, per_injector=32, seed=seed, series=series)
+    pool = injection_pool(codec, injectors=injectors, per_injector=32, seed=seed, series=series, cycle_preload=True)
     per = len(pool) // injectors
     out = []
     for c in range(256):
@@ -297,7 +298,8 @@ def run(out_dir: Path, rates: tuple[float, ...] = RATES_PER_S, seconds: float = 
                     p = _phase(parent, w, rate, seconds, procs)
                     p["daemon_alive"] = d.alive()
                     phases.append(p)
-                    if not p["daemon_alive"]:
+                    if not p["daemon_alive"] or (len(phases) >= PAST_CAPACITY
+                                                 and not any(q["held"] for q in phases[-PAST_CAPACITY:])):
                         break
                 report["phases"] = phases
             report["daemon_exit"] = d.stop(timeout=10)

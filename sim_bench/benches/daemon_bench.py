@@ -36,10 +36,10 @@ SERIES_PRELOADS_N = (NOMINAL_PRELOAD_N, 60.0, 100.0, 150.0, 220.0, 300.0)   # th
 
 
 def injection_pool(codec: Codec, injectors: int = 4, per_injector: int = 32, seed: int = 7,
-                   series: bool = False) -> list[tuple[int, Measurement]]:
+                   series: bool = False, cycle_preload: bool | None = None) -> list[tuple[int, Measurement]]:
     """Precomputed injections (injector id, the plant's measurement), injectors interleaved; frames and
     counters are made at send time. Idle strokes 1.5-7.1 µm, inside the model's range for any count
-    of injectors.
+    of injectors. ``cycle_preload``: the preload force cycling as for series parts (default: with them).
     ``series``: each injector a seeded series part (structure ±10 %, which the nominal model cannot
     explain), 200 µs sent, the preload force cycling through 28-300 N: what makes the daemon's
     self-calibration collect and calibrate."""
@@ -49,7 +49,8 @@ def injection_pool(codec: Codec, injectors: int = 4, per_injector: int = 32, see
     pool = []
     for k in range(per_injector):
         for i in range(injectors):
-            f = SERIES_PRELOADS_N[k % len(SERIES_PRELOADS_N)] if series else NOMINAL_PRELOAD_N
+            cycle = series if cycle_preload is None else cycle_preload
+            f = SERIES_PRELOADS_N[k % len(SERIES_PRELOADS_N)] if cycle else NOMINAL_PRELOAD_N
             m = plants[i].measure(16.5 + 0.4 * i, (1.5 + 1.7 * (i % 4) + 0.5 * (i // 4)) * 1e-6, f, rng)
             pool.append((i, m))
     return pool

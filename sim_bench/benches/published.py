@@ -53,6 +53,11 @@ def _part(*keys: str) -> Callable[[Report], float]:
     return read
 
 
+def _at_rate(rate: float, read: Callable[[Report], float]) -> Callable[[Report], float]:
+    """A figure of the capacity sweep's phase at ``rate`` injections/s."""
+    return lambda r: float(read(next(p for p in r["phases"] if p["rate_per_s"] == rate)))
+
+
 def _count(fraction: str, of: str = "n") -> Callable[[Report], float]:
     """How many a fraction of the summary is of its ``of`` count."""
     return lambda r: round(r["summary"][fraction] * r["summary"][of])
@@ -266,6 +271,17 @@ FIGURES: tuple[Figure, ...] = (
            "| a stranger's well-formed", spread=True),
     Figure("reliability", "command-flood: commands_applied", _part("rows", "command-flood", "commands_applied"), 0,
            "| 1,000 reset commands", spread=True),
+    # the daemon's capacity
+    Figure("daemon-capacity", "capacity_per_s", _part("capacity_per_s"), 0, "| capacity", headline=True),
+    Figure("daemon-capacity", "yardstick_us_per_candidate", _part("yardstick_us_per_candidate"), 1,
+           "| capacity", spread=True),
+    Figure("daemon-capacity", "interface_us_per_frame", _part("interface_us_per_frame"), 0,
+           "| the bus interface's part"),
+    Figure("daemon-capacity", "p99_ms_at_50", _at_rate(50.0, lambda p: p["daemon_p99_ms"]), 2,
+           "| daemon p99 at 50 injections/s"),
+    Figure("daemon-capacity", "cpu_ms_per_injection_at_100",
+           _at_rate(100.0, lambda p: 1e3 * p["cpu_per_s"]["daemon"] / p["offered_per_s"]), 2,
+           "| the daemon's CPU per injection"),
     # the XCP slave
     Figure("xcp-bench", "without_client_p99_ms", _part("without_client", "daemon_latency_p99_ms"), 2,
            "| XCP slave on, no client"),
@@ -376,7 +392,7 @@ def publish(directories: Iterable[Path]) -> dict[str, dict[str, Any]]:
         for r in reports:
             try:
                 read.append(fig.read(r))
-            except (KeyError, TypeError, IndexError, ValueError):   # a report of another version: not this figure
+            except (KeyError, TypeError, IndexError, ValueError, StopIteration):   # a report of another version: not this figure
                 print(f"{fig.bench}: a report without {fig.name}, left out")
         if not read:
             continue

@@ -75,9 +75,14 @@ def cpu_share(pid: int, share: float, name: str = "injector-estimator-bench") ->
         group.mkdir(exist_ok=True)
         for f, v in files.items():
             (group / f).write_text(v)
-        for p in descendants(pid):
-            with contextlib.suppress(ProcessLookupError, OSError):
-                (group / "cgroup.procs").write_text(str(p))
+        for _ in range(10):   # a process forked while the tree moves may stay behind: move until none is
+            inside = set((group / "cgroup.procs").read_text().split())
+            outside = [p for p in descendants(pid) if str(p) not in inside]
+            if not outside:
+                break
+            for p in outside:
+                with contextlib.suppress(ProcessLookupError, OSError):
+                    (group / "cgroup.procs").write_text(str(p))
     except OSError as exc:
         with contextlib.suppress(OSError):
             group.rmdir()

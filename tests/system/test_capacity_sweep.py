@@ -14,6 +14,7 @@ import pytest
 
 from sim_bench.benches.capacity import _match, capacity, failures
 from sim_bench.hardware.cpu_share import V1_ROOT, CpuShareError, cpu_share, descendants
+from sim_bench.hardware.procs import wait_until
 
 
 def test_each_injection_sent_is_paired_with_its_own_estimate_though_counters_repeat():
@@ -44,6 +45,7 @@ def test_a_quarter_core_is_a_1_ms_quota_every_4_ms_for_the_whole_tree_and_is_rem
                               "subprocess.run([sys.executable, '-c', 'import sys; sys.stdin.read()'])"],
                              stdin=subprocess.PIPE)
     try:
+        assert wait_until(lambda: len(descendants(child.pid)) == 2, 30)     # the grandchild has started
         with cpu_share(child.pid, 0.25) as group:
             assert (group / "cpu.cfs_quota_us").read_text().strip() == "1000"
             assert (group / "cpu.cfs_period_us").read_text().strip() == "4000"
