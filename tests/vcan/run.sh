@@ -20,7 +20,7 @@ export NUMBA_CPU_NAME=generic
 "$PY" - <<'PYEOF'
 from estimator.model.drive import sample_times, standard_drive
 from estimator.model.fast_sim import FastSimulator
-from estimator.ident.tracker import Tracker
+from estimator.ident.tracking.tracker import Tracker
 from sim_bench.hardware.plant import Plant, PlantConfig
 import numpy as np
 cur = standard_drive(sample_times(100e-6))
