@@ -28,27 +28,14 @@ class _Field:
 
 
 class Packer:
-    """One message's layout: :meth:`pack` turns {signal name: physical value} into its payload.
-
-    The values must be on the signal's grid and within its range (the codec saturates and rounds
-    them first); a value outside the raw range raises ValueError, as cantools' strict encoder does.
-    """
+    """One message's layout: :meth:`pack_saturated` turns {signal name: physical value} into its
+    payload, saturating and rounding as the codec's cantools path does before its strict encoder."""
 
     def __init__(self, fields: list[_Field], length: int) -> None:
         self.fields = fields
         self.length = length
         self.minimum = {f.name: f.minimum for f in fields}   # physical, by signal name
         self._rows = [(f.name, f.start, f.mask, f.scale, f.offset, f.lo, f.hi, f.minimum, f.maximum) for f in fields]
-
-    def pack(self, values: dict[str, Any]) -> bytes:
-        """The payload of values already on each signal's grid and within its range (else ValueError)."""
-        word = 0
-        for f in self.fields:
-            raw = round((values[f.name] - f.offset) / f.scale)
-            if not f.lo <= raw <= f.hi:
-                raise ValueError(f"{f.name} = {values[f.name]}: outside the signal's raw range")
-            word |= (raw & f.mask) << f.start
-        return word.to_bytes(self.length, "little")
 
     def pack_saturated(self, values: dict[str, Any]) -> bytes:
         """The payload of any values: each saturated to its signal's range and rounded to its grid; a

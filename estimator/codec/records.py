@@ -5,8 +5,8 @@ its fields to signals, and from them come the contract the DBC is checked agains
 (:data:`CONTRACT`), the message lookup and the frame-identifier dispatch of :class:`Codec`.
 Adding a message means adding it to the DBC and writing one class here (see "Extending" in docs/design.md).
 
-Encoding is strict (as cantools' ``strict=True``, by :mod:`estimator.codec.packer`); values outside a signal's range are saturated to
-the range first, so a publisher never fails on an extreme value (a cost above 6553.5 µV·s is sent
+Encoding is strict (cantools ``strict=True``, or :mod:`estimator.codec.packer`, which writes the
+same bytes); values outside a signal's range are saturated to the range first, so a publisher never fails on an extreme value (a cost above 6553.5 µV·s is sent
 as 6553.5). NaN has no wire form: ``ValvePrediction`` carries validity bits, the others send 0 with
 a status that says there is no estimate. Decoding range-checks every value against the DBC.
 """

@@ -38,11 +38,11 @@ from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateState, EstimatorHealth, EstimatorStatus
 from estimator.io.captures import to_message
 from estimator.service.bus import open_bus
-from estimator.service.latency import WINDOW_S
+from estimator.service.latency import STAGES, WINDOW_S
 from sim_bench.benches.bench import resolve_bus
-from sim_bench.benches.daemon_bench import OutputWatcher, injection_pool, paced
+from sim_bench.benches.daemon_bench import OutputWatcher, injection_pool, paced, rejected
 from sim_bench.hardware.cpu_share import cpu_seconds, cpu_share, descendants
-from sim_bench.hardware.procs import DaemonProcess
+from sim_bench.hardware.procs import DaemonProcess, wait_until
 
 RATES_PER_S = (50.0, 100.0, 200.0, 500.0, 1000.0, 2000.0, 3000.0, 5000.0)
 PAST_CAPACITY = 2       # the sweep ends after this many rates in a row not held (the rule shown above capacity)
@@ -50,6 +50,7 @@ INJECTORS = 8
 P99_LIMIT_MS = 5.0
 DRAIN_S = 3.0           # after a phase: what is still waiting is estimated (or shed) within this
 ON_TIME = 0.95          # the sender offered at least this share of the rate asked for
+START_IN_S = 0.05       # the sender's first injection of a phase, after the phase is asked for
 
 
 # ---- the bus's own cost: a process that only receives -----------------------------------------
@@ -59,7 +60,6 @@ def _receiver_main(bus_spec: str, conn: Any) -> None:
     import can
 
     with open_bus(bus_spec) as bus:
-        stop = threading.Event()
         counted = [0]
 
         class _Count(can.Listener):
@@ -68,9 +68,8 @@ def _receiver_main(bus_spec: str, conn: Any) -> None:
         notifier = can.Notifier(bus, [_Count()], timeout=0.05)   # as the daemon receives
         conn.send("ready")
         try:
-            while not stop.is_set():
-                if conn.poll(0.2) and conn.recv() is None:
-                    stop.set()
+            while not (conn.poll(0.2) and conn.recv() is None):
+                pass
         finally:
             notifier.stop()
         conn.send(counted[0])
@@ -93,7 +92,7 @@ def _sender_main(bus_spec: str, injections: list[tuple[int, int, list]], conn: A
             late_s = 0.0
             frames = 0
             c0 = time.process_time()
-            for lateness in paced(rate, seconds, 0.05):
+            for lateness in paced(rate, seconds, START_IN_S):
                 late_s = max(late_s, lateness)
                 i, c, msgs = injections[k % len(injections)]
                 for m in msgs[:-1]:
@@ -102,7 +101,7 @@ def _sender_main(bus_spec: str, injections: list[tuple[int, int, list]], conn: A
                 bus.send(msgs[-1])
                 frames += len(msgs)
                 k += 1
-            conn.send({"sent": sent, "elapsed_s": time.monotonic() - t0 - 0.05, "cpu_s": time.process_time() - c0,
+            conn.send({"sent": sent, "elapsed_s": time.monotonic() - t0 - START_IN_S, "cpu_s": time.process_time() - c0,
                        "late_max_s": late_s, "frames": frames})
 
 
@@ -161,14 +160,10 @@ def _phase(conn: Any, w: _Watcher, rate: float, seconds: float, procs: dict[str,
     conn.send((rate, seconds))
     job = conn.recv()
     sent = job["sent"]
-    deadline = time.monotonic() + DRAIN_S
     shed0 = h0.injections_shed if h0 else 0
-    while time.monotonic() < deadline:   # every injection estimated, or shed (counted), or the drain ends
-        got = sum(len(v) for v in list(w.received.values()))
-        shed = (w.health.injections_shed if w.health else 0) - shed0
-        if got + shed >= len(sent):
-            break
-        time.sleep(0.02)
+    # every injection estimated, or shed (counted), or the drain ends
+    wait_until(lambda: sum(len(v) for v in list(w.received.values()))
+               + (w.health.injections_shed if w.health else 0) - shed0 >= len(sent), DRAIN_S)
     w.next_beat(5.0)
     wall = time.monotonic() - t0
     cpu1 = _costs(procs)
@@ -178,23 +173,21 @@ def _phase(conn: Any, w: _Watcher, rate: float, seconds: float, procs: dict[str,
     offered_per_s = len(sent) / job["elapsed_s"]
     shed = (h.injections_shed - h0.injections_shed) if h and h0 else 0
     dropped = (st.frames_dropped - st0.frames_dropped) if st and st0 else 0
-    rejected = sum(getattr(st, f) - getattr(st0, f) for f in ("rejected_missing", "rejected_timeout", "rejected_crc",
-                                                              "rejected_invalid")) if st and st0 else 0
+    rejects = (rejected(st) - rejected(st0)) if st and st0 else 0
     p99 = st.latency_p99_ms if st else math.nan
     cpu = {k: (cpu1[k] - cpu0[k]) / wall for k in procs}
     cpu["sender"] = job["cpu_s"] / job["elapsed_s"]
     bench_limited = offered_per_s < ON_TIME * rate
     return {"rate_per_s": rate, "offered": len(sent), "offered_per_s": offered_per_s, "estimated": est,
-            "shed": int(shed), "frames_dropped": int(dropped), "rejected": int(rejected),
-            "daemon_p99_ms": p99, "daemon_stage_p99_ms": {k: getattr(st, f"{k}_p99_ms") for k in
-                                                          ("queue", "assembly", "estimation", "send")} if st else {},
+            "shed": int(shed), "frames_dropped": int(dropped), "rejected": rejects,
+            "daemon_p99_ms": p99, "daemon_stage_p99_ms": {k: getattr(st, f"{k}_p99_ms") for k in STAGES} if st else {},
             "external_p50_ms": float(np.percentile(lat, 50)) if est else math.nan,
             "external_p99_ms": float(np.percentile(lat, 99)) if est else math.nan,
             "frames_per_s": job["frames"] / job["elapsed_s"],
             "sender_late_max_ms": job["late_max_s"] * 1e3, "bench_limited": bench_limited,
             "cpu_per_s": cpu,
             "held": bool(not bench_limited and p99 <= P99_LIMIT_MS and est == len(sent) and shed == 0
-                         and dropped == 0 and rejected == 0)}
+                         and dropped == 0 and rejects == 0)}
 
 
 def _match(sent: list[tuple[int, int, float]], received: dict[tuple[int, int], list[float]]) -> list[float]:

@@ -46,14 +46,19 @@ def injection_pool(codec: Codec, injectors: int = 4, per_injector: int = 32, see
     rng = np.random.default_rng(seed)
     plants = [Plant(PlantConfig(window_s=200e-6), series_part.draw(rng).params) if series else Plant(PlantConfig())
               for _ in range(injectors)]
+    cycle = series if cycle_preload is None else cycle_preload
     pool = []
     for k in range(per_injector):
         for i in range(injectors):
-            cycle = series if cycle_preload is None else cycle_preload
             f = SERIES_PRELOADS_N[k % len(SERIES_PRELOADS_N)] if cycle else NOMINAL_PRELOAD_N
             m = plants[i].measure(16.5 + 0.4 * i, (1.5 + 1.7 * (i % 4) + 0.5 * (i // 4)) * 1e-6, f, rng)
             pool.append((i, m))
     return pool
+
+
+def rejected(st: EstimatorStatus) -> int:
+    """Injections the daemon rejected so far (CRC, missing frames, timeout, invalid), from its heartbeat."""
+    return int(st.rejected_crc + st.rejected_missing + st.rejected_timeout + st.rejected_invalid)
 
 
 def ingest_rate(seconds: float = 2.0) -> dict:
@@ -227,9 +232,7 @@ def _phase(b: Any, codec: Codec, pool: list, rate: float, seconds: float, w: _Wa
         "daemon_stage_p99_ms": {k: getattr(st, f"{k}_p99_ms") if st else math.nan for k in STAGES},
         "external_latency_ms": [round(float(v), 4) for v in lat],
         "frames_dropped": (st.frames_dropped - st0.frames_dropped) if st and st0 else 0,
-        "rejected": ((st.rejected_missing + st.rejected_timeout + st.rejected_crc + st.rejected_invalid)
-                     - (st0.rejected_missing + st0.rejected_timeout + st0.rejected_crc
-                        + st0.rejected_invalid)) if st and st0 else 0,
+        "rejected": (rejected(st) - rejected(st0)) if st and st0 else 0,
         "queue_depth_end": st.queue_depth if st else 0, "daemon_rss_peak_mb": peak,
         "daemon_alive": d.alive(),
         "calibration_states": [codec.calibration_state(c.state) for t, c in w.calibrations if t >= t_phase],
