@@ -309,3 +309,40 @@ def test_cli_refuses_a_batch_without_writing_a_file_and_flags_a_part_beyond_tole
     worst = max(life.parts[0].factors, key=lambda n: abs(life.parts[0].factors[n] - 1))
     assert doc["out_of_tolerance"] == [worst] and "out_of_tolerance:" in r.stdout
     assert (tmp_path / "b.toml").exists()
+
+
+# the plateau-current scales a closed loop drove a short-high amplifier's injector with (injections 13-40)
+_CLOSED_LOOP_SCALES = (0.900, 0.901, 0.863, 0.878, 0.913, 0.901, 0.922, 0.935, 0.916, 0.917, 0.948, 0.942, 0.949,
+                       0.925, 0.968, 0.933, 0.963, 0.941, 0.961, 0.929, 0.930, 0.955, 0.987, 0.991, 0.966, 0.960,
+                       0.929)
+
+
+@pytest.mark.slow
+def test_a_second_start_at_an_earlier_model_finds_the_deeper_minimum():
+    """A refinement window of a series part at three corners of its tolerance, driven by its own
+    correction (scales 0.86-0.99 of a short-high amplifier's drive): fitted from the tables alone the
+    calibration settles in a minimum with the valve mass 26 % off (on the bench its stroke came out
+    0.24 µm long); started also from a model near the part (here its own structure, where a refinement
+    starts from the model in use) it finds the deeper minimum there."""
+    from estimator.model.parameters import STRUCTURAL
+    from sim_bench.benches.compensation import lot_spec
+    from sim_bench.hardware.series_life import draw_lot
+
+    life = draw_lot(8, 2, lot_spec("short-high"))[4]
+    rng = np.random.default_rng(life.seed)
+    walk = life.preload_walk(40, np.random.default_rng(life.seed + 1))
+    batch = []
+    for k in range(38):
+        scale = _CLOSED_LOOP_SCALES[k - 13] if k >= 13 else None
+        m, _ = life.measure(k, 150, rng, None if scale is None else (lambda f, s=scale: s), walk[k])
+        if k >= 16:
+            batch.append(Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n))
+    true = life.parts[0].params
+
+    def worst(params: InjectorParameters) -> float:
+        return max(abs(getattr(getattr(params, t), n) / getattr(getattr(true, t), n) - 1) for t, n in STRUCTURAL)
+
+    alone = calibrate_electrical(batch)
+    both = calibrate_electrical(batch, also_from=true)
+    assert both.chi2 < alone.chi2 - 5.0
+    assert worst(alone.params) > 0.15 > 0.10 > worst(both.params)

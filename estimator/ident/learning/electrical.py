@@ -281,6 +281,19 @@ class _Problem:
         self.sigma = np.array([noise_level_v(r) for r in before])
         return x0, before
 
+    def start_at(self, params: InjectorParameters) -> np.ndarray:
+        """A start at ``params`` (its structure and chain, within the bounds), each injection's (N_u,
+        L_h) identified on it."""
+        x0 = np.zeros(self.p + 2 * self.b)
+        base = self.sims.base
+        for i, n in enumerate(self.names):
+            table, field_name = n.split(".")
+            x0[i] = math.log(getattr(getattr(params, table), field_name) / getattr(getattr(base, table), field_name))
+        x0[self.k:self.p] = [getattr(params.chain, n) * US_PER_S for n in self.chain_names]
+        x0[:self.p] = np.clip(x0[:self.p], self.lo[:self.p] + 1e-9, self.hi[:self.p] - 1e-9)
+        x0[self.p:] = self.per_injection(x0[:self.k], self.chain_of(x0[self.k:self.p]))[0]
+        return x0
+
     def residual(self, x: np.ndarray) -> np.ndarray:
         """Every sample's voltage error over its noise level, then the shared parameters' prior."""
         k, p = self.k, self.p
@@ -482,7 +495,8 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
                          window_s: float = WINDOW_S, max_iterations: int = 30,
                          max_restarts: int = 4, fit_chain: bool = True,
                          limits: dict[str, tuple[float, float]] | None = None,
-                         start: np.ndarray | None = None) -> ElectricalCalibration:
+                         start: np.ndarray | None = None,
+                         also_from: InjectorParameters | None = None) -> ElectricalCalibration:
     """Fit the structural parameters ``names`` (shared) and each injection's N_u and L_h to the
     voltage of a batch of injections of one injector (or of one lot, whose injectors share a
     structure). ``tolerance`` is the prior's relative standard deviation of each parameter. With
@@ -494,14 +508,20 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
     best kept; if none explains the batch the result says so. Raises ValueError for a batch that cannot
     be fitted (fewer than two usable injections, mixed sample periods). ``limits`` narrows named
     parameters to (low, high) factors on their base values, and ``start`` (an earlier result's
-    ``solution`` of the same batch) is where the fit starts: :func:`confirmed_out_of_tolerance` uses both."""
+    ``solution`` of the same batch) is where the fit starts: :func:`confirmed_out_of_tolerance` uses both.
+    ``also_from`` (an earlier calibration of the same injector, e.g. the model in use) is a second
+    start, every injection re-identified on it; the fit with the lower cost (prior included) is kept."""
     base = base or load_nominal()
     problem = _Problem(_batch(injections, base, names, tolerance, window_s, fit_chain), base, names, tolerance, limits)
     x0, before = problem.start()
     rms_before = float(np.sqrt(np.mean(np.concatenate(before) ** 2)))
     if start is not None and start.shape == x0.shape:
         x0 = np.clip(start, problem.lo + 1e-9, problem.hi - 1e-9)
-    fit, restarts = problem.restarted(problem.solve(x0, max_iterations), max_restarts, max_iterations)
+    fit = problem.solve(x0, max_iterations)
+    if also_from is not None:
+        second = problem.solve(problem.start_at(also_from), max_iterations)
+        fit = second if second.cost < fit.cost else fit
+    fit, restarts = problem.restarted(fit, max_restarts, max_iterations)
     return _result(problem, fit, restarts, base, rms_before)
 
 

@@ -243,7 +243,7 @@ def _calibrate(window: CalibrationWindow, base: InjectorParameters, config: Self
     injections = [i for i, _ in window.items]
     batch, held = injections[:-config.held_out], injections[-config.held_out:]
     try:
-        res = calibrate_electrical(batch, base, tolerance=config.tolerance)
+        res = calibrate_electrical(batch, base, tolerance=config.tolerance, also_from=current)
     except ValueError as exc:
         return CalibrationStatus(Learning.REFUSED, len(batch), message=str(exc)), None
     status = CalibrationStatus(Learning.REFUSED, len(batch), res.rms_before_v, res.rms_after_v)
