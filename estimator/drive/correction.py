@@ -51,7 +51,9 @@ ROW_REFRESH = 32               # a row's derivatives are simulated again after t
 ROWS_AFTER_CHANGE = 4          # rows computed each injection after the model or the drive changed
 LINEAR_STROKE_UM = 0.05       # a Newton step that moves the stroke and the opening instant less than these is
 LINEAR_OPENING_US = 0.3        # taken from the derivatives, without a simulation
-CARRY_OPENING_US = 0.5         # a table row the derivatives would move further is simulated again first
+CARRY_OPENING_US = 0.5         # a table row the derivatives would move further is simulated again at once
+FAR_ROWS = 2                   # at most this many such rows an injection, the farthest first (a row carried
+                               # across a bend of the opening instant is the farthest: its derivative is none)
 CARRY_STROKE_UM = 0.02         # the correction is carried from the last simulation while the estimate and the
 CARRY_MAIN_OPENING_US = 0.1    # preload force move its stroke and opening instant less than these
 TRUST_STEP = 0.1               # the scale moves at most this far beyond the levels its model was checked at
@@ -423,7 +425,9 @@ class DriveCompensator:
         """The preload table (preload N, scale, offset µs) for the estimate (``nu``, ``lh_um``): each
         row computed again in turn, one every ``ROW_PERIOD`` injections (``ROWS_AFTER_CHANGE`` an
         injection when the model or the drive changed), the others carried to the estimate by their own
-        derivatives in N_u and L_h (arithmetic: the stroke is close to linear in both). Until every row has been computed with this
+        derivatives in N_u and L_h (arithmetic: the stroke is close to linear in both); the
+        ``FAR_ROWS`` rows they would move the opening instant most, beyond ``CARRY_OPENING_US``, are
+        simulated at once with derivatives taken afresh. Until every row has been computed with this
         model and drive, the last complete table (another model's: :meth:`Correction.at` shifts it to
         this correction), empty before the first."""
         preloads = self.target.table_preloads_n
@@ -436,26 +440,46 @@ class DriveCompensator:
             todo.append(st.next_row)
             st.next_row = (st.next_row + 1) % len(preloads)
         for i in todo:
-            self._correct(st.rows[i], sim, nominal, nu, lh_um, cov, preloads[i], drive, derivatives=False, carry=False,
-                          refresh=ROW_REFRESH, checked=_checked(st, sim))
+            self._row(st, i, sim, nominal, nu, lh_um, cov, drive)
         if len(stale) > ROWS_AFTER_CHANGE:
             return st.last.table   # the last complete table (another model's) until every row is this one's
         target_stroke, target_opening = self.target_at(nominal)
         lo, hi = _trust(self.target.scale_limits, _checked(st, sim))
         olo, ohi = self.target.offset_limits_us
+        carried = [_carry_row(pt, nu, lh_um, target_stroke, lo, hi) for pt in st.rows]
+        far = sorted((i for i, (_, moved) in enumerate(carried) if abs(moved) > CARRY_OPENING_US),
+                     key=lambda i: -abs(carried[i][1]))[:FAR_ROWS]
+        for i in far:   # beyond what the derivatives hold (or across a bend of the opening instant, where a
+            # forward difference is no derivative at all): simulated now, with derivatives taken afresh
+            st.rows[i].age = ROW_REFRESH
+            self._row(st, i, sim, nominal, nu, lh_um, cov, drive)
+            carried[i] = _carry_row(st.rows[i], nu, lh_um, target_stroke, lo, hi)
         out = []
-        for i, (f, pt) in enumerate(zip(preloads, st.rows)):
-            c, r = pt.last, pt.response
-            assert c is not None and r is not None
-            dnu, dlh = nu - pt.nu, lh_um - pt.lh_um
-            stroke = c.stroke_um + r.d_nu[0] * dnu + r.d_lh[0] * dlh
-            scale = min(max(c.scale + (target_stroke - stroke) / r.d_scale[0], lo), hi)   # scalars: no numpy
-            moved = r.d_nu[1] * dnu + r.d_lh[1] * dlh + r.d_scale[1] * (scale - c.scale)
-            if abs(moved) > CARRY_OPENING_US:   # beyond what the derivatives hold: simulated at the next turn
-                st.next_row, moved = i, 0.0
+        for f, pt, (scale, moved) in zip(preloads, st.rows, carried):
+            c = pt.last
+            assert c is not None
             opening = (c.opening_us - c.offset_us) + moved
             out.append((f, scale, min(max(target_opening - opening, olo), ohi)))
         return tuple(out)
+
+    def _row(self, st: _Injector, i: int, sim: FastSimulator, nominal: FastSimulator, nu: float, lh_um: float,
+             cov: np.ndarray, drive: AmplifierDrive) -> None:
+        """Row ``i`` of the preload table simulated for the estimate (``nu``, ``lh_um``)."""
+        self._correct(st.rows[i], sim, nominal, nu, lh_um, cov, self.target.table_preloads_n[i], drive,
+                      derivatives=False, carry=False, refresh=ROW_REFRESH, checked=_checked(st, sim))
+
+
+def _carry_row(pt: _Point, nu: float, lh_um: float, target_stroke: float, lo: float,
+               hi: float) -> tuple[float, float]:
+    """(scale, the opening instant's move µs) of a table row carried to the estimate (``nu``,
+    ``lh_um``) by its derivatives from its last correction, the scale within (``lo``, ``hi``)
+    (arithmetic: the stroke is close to linear in N_u, L_h and the scale)."""
+    c, r = pt.last, pt.response
+    assert c is not None and r is not None
+    dnu, dlh = nu - pt.nu, lh_um - pt.lh_um
+    stroke = c.stroke_um + r.d_nu[0] * dnu + r.d_lh[0] * dlh
+    scale = min(max(c.scale + (target_stroke - stroke) / r.d_scale[0], lo), hi)   # scalars: no numpy
+    return scale, r.d_nu[1] * dnu + r.d_lh[1] * dlh + r.d_scale[1] * (scale - c.scale)
 
 
 def _carry(pt: _Point, scale: float, nu: float, lh_um: float, f_open_n: float) -> tuple[float, float] | None:
