@@ -31,7 +31,8 @@ estimator, per injector id (states: :class:`~estimator.ident.status.Learning`):
     explaining the injector (a swapped part, aging that moved the structure, a wrong parameter file)
     reaches ``monitor_limit`` within ``limit / (1 - k)`` injections. The injections seen while the sum
     grew are kept, and collection goes on while the old model keeps serving; the new calibration
-    starts from the configured tables (a new part is a new draw of the lot) and is adopted if it
+    starts from the configured tables (a new part is a new draw of the lot) and from the model in use,
+    the fit with the lower cost kept (a refinement too), and is adopted if it
     explains the held-out injections better than the model in use, or no worse while it moves their
     N_u beyond its uncertainty. A ``relearn`` command starts
     this state at once.
