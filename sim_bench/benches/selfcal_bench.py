@@ -225,7 +225,7 @@ def run_online(injectors: int = 10, seed: int = 11, pace_s: float = ONLINE_PACE_
             t0 = time.perf_counter()
             for k, inj in enumerate(injections):
                 while time.perf_counter() < t0 + k * pace_s:
-                    time.sleep(min(0.01, t0 + k * pace_s - time.perf_counter()))
+                    time.sleep(min(0.01, max(0.0, t0 + k * pace_s - time.perf_counter())))
                 busy = calibrator.running > 0
                 ts = time.perf_counter()
                 r = tracker.update(inj)
