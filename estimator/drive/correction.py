@@ -225,6 +225,22 @@ class DriveCompensator:
         learned standard drive is kept (the amplifier has not changed)."""
         self._injectors.pop(injector_id, None)
 
+    def learned_drives(self) -> dict[int, AmplifierDrive]:
+        """The standard drives learned per injector (none where the drive is configured): what a
+        restarted daemon restores, so that its first injections are corrected at once."""
+        if self.standard is not None:
+            return {}
+        return {iid: learner.drive for iid, learner in self._learners.items() if learner.drive is not None}
+
+    def restore_drives(self, drives: dict[int, AmplifierDrive]) -> None:
+        """Take ``drives`` as learned (:meth:`learned_drives` of an earlier run); ignored where the drive
+        is configured. Each injection's current is still checked against it: an amplifier that changed
+        holds the corrections and says so."""
+        if self.standard is not None:
+            return
+        for iid, drive in drives.items():
+            self._learners[iid] = DriveLearner.learned(drive, self.target.learn_injections, self.target.drive_tolerance)
+
     def last(self, injector_id: int) -> Correction:
         """The injector's last correction (the standard drive, ``valid`` False, if none)."""
         st = self._injectors.get(injector_id)

@@ -162,8 +162,10 @@ class Daemon:
         """Load persisted per-injector state (a bad file is reported and ignored)."""
         if self.state_path is None:
             return
-        states, calibrations, learning, problems = load_all(self.state_path)
+        states, calibrations, learning, drives, problems = load_all(self.state_path)
         problems += self.tracker.restore(states) + self.tracker.restore_calibrations(calibrations, learning)
+        if self.processor.compensator is not None:
+            self.processor.compensator.restore_drives(drives)
         if problems:
             kept = keep_rejected(self.state_path)
             log.warning("state file %s: dropped (starting those injectors cold; %s): %s", self.state_path,
@@ -177,8 +179,9 @@ class Daemon:
         if self.state_path is None:
             return
         try:
+            comp = self.processor.compensator
             save_states(self.state_path, dict(self.tracker.states), self.tracker.own_parameters(),
-                        dict(self.tracker.calibration))
+                        dict(self.tracker.calibration), comp.learned_drives() if comp is not None else None)
             self._dirty = False
         except OSError as exc:
             self.rlog.log(logging.ERROR, "persist", "cannot write state %s: %s", self.state_path, exc)
@@ -410,7 +413,9 @@ class Daemon:
         self.processor.tracker = tracker
         self.processor.commands = new.commands
         if new.drive_correction != self.cfg.drive_correction:   # a new target: corrections start again
-            self.processor.compensator = build_compensator(new)
+            old_comp, self.processor.compensator = self.processor.compensator, build_compensator(new)
+            if old_comp is not None and self.processor.compensator is not None:   # the amplifiers are the same
+                self.processor.compensator.restore_drives(old_comp.learned_drives())
         self.ingest.assembler.timeout_s = new.assembly_timeout_ms * 1e-3
         self.waiting.deadline_s = new.shed_after_ms * 1e-3
         self.clock.silent_bus_s = new.silent_bus_s

@@ -2,7 +2,9 @@
 
 Beside each injector's tracker state the file holds the parameter set its learning adopted for it
 (``calibrations``), so that a restarted daemon estimates it with its own model at once, and where
-its learning stands (``learning``: the lifecycle state, the refusals and the diagnostics).
+its learning stands (``learning``: the lifecycle state, the refusals and the diagnostics); and the
+amplifier's standard drive learned for it (``drives``), so that its first injections after a restart
+are corrected at once instead of being driven with the standard drive while it is learned again.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
+from estimator.drive.standard import AmplifierDrive
 from estimator.errors import EstimatorError
 from estimator.ident.learning.selfcal import CalibrationStatus
 from estimator.ident.tracking.tracker import TrackerState
@@ -29,7 +32,7 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 FORMAT = "piezo-injector-estimator-state"
 VERSION = 1
-MAX_BYTES = 1 << 20   # 8 injectors take about 10 kB; anything this large is not ours
+MAX_BYTES = 1 << 20   # 8 injectors take about 10 kB, 30 kB more with their learned drives; anything this large is not ours
 REJECTED_KEPT = 3     # generations of rejected state files kept (<name>.rejected, .rejected.1, ...)
 LOCK_FILE = "estimator.lock"
 
@@ -68,9 +71,10 @@ def lock_state_dir(state_dir: Path) -> int:
 
 def save_states(path: Path, states: dict[int, TrackerState],
                 calibrations: dict[int, InjectorParameters] | None = None,
-                learning: dict[int, CalibrationStatus] | None = None) -> None:
-    """Write all injector states (and the injectors' own parameter sets and learning statuses)
-    atomically: a crash leaves the old file or the new one, never a mix."""
+                learning: dict[int, CalibrationStatus] | None = None,
+                drives: dict[int, AmplifierDrive] | None = None) -> None:
+    """Write all injector states (and the injectors' own parameter sets, learning statuses and learned
+    standard drives) atomically: a crash leaves the old file or the new one, never a mix."""
     path.parent.mkdir(parents=True, exist_ok=True)
     doc: dict[str, Any] = {"format": FORMAT, "version": VERSION, "saved_at": time.time(),
                            "injectors": {str(k): v.to_dict() for k, v in sorted(states.items())}}
@@ -78,6 +82,8 @@ def save_states(path: Path, states: dict[int, TrackerState],
         doc["calibrations"] = {str(k): p.to_mapping() for k, p in sorted(calibrations.items())}
     if learning:
         doc["learning"] = {str(k): st.to_dict() for k, st in sorted(learning.items())}
+    if drives:
+        doc["drives"] = {str(k): d.to_dict() for k, d in sorted(drives.items())}
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w") as f:
@@ -158,14 +164,15 @@ def _learning_of(doc: dict[str, Any], path: Path) -> tuple[dict[int, Calibration
 
 
 def load_all(path: Path) -> tuple[dict[int, TrackerState], dict[int, InjectorParameters],
-                                  dict[int, CalibrationStatus], list[str]]:
-    """States, own parameter sets and learning statuses from one read of ``path``, and the problems
-    (one line each: the file's, or each bad entry's)."""
+                                  dict[int, CalibrationStatus], dict[int, AmplifierDrive], list[str]]:
+    """States, own parameter sets, learning statuses and learned standard drives from one read of
+    ``path``, and the problems (one line each: the file's, or each bad entry's)."""
     doc, problem = _read(path)
     if doc is None:
-        return {}, {}, {}, [problem] if problem else []
+        return {}, {}, {}, {}, [problem] if problem else []
     (states, p1), (cals, p2), (learning, p3) = _states_of(doc, path), _calibrations_of(doc, path), _learning_of(doc, path)
-    return states, cals, learning, [p for p in (p1, p2, p3) if p]
+    drives, p4 = _entries_of(doc, path, "drives", AmplifierDrive.from_dict, "standard drive of ")
+    return states, cals, learning, drives, [p for p in (p1, p2, p3, p4) if p]
 
 
 def _injector(key: str) -> int:

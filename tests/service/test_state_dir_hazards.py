@@ -63,7 +63,7 @@ def test_special_and_huge_state_files_are_refused_at_once_with_one_line(tmp_path
     else:
         path.mkdir()
     t0 = time.monotonic()
-    states, _cals, _learning, problems = load_all(path)
+    states, _cals, _learning, _drives, problems = load_all(path)
     assert time.monotonic() - t0 < 1.0 and not states and len(problems) == 1
     d = Daemon(DaemonConfig(bus="virtual:unused", state_dir=tmp_path))
     with caplog.at_level("WARNING"):

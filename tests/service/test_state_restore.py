@@ -128,3 +128,45 @@ def _saved(tmp_path, entry):
     st = TrackerState.from_dict(entry)
     save_states(path, {0: st, 5: st})
     return path
+
+
+def test_learned_drives_are_kept_and_a_bad_one_is_named_and_skipped(tmp_path, good_entry):
+    """The standard drives learned per injector are saved beside the states; on load a record that is
+    not a drive is dropped and named, the others kept."""
+    import numpy as np
+
+    from estimator.drive.standard import AmplifierDrive
+    from estimator.ident.tracking.tracker import TrackerState
+    from estimator.service.state_store import load_all
+
+    path = tmp_path / "estimator-state.json"
+    drive = AmplifierDrive(np.concatenate([np.linspace(0, 8, 40), np.full(200, 8.0), np.zeros(60)]), 0.5e-6, "learned")
+    save_states(path, {0: TrackerState.from_dict(good_entry)}, drives={0: drive, 3: drive})
+    states, _cals, _learning, drives, problems = load_all(path)
+    assert set(states) == {0} and set(drives) == {0, 3} and problems == []
+    assert np.allclose(drives[3].current_a, drive.current_a)
+    doc = json.loads(path.read_text())
+    doc["drives"]["3"]["current_a"] = "%%%"
+    path.write_text(json.dumps(doc))
+    _states, _cals, _learning, drives, problems = load_all(path)
+    assert set(drives) == {0} and len(problems) == 1 and "standard drive of injector 3" in problems[0]
+
+
+def test_the_daemon_restores_and_persists_the_learned_drives(tmp_path, good_entry):
+    """A restarted daemon corrects an injector whose drive it had learned without learning it again,
+    and writes the drive back with its state."""
+    import numpy as np
+
+    from estimator.drive.standard import AmplifierDrive
+    from estimator.ident.tracking.tracker import TrackerState
+    from estimator.service.state_store import load_all
+
+    path = tmp_path / "estimator-state.json"
+    drive = AmplifierDrive(np.concatenate([np.linspace(0, 8, 40), np.full(200, 8.0), np.zeros(60)]), 0.5e-6, "learned")
+    save_states(path, {0: TrackerState.from_dict(good_entry)}, drives={3: drive})
+    d = daemon(tmp_path)
+    d.restore()
+    comp = d.processor.compensator
+    assert comp is not None and comp.drive_of(3) is not None and comp.drive_of(4) is None
+    d.persist()
+    assert set(load_all(path)[3]) == {3}
