@@ -104,6 +104,20 @@ def test_the_preload_table_carries_a_correction_across_idle_within_a_microsecond
     assert worst_plain > 1.0
 
 
+def test_a_held_correction_states_the_uncertainty_of_its_carried_n_u(sim):
+    """Held for ten injections, a correction carries N_u on by the last ok estimate's drift rate; a
+    warm-up's rate falls as it goes on, so the carried N_u may be off by a good share of the carry:
+    its σ grows with the carry, and covers the stroke the drive gives when N_u rose half as far."""
+    comp = compensator()
+    comp.update(1, True, sim, 17.0, 5.0, COV, 150.0, sim, rate_n_per_v_s=0.1, time_s=0.0)
+    first = comp.update(1, False, sim, 17.0, 5.0, COV, 150.0, sim, time_s=1.0)
+    late = comp.update(1, False, sim, 17.0, 5.0, COV, 150.0, sim, time_s=10.0)
+    assert first.held and late.held
+    assert late.sigma_stroke_um > 3 * first.sigma_stroke_um
+    stroke, _ = respond(sim, late.scale, 17.5, 5.0, 150.0)             # N_u rose by 0.5, not the carried 1.0
+    assert abs(stroke - late.stroke_um) < 2 * late.sigma_stroke_um < 4 * abs(stroke - late.stroke_um)
+
+
 def _fresh_table(sim, nu: float, lh_um: float) -> tuple:
     comp = compensator()
     for _ in range(35):    # every row simulated at this estimate
