@@ -14,6 +14,7 @@ a status that says there is no estimate. Decoding range-checks every value again
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from enum import IntEnum
 from pathlib import Path
@@ -357,6 +358,18 @@ def load_database(path: str | Path | None = None) -> Database:
     return database.load_database(path, CONTRACT)
 
 
+def _signal_values(rec: Record, minimum: Callable[[str], Any]) -> dict[str, Any]:
+    """The record's field values by signal name, an unmeasured one (None or not finite) at its signal's
+    ``minimum`` (the wire's "not measured")."""
+    out: dict[str, Any] = {}
+    for fname, sname in rec.SIGNALS.items():
+        v = getattr(rec, fname)
+        if fname in rec.UNMEASURED_AT_MINIMUM and not (v is not None and math.isfinite(v)):
+            v = minimum(sname)
+        out[sname] = v
+    return out
+
+
 class Codec:
     """Typed records <-> frames for the contract's messages, resolved once from the DBC."""
 
@@ -436,12 +449,7 @@ class Codec:
         msg = self.messages[type(rec)]
         packer = self._packers[type(rec)]
         if packer is not None:
-            raw: dict[str, Any] = {}
-            for fname, sname in rec.SIGNALS.items():
-                v = getattr(rec, fname)
-                if fname in rec.UNMEASURED_AT_MINIMUM and not (v is not None and math.isfinite(v)):
-                    v = packer.minimum[sname]
-                raw[sname] = v
+            raw = _signal_values(rec, packer.minimum.__getitem__)
             raw.update(rec.extra_signals())
             return Frame(msg.frame_id, packer.pack_saturated(raw), msg.is_fd)
         return self.encode_with_cantools(rec)
@@ -450,12 +458,8 @@ class Codec:
         """:meth:`encode` by cantools' strict encoder: for a message the packer does not cover, and the
         reference the packer is tested against."""
         msg = self.messages[type(rec)]
-        values: dict[str, float | int] = {}
-        for fname, sname in rec.SIGNALS.items():
-            v = getattr(rec, fname)
-            if fname in rec.UNMEASURED_AT_MINIMUM and not (v is not None and math.isfinite(v)):
-                v = msg.get_signal_by_name(sname).minimum
-            values[sname] = self._wire_value(msg, sname, v)
+        values: dict[str, Any] = {sname: self._wire_value(msg, sname, v) for sname, v in
+                                  _signal_values(rec, lambda sname: msg.get_signal_by_name(sname).minimum).items()}
         values.update(rec.extra_signals())
         for s in msg.signals:   # signals the record does not carry (none today) go out as their minimum
             values.setdefault(s.name, s.minimum if s.minimum is not None else 0)

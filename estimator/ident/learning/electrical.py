@@ -285,10 +285,7 @@ class _Problem:
         """A start at ``params`` (its structure and chain, within the bounds), each injection's (N_u,
         L_h) identified on it."""
         x0 = np.zeros(self.p + 2 * self.b)
-        base = self.sims.base
-        for i, n in enumerate(self.names):
-            table, field_name = n.split(".")
-            x0[i] = math.log(getattr(getattr(params, table), field_name) / getattr(getattr(base, table), field_name))
+        x0[:self.k] = log_factors(params, self.sims.base, self.names)
         x0[self.k:self.p] = [getattr(params.chain, n) * US_PER_S for n in self.chain_names]
         x0[:self.p] = np.clip(x0[:self.p], self.lo[:self.p] + 1e-9, self.hi[:self.p] - 1e-9)
         x0[self.p:] = self.per_injection(x0[:self.k], self.chain_of(x0[self.k:self.p]))[0]
@@ -615,12 +612,16 @@ def beyond_bounds(params: InjectorParameters, base: InjectorParameters, toleranc
     """The structural parameters of ``params`` outside the bounds a calibration of ``base`` with this
     ``tolerance`` keeps them in (empty: ``params`` can be such a calibration)."""
     limit = BOUND_SDS * math.log1p(tolerance) + 1e-9
-    out = []
-    for n in names:
+    return [n for n, x in zip(names, log_factors(params, base, names)) if abs(x) > limit]
+
+
+def log_factors(params: InjectorParameters, base: InjectorParameters, names: tuple[str, ...]) -> np.ndarray:
+    """The logarithm of each named parameter of ``params`` over its ``base`` value ("table.field"
+    names): the calibration's own coordinates."""
+    out = np.empty(len(names))
+    for i, n in enumerate(names):
         table, field_name = n.split(".")
-        ratio = getattr(getattr(params, table), field_name) / getattr(getattr(base, table), field_name)
-        if abs(math.log(ratio)) > limit:
-            out.append(n)
+        out[i] = math.log(getattr(getattr(params, table), field_name) / getattr(getattr(base, table), field_name))
     return out
 
 
