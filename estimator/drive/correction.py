@@ -29,6 +29,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from estimator.drive import row_carry
 from estimator.drive.response import Response, linearise, respond, trapezoid
 from estimator.drive.standard import AmplifierDrive, DriveCheck, DriveLearner
 from estimator.drive.target import NOMINAL_LH_UM, NOMINAL_NU_N_PER_V, DriveTarget, resolve
@@ -45,7 +46,7 @@ from estimator.units import US_PER_S
 N_PER_KN = 1e3
 MAX_INTERVAL_S = 60.0          # a longer pause between injections: N_u is not carried forward by the drift rate
 REFRESH_INJECTIONS = 32        # derivatives are simulated again this often (and whenever the model changes)
-ROW_PERIOD = 2                 # one preload-table row computed again every this many injections (the others
+ROW_PERIOD = 4                 # one preload-table row computed again every this many injections (the others
                                # carried by their derivatives; a row they would move too far goes first)
 ROW_REFRESH = 32               # a row's derivatives are simulated again after this many of its corrections
 ROWS_AFTER_CHANGE = 4          # rows computed each injection after the model or the drive changed
@@ -54,10 +55,13 @@ LINEAR_OPENING_US = 0.3        # taken from the derivatives, without a simulatio
 CARRY_OPENING_US = 0.5         # a table row the derivatives would move further is simulated again at once
 FAR_ROWS = 2                   # at most this many such rows an injection, the farthest first (a row carried
                                # across a bend of the opening instant is the farthest: its derivative is none)
+DERIVATIVE_MISS_US = 0.2       # such a row whose simulation lands further than this from its carry gets its
+                               # derivatives taken again
 CARRY_STROKE_UM = 0.02         # the correction is carried from the last simulation while the estimate and the
 CARRY_MAIN_OPENING_US = 0.1    # preload force move its stroke and opening instant less than these
 CARRY_NU_SHARE = 0.5           # a held correction's N_u, carried by the drift rate, is uncertain by this share of
                                # the carry
+STROKE_PER_SCALE_UM = 27.0     # the plateau stroke's growth per unit of scale: a first step toward the target
 TRUST_STEP = 0.1               # the scale moves at most this far beyond the levels its model was checked at
 TRUST_REL = 0.05               # σ: this share of the motion the model is extrapolated to beyond those levels (a
                                # model learned at the standard drive and driven at 1.4 was 0.46 µm off in 11 µm)
@@ -179,6 +183,8 @@ class _Injector:
     last: Correction = field(default_factory=Correction)
     main: _Point = field(default_factory=_Point)
     rows: list[_Point] = field(default_factory=list)   # one per preload of the table
+    grid: np.ndarray = field(default_factory=lambda: np.empty((0, row_carry.COLUMNS)))   # the rows' numbers
+    rows_of: tuple[object, object] | None = None   # the model and drive of every row, once all are theirs
     next_row: int = 0
     turn: int = 0                       # injections with a table
     time_s: float = math.nan            # the last injection's time (s)
@@ -309,7 +315,9 @@ class DriveCompensator:
         charging) from its measured current, at its preload force ``this_preload_n`` (N): compared with
         what the last correction predicted for it, the injection-to-injection jitter a correction
         cannot foresee (the amplifier's ripple, the estimate's noise) enters its σ."""
-        st = self._injectors.setdefault(injector_id, _Injector())
+        st = self._injectors.get(injector_id)
+        if st is None:
+            st = self._injectors[injector_id] = _Injector()
         interval = time_s - st.time_s if math.isfinite(time_s) and math.isfinite(st.time_s) else 0.0
         st.time_s = time_s
         if math.isfinite(rate_n_per_v_s) and 0.0 < interval < MAX_INTERVAL_S:
@@ -335,11 +343,13 @@ class DriveCompensator:
                 if st.ok is not None and st.ok.sim is not sim:   # another model: its jitter is measured anew
                     st.jitter = [0.0, 0.0, 0.0]
                 _check_level(st, sim, measured)
-                corr = self._correct(st.main, sim, nominal, nu, lh_um, cov, f_open_n, drive, jitter=_jitter_var(st),
-                                     checked=_checked(st, sim))
-                table = self._table(st, sim, nominal, nu, lh_um, cov, drive)
+                fresh = self._table(st, sim, nominal, nu, lh_um, cov, drive)
+                st.last = self._correct(st.main, sim, nominal, nu, lh_um, cov, f_open_n, drive,
+                                        jitter=_jitter_var(st), checked=_checked(st, sim), drive_scale=measured,
+                                        table=fresh)
                 st.ok = _OkEstimate(sim, nu, lh_um, cov, rate_n_per_v_s if math.isfinite(rate_n_per_v_s) else 0.0,
                                     time_s)
+                return st.last
             elif st.ok is not None and nominal is not None and math.isfinite(f_open_n):
                 corr = replace(self._again(st, nominal, f_open_n, time_s, drive), held=True,
                                reason="estimate not ok: computed again from the last ok estimate")
@@ -368,7 +378,8 @@ class DriveCompensator:
     def _correct(self, pt: _Point, sim: FastSimulator, nominal: FastSimulator, nu: float, lh_um: float,
                  cov: np.ndarray, f_open_n: float, drive: AmplifierDrive, derivatives: bool = True,
                  jitter: tuple[float, float] = (0.0, 0.0), refresh: int | None = None,
-                 carry: bool = True, checked: tuple[float, float] | None = None) -> Correction:
+                 carry: bool = True, checked: tuple[float, float] | None = None, drive_scale: float = math.nan,
+                 table: tuple[tuple[float, float, float], ...] = ()) -> Correction:
         """The correction at ``f_open_n`` by Newton's method on the scale from ``pt``'s last one
         (``derivatives``: the per-kN sensitivities and the σ too, ``jitter`` the injection-to-injection
         variance of stroke and opening, µm² and µs², in it; ``refresh``: how many corrections the
@@ -376,12 +387,18 @@ class DriveCompensator:
         so little since ``pt``'s last correction that its derivatives hold (:func:`_carry`), that
         correction is carried instead of simulated (``carry`` False: always simulated). ``checked``: the
         scales the model was checked at (None: unknown, the configured limits alone); the scale stays
-        within ``TRUST_STEP`` of them (:func:`_trust`)."""
+        within ``TRUST_STEP`` of them (:func:`_trust`). ``drive_scale`` and ``table`` are passed on to the
+        correction as they are."""
         t = self.target
         lo, hi = _trust(t.scale_limits, checked)
         target_stroke, target_opening = self.target_at(nominal)
         scale = min(max(pt.last.scale if pt.last is not None and pt.last.valid else 1.0, lo), hi)   # scalars: no numpy
         if pt.response is None or pt.model is not sim or pt.drive is not drive or pt.age >= (refresh or self.refresh):
+            if pt.model is not sim or pt.drive is not drive:   # derivatives at the drive the target asks for,
+                # not at the last one's: taken at scale 1.0 for rows that settled at 0.75–0.9, a row's
+                # carried opening instant missed by a third of its move, another's was six times its move
+                scale = _aimed(sim, scale, nu, lh_um, f_open_n, drive, target_stroke, lo, hi,
+                               pt.response.d_scale[0] if pt.response is not None else STROKE_PER_SCALE_UM)
             pt.response, pt.model, pt.drive, pt.age = linearise(sim, scale, nu, lh_um, f_open_n, drive), sim, drive, 0
             stroke, opening = pt.response.stroke_um, pt.response.opening_us
             pt.anchor = (scale, nu, lh_um, f_open_n, stroke, opening)
@@ -437,7 +454,7 @@ class DriveCompensator:
             sigma_s, sigma_o = math.sqrt(max(var_s, 0.0)), math.sqrt(max(var_o, 0.0))
         corr = Correction(scale, offset, stroke, offset + opening, sigma_s, sigma_o, target_stroke, target_opening,
                           per_kn[0], per_kn[1], f_open_n, True, False, at_limit, t.scale_limits, t.offset_limits_us,
-                          checked=checked, trust_limited=trust_limited)
+                          drive_scale=drive_scale, table=table, checked=checked, trust_limited=trust_limited)
         pt.last, pt.nu, pt.lh_um = corr, nu, lh_um
         return corr
 
@@ -448,13 +465,19 @@ class DriveCompensator:
         injection when the model or the drive changed), the others carried to the estimate by their own
         derivatives in N_u and L_h (arithmetic: the stroke is close to linear in both); the
         ``FAR_ROWS`` rows they would move the opening instant most, beyond ``CARRY_OPENING_US``, are
-        simulated at once with derivatives taken afresh. Until every row has been computed with this
+        simulated at once, with derivatives taken afresh where the simulation lands more than
+        ``DERIVATIVE_MISS_US`` from the carry. Until every row has been computed with this
         model and drive, the last complete table (another model's: :meth:`Correction.at` shifts it to
         this correction), empty before the first."""
         preloads = self.target.table_preloads_n
         if len(st.rows) != len(preloads):
-            st.rows, st.next_row = [_Point() for _ in preloads], 0
-        stale = [i for i, pt in enumerate(st.rows) if pt.model is not sim or pt.drive is not drive]
+            st.rows, st.next_row, st.rows_of = [_Point() for _ in preloads], 0, None
+            st.grid = np.full((len(preloads), row_carry.COLUMNS), np.nan)
+        if st.rows_of is not None and st.rows_of[0] is sim and st.rows_of[1] is drive:
+            stale = []
+        else:
+            stale = [i for i, pt in enumerate(st.rows) if pt.model is not sim or pt.drive is not drive]
+            st.rows_of = None if stale else (sim, drive)
         todo = stale[:ROWS_AFTER_CHANGE] if stale else []
         st.turn += 1
         if not stale and st.turn % ROW_PERIOD == 0:
@@ -464,43 +487,34 @@ class DriveCompensator:
             self._row(st, i, sim, nominal, nu, lh_um, cov, drive)
         if len(stale) > ROWS_AFTER_CHANGE:
             return st.last.table   # the last complete table (another model's) until every row is this one's
-        target_stroke, target_opening = self.target_at(nominal)
-        lo, hi = _trust(self.target.scale_limits, _checked(st, sim))
-        olo, ohi = self.target.offset_limits_us
-        carried = [_carry_row(pt, nu, lh_um, target_stroke, lo, hi) for pt in st.rows]
-        far = sorted((i for i, (_, moved) in enumerate(carried) if abs(moved) > CARRY_OPENING_US),
-                     key=lambda i: -abs(carried[i][1]))[:FAR_ROWS]
-        for i in far:   # beyond what the derivatives hold (or across a bend of the opening instant, where a
-            # forward difference is no derivative at all): simulated now, with derivatives taken afresh
-            st.rows[i].age = ROW_REFRESH
+        target = self.target_at(nominal)
+        limits = (*_trust(self.target.scale_limits, _checked(st, sim)), *self.target.offset_limits_us)
+        scale, moved, offset, farthest = row_carry.carry_rows(st.grid, nu, lh_um, *target, limits)
+        far = [] if not farthest > CARRY_OPENING_US else [
+            i for i in np.argsort(-np.abs(moved))[:FAR_ROWS] if abs(moved[i]) > CARRY_OPENING_US]
+        for i in far:   # beyond what the derivatives hold: simulated now; where the simulation shows that
+            # they did not hold (a forward difference across a bend of the opening instant is no
+            # derivative at all), simulated again with derivatives taken afresh
+            foreseen = st.grid[i, row_carry.OPENING] + moved[i]
             self._row(st, i, sim, nominal, nu, lh_um, cov, drive)
-            carried[i] = _carry_row(st.rows[i], nu, lh_um, target_stroke, lo, hi)
-        out = []
-        for f, pt, (scale, moved) in zip(preloads, st.rows, carried):
-            c = pt.last
-            assert c is not None
-            opening = (c.opening_us - c.offset_us) + moved
-            out.append((f, scale, min(max(target_opening - opening, olo), ohi)))
-        return tuple(out)
+            if not abs(st.grid[i, row_carry.OPENING] - foreseen) <= DERIVATIVE_MISS_US:
+                st.rows[i].age = ROW_REFRESH
+                self._row(st, i, sim, nominal, nu, lh_um, cov, drive)
+        if far:
+            scale, moved, offset, _ = row_carry.carry_rows(st.grid, nu, lh_um, *target, limits)
+        return tuple(zip(preloads, scale.tolist(), offset.tolist()))
 
     def _row(self, st: _Injector, i: int, sim: FastSimulator, nominal: FastSimulator, nu: float, lh_um: float,
              cov: np.ndarray, drive: AmplifierDrive) -> None:
-        """Row ``i`` of the preload table simulated for the estimate (``nu``, ``lh_um``)."""
-        self._correct(st.rows[i], sim, nominal, nu, lh_um, cov, self.target.table_preloads_n[i], drive,
-                      derivatives=False, carry=False, refresh=ROW_REFRESH, checked=_checked(st, sim))
-
-
-def _carry_row(pt: _Point, nu: float, lh_um: float, target_stroke: float, lo: float,
-               hi: float) -> tuple[float, float]:
-    """(scale, the opening instant's move µs) of a table row carried to the estimate (``nu``,
-    ``lh_um``) by its derivatives from its last correction, the scale within (``lo``, ``hi``)
-    (arithmetic: the stroke is close to linear in N_u, L_h and the scale)."""
-    c, r = pt.last, pt.response
-    assert c is not None and r is not None
-    dnu, dlh = nu - pt.nu, lh_um - pt.lh_um
-    stroke = c.stroke_um + r.d_nu[0] * dnu + r.d_lh[0] * dlh
-    scale = min(max(c.scale + (target_stroke - stroke) / r.d_scale[0], lo), hi)   # scalars: no numpy
-    return scale, r.d_nu[1] * dnu + r.d_lh[1] * dlh + r.d_scale[1] * (scale - c.scale)
+        """Row ``i`` of the preload table simulated for the estimate (``nu``, ``lh_um``), and its line of
+        the injector's grid."""
+        pt = st.rows[i]
+        c = self._correct(pt, sim, nominal, nu, lh_um, cov, self.target.table_preloads_n[i], drive,
+                          derivatives=False, carry=False, refresh=ROW_REFRESH, checked=_checked(st, sim))
+        r = pt.response
+        assert r is not None
+        st.grid[i] = (c.stroke_um, c.scale, c.opening_us - c.offset_us, nu, lh_um, r.d_nu[0], r.d_lh[0],
+                      r.d_scale[0], r.d_nu[1], r.d_lh[1], r.d_scale[1])
 
 
 def _carry(pt: _Point, scale: float, nu: float, lh_um: float, f_open_n: float) -> tuple[float, float] | None:
@@ -519,6 +533,17 @@ def _carry(pt: _Point, scale: float, nu: float, lh_um: float, f_open_n: float) -
     if not (abs(d_stroke) < CARRY_STROKE_UM and abs(d_opening) < CARRY_MAIN_OPENING_US):
         return None
     return a[4] + d_stroke, a[5] + d_opening
+
+
+def _aimed(sim: FastSimulator, scale: float, nu: float, lh_um: float, f_open_n: float, drive: AmplifierDrive,
+           target_stroke: float, lo: float, hi: float, per_scale_um: float) -> float:
+    """The scale one Newton step from ``scale`` toward ``target_stroke`` (µm) within (``lo``, ``hi``),
+    the stroke simulated at ``scale`` and assumed to grow by ``per_scale_um`` per unit of scale; ``scale``
+    itself where the valve does not open there."""
+    stroke, _ = respond(sim, scale, nu, lh_um, f_open_n, drive)
+    if not (math.isfinite(stroke) and per_scale_um > 0):
+        return scale
+    return min(max(scale + (target_stroke - stroke) / per_scale_um, lo), hi)
 
 
 def _simulated(pt: _Point, sim: FastSimulator, scale: float, nu: float, lh_um: float, f_open_n: float,

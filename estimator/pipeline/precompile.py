@@ -74,8 +74,18 @@ def warm_cold_start(tracker: Tracker) -> None:
 
 def warm_the_rest() -> None:
     """Compile the free simulation, the warm update and the global search
-    (:meth:`Tracker.warm_up` without its local-first cold start)."""
+    (:meth:`Tracker.warm_up` without its local-first cold start), and the drive correction's table carry."""
     _tracker().warm_up(cold_start=False)
+    warm_drive()
+
+
+def warm_drive() -> None:
+    """Compile the drive correction's table carry (its simulations are the valve prediction's)."""
+    import numpy as np
+
+    from estimator.drive.row_carry import COLUMNS, carry_rows
+
+    carry_rows(np.ones((2, COLUMNS)), 17.0, 4.0, 10.0, 100.0, (0.5, 1.5, -50.0, 50.0))
 
 
 def cache_dir() -> Path:
@@ -101,6 +111,7 @@ def precompile(parallel: bool = True, log: Callable[..., Any] = print) -> float:
     if child is not None and child.wait() != 0:
         log(f"the second compiling process exited with {child.returncode}; compiling the rest here")
     tracker.warm_up()   # loads what is cached, compiles what is not
+    warm_drive()
     try:
         marker.parent.mkdir(parents=True, exist_ok=True)
         marker.write_text("complete\n")

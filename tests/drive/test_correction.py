@@ -131,7 +131,7 @@ def test_table_rows_follow_a_moved_estimate_and_a_row_without_a_derivative_is_si
     their last simulation they were 4.6 µs off until each row's turn came). A row whose opening
     derivative is no derivative (taken across a bend of the opening instant) and would carry it by
     tens of microseconds is simulated again at once."""
-    from dataclasses import replace as replaced
+    from estimator.drive import row_carry
 
     comp = compensator()
     for _ in range(35):
@@ -144,11 +144,47 @@ def test_table_rows_follow_a_moved_estimate_and_a_row_without_a_derivative_is_si
     for _ in range(35):    # every row simulated at the new estimate
         comp.update(0, True, sim, 19.3, 7.0, COV, 100.0, sim)
     bent = 12
-    r = rows[bent].response
-    rows[bent].response = replaced(r, d_nu=(r.d_nu[0], 400.0))     # µs per N/V: across a jump of the opening
+    comp._injectors[0].grid[bent, row_carry.DO_DNU] = 400.0           # µs per N/V: across a jump of the opening
     c = comp.update(0, True, sim, 19.31, 7.0, COV, 100.0, sim)
     assert abs(c.table[bent][2] - _fresh_table(sim, 19.31, 7.0)[bent][2]) < 0.1
     assert abs(rows[bent].response.d_nu[1]) < 50.0                  # taken afresh
+
+
+def test_table_rows_take_their_derivatives_at_the_drive_they_settle_at(sim):
+    """A row computed for the first time takes its derivatives at the scale the target asks for, not at
+    the standard drive's 1.0: carried by them over a 0.1 µm move of L_h (no row moved far enough to be
+    simulated), every row's offset is within 0.03 µs of a table simulated anew (taken at 1.0, rows
+    settling at 0.75–0.9 missed by up to 0.11 µs: a third of their move)."""
+    for nu, lh in ((17.0, 3.0), (19.0, 6.0)):
+        comp = compensator()
+        for _ in range(5):   # every row computed once, four an injection
+            comp.update(0, True, sim, nu, lh, COV, 100.0, sim)
+        c = comp.update(0, True, sim, nu, lh + 0.1, COV, 100.0, sim)
+        fresh = _fresh_table(sim, nu, lh + 0.1)
+        assert max(abs(a[2] - b[2]) for a, b in zip(c.table, fresh)) < 0.03, (nu, lh)
+
+
+def test_a_far_row_whose_derivatives_hold_costs_one_simulation_not_six(sim, monkeypatch):
+    """A row the estimate moved beyond ``CARRY_OPENING_US`` is simulated at once; its derivatives are
+    taken again only where that simulation shows they did not hold (before, always: six simulations
+    a row instead of one or two)."""
+    import estimator.drive.correction as corr_mod
+
+    comp = compensator()
+    for _ in range(5):
+        comp.update(0, True, sim, 17.0, 3.0, COV, 100.0, sim)
+    rows = []
+    real = corr_mod.respond
+
+    def counted(*a, **kw):   # the table's simulations (the correction's own are at 100 N)
+        rows.extend([a[4]] if a[4] != 100.0 else [])
+        return real(*a, **kw)
+    monkeypatch.setattr(corr_mod, "respond", counted)
+    c = comp.update(0, True, sim, 17.0, 3.3, COV, 100.0, sim)    # opening instants move by about 1.3 µs
+    assert 1 <= len(rows) <= 2 * corr_mod.FAR_ROWS, rows
+    monkeypatch.setattr(corr_mod, "respond", real)
+    fresh = _fresh_table(sim, 17.0, 3.3)
+    assert max(abs(a[2] - b[2]) for a, b in zip(c.table, fresh)) < 0.15
 
 
 def test_the_limits_hold_and_say_so(sim):
@@ -292,15 +328,21 @@ def test_the_sigma_covers_the_injection_to_injection_jitter_and_one_odd_injectio
     from estimator.drive.standard import AmplifierDrive
 
     plant_current = AmplifierDrive.trapezoid().samples(0.5e-6, 200e-6)
-    comp = compensator()
-    rng = np.random.default_rng(1)
-    c = comp.update(0, True, sim, 18.0, 4.0, COV, 100.0, sim, current_a=plant_current, dt_s=0.5e-6,
-                    this_preload_n=100.0)
-    quiet = c.sigma_opening_us
-    for _ in range(40):
-        predicted = (c.stroke_um + 0.03 * rng.standard_normal(), c.opening_us - c.offset_us + 0.3 * rng.standard_normal())
-        c = comp.update(0, True, sim, 18.0, 4.0, COV, 100.0, sim, current_a=c.scale * plant_current, dt_s=0.5e-6,
-                        this_preload_n=100.0, predicted=predicted)
+
+    def driven(jitter_us: float) -> tuple[DriveCompensator, Correction]:
+        comp = compensator()
+        rng = np.random.default_rng(1)
+        c = comp.update(0, True, sim, 18.0, 4.0, COV, 100.0, sim, current_a=plant_current, dt_s=0.5e-6,
+                        this_preload_n=100.0)
+        for _ in range(40):
+            predicted = (c.stroke_um + jitter_us / 10 * rng.standard_normal(),
+                         c.opening_us - c.offset_us + jitter_us * rng.standard_normal())
+            c = comp.update(0, True, sim, 18.0, 4.0, COV, 100.0, sim, current_a=c.scale * plant_current,
+                            dt_s=0.5e-6, this_preload_n=100.0, predicted=predicted)
+        return comp, c
+
+    quiet = driven(0.0)[1].sigma_opening_us   # the same corrections, every injection as predicted
+    comp, c = driven(0.3)
     assert 0.2 < math.sqrt(c.sigma_opening_us ** 2 - quiet ** 2) < 0.45
     odd = (c.stroke_um, c.opening_us - c.offset_us + 30.0)
     c = comp.update(0, True, sim, 18.0, 4.0, COV, 100.0, sim, current_a=c.scale * plant_current, dt_s=0.5e-6,
