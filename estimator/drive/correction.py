@@ -442,16 +442,7 @@ class DriveCompensator:
         sigma_s = sigma_o = math.nan
         per_kn = (0.0, 0.0)
         if derivatives:
-            # at another preload force the drive that keeps stroke and opening on target (to first order)
-            ds_df = -r.d_f[0] / r.d_scale[0]
-            per_kn = (ds_df * N_PER_KN, -(r.d_f[1] + r.d_scale[1] * ds_df) * N_PER_KN)
-            cal = sim.params.calibration   # what the model's own uncertainty leaves in the motion (0: in cov)
-            beyond = 0.0 if checked is None else max(scale - checked[1], checked[0] - scale, 0.0)
-            var_s = (_quadratic(r.d_nu[0], r.d_lh[0], cov) + (cal.stroke_rel_sigma * stroke) ** 2 + jitter[0]
-                     + (TRUST_REL * r.d_scale[0] * beyond) ** 2)
-            var_o = (_quadratic(r.d_nu[1], r.d_lh[1], cov) + (cal.opening_sigma_s * US_PER_S) ** 2 + jitter[1]
-                     + (TRUST_REL * r.d_scale[1] * beyond) ** 2)
-            sigma_s, sigma_o = math.sqrt(max(var_s, 0.0)), math.sqrt(max(var_o, 0.0))
+            sigma_s, sigma_o, per_kn = _uncertainty(r, sim, cov, scale, stroke, jitter, checked)
         corr = Correction(scale, offset, stroke, offset + opening, sigma_s, sigma_o, target_stroke, target_opening,
                           per_kn[0], per_kn[1], f_open_n, True, False, at_limit, t.scale_limits, t.offset_limits_us,
                           drive_scale=drive_scale, table=table, checked=checked, trust_limited=trust_limited)
@@ -533,6 +524,25 @@ def _carry(pt: _Point, scale: float, nu: float, lh_um: float, f_open_n: float) -
     if not (abs(d_stroke) < CARRY_STROKE_UM and abs(d_opening) < CARRY_MAIN_OPENING_US):
         return None
     return a[4] + d_stroke, a[5] + d_opening
+
+
+def _uncertainty(r: Response, sim: FastSimulator, cov: np.ndarray, scale: float, stroke: float,
+                 jitter: tuple[float, float], checked: tuple[float, float] | None
+                 ) -> tuple[float, float, tuple[float, float]]:
+    """σ of the stroke (µm) and the opening instant (µs) a correction at ``scale`` gives (the estimate's
+    covariance ``cov`` through the derivatives ``r``, what the model ``sim``'s own calibration leaves in
+    the motion, the injection-to-injection ``jitter`` variances, and the extrapolation beyond the
+    ``checked`` scales), and the per-kN sensitivities of scale and offset that keep stroke and opening on
+    target at another preload force (to first order)."""
+    ds_df = -r.d_f[0] / r.d_scale[0]
+    per_kn = (ds_df * N_PER_KN, -(r.d_f[1] + r.d_scale[1] * ds_df) * N_PER_KN)
+    cal = sim.params.calibration   # what the model's own uncertainty leaves in the motion (0: in cov)
+    beyond = 0.0 if checked is None else max(scale - checked[1], checked[0] - scale, 0.0)
+    var_s = (_quadratic(r.d_nu[0], r.d_lh[0], cov) + (cal.stroke_rel_sigma * stroke) ** 2 + jitter[0]
+             + (TRUST_REL * r.d_scale[0] * beyond) ** 2)
+    var_o = (_quadratic(r.d_nu[1], r.d_lh[1], cov) + (cal.opening_sigma_s * US_PER_S) ** 2 + jitter[1]
+             + (TRUST_REL * r.d_scale[1] * beyond) ** 2)
+    return math.sqrt(max(var_s, 0.0)), math.sqrt(max(var_o, 0.0)), per_kn
 
 
 def _aimed(sim: FastSimulator, scale: float, nu: float, lh_um: float, f_open_n: float, drive: AmplifierDrive,
