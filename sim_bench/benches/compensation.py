@@ -253,14 +253,19 @@ def own_mismatch(runs: dict[str, Run]) -> dict[str, list[int]]:
 
 
 def pooled_z(lots: list[dict]) -> dict[str, float | None]:
-    """RMS(error/σ) of the closed loop's predicted stroke and opening over all the lots' parts. A learned
-    model's error is a bias, the same for every injection of the part: one draw per part, so whether σ
-    covers it is judged over many parts, not part by part."""
+    """RMS(error/σ) of each closed loop's predicted stroke and opening over all the lots' parts
+    (``z_rms_*`` the ECU's loop, ``bus_z_rms_*`` the bus's where the lots ran it). A learned model's
+    error is a bias, the same for every injection of the part: one draw per part, so whether σ covers
+    it is judged over many parts, not part by part."""
     out: dict[str, float | None] = {}
-    for what in ("stroke", "opening"):
-        count = sum(lot["closed"][f"z_count_{what}"] for lot in lots)
-        total = sum(lot["closed"][f"z_sq_sum_{what}"] for lot in lots)
-        out[f"z_rms_{what}"] = math.sqrt(total / count) if count else None
+    for loop, prefix in (("closed", ""), ("closed_bus", "bus_")):
+        ran = [lot[loop] for lot in lots if loop in lot]
+        if not ran:
+            continue
+        for what in ("stroke", "opening"):
+            count = sum(c[f"z_count_{what}"] for c in ran)
+            total = sum(c[f"z_sq_sum_{what}"] for c in ran)
+            out[f"{prefix}z_rms_{what}"] = math.sqrt(total / count) if count else None
     return out
 
 
@@ -292,10 +297,14 @@ def failures(rep: dict) -> list[str]:
                 if p["overshoots"]:
                     out.append(f"{where}: injector {p['injector']}: {p['overshoots']} overshoots beyond 2σ")
     lo, hi = Z_RMS
-    for what in ("stroke", "opening"):
-        z = rep[f"z_rms_{what}"]
-        if z is None or not (lo <= z <= hi):
-            out.append(f"RMS(error/σ) of the predicted {what} over the lots' parts {z}")
+    for prefix, loop in (("", ""), ("bus_", "the bus loop's ")):
+        for what in ("stroke", "opening"):
+            key = f"{prefix}z_rms_{what}"
+            if prefix and key not in rep:    # the lots did not run the bus's loop
+                continue
+            z = rep[key]
+            if z is None or not (lo <= z <= hi):
+                out.append(f"RMS(error/σ) of {loop}predicted {what} over the lots' parts {z}")
     return out
 
 
@@ -306,7 +315,7 @@ def format_report(rep: dict) -> str:
              f"opening {rep['target_opening_us']:.2f} µs",
              f"{'':<34} {'stroke spread µm':>30} {'opening spread µs':>30}",
              f"{'lot  amplifier          loop':<34} {'first 10':>10} {'settled':>9} {'p95':>9} {'first 10':>10} "
-             f"{'settled':>9} {'p95':>9} {'at limit':>9} {'trust':>7}"]
+             f"{'settled':>9} {'p95':>9} {'at limit':>9} {'trust':>7} {'z s / o':>11}"]
     for lot in rep["lots"]:
         for name in ("open", "closed", "closed_bus"):
             s, o = lot[name]["stroke_spread_um"], lot[name]["opening_spread_us"]
@@ -314,11 +323,14 @@ def format_report(rep: dict) -> str:
                          f"{s['first10_median']:>10.3f} {s['settled_median']:>9.3f} {s['settled_p95']:>9.3f} "
                          f"{o['first10_median']:>10.2f} {o['settled_median']:>9.2f} {o['settled_p95']:>9.2f} "
                          f"{100 * lot[name].get('at_limit_settled', 0.0):>8.1f}% "
-                         f"{100 * lot[name].get('trust_limited_share', 0.0):>6.1f}%")
+                         f"{100 * lot[name].get('trust_limited_share', 0.0):>6.1f}% "
+                         f"{_z_pair(lot[name]):>11}")
     lines.append("closed: each correction computed for the next injection's preload force (an ECU); closed_bus: "
                  "the correction published after each injection, applied at the next one's preload force (an "
                  "amplifier on the bus); at limit: settled injections driven by a correction at a drive limit; trust: "
-                 "corrected injections whose correction stopped where its model had been checked")
+                 "corrected injections whose correction stopped where its model had been checked; z s / o: the lot's "
+                 "RMS(error/σ) of the predicted stroke and opening (eight draws of a part's bias: judged over "
+                 "all the lots' parts, below)")
     for lot in rep["lots"]:
         own = lot.get("own_mismatch", {})
         lines.append(f"lot {lot['seed']}: injectors model_mismatch under their own correction (not with the "
@@ -333,10 +345,21 @@ def format_report(rep: dict) -> str:
             lines.append(f"  lot {lot['seed']} injector {p['injector']}: {p['adopted_at']} / {p['settle_injections']} / "
                          f"{p['overshoots']} / {p['stroke_err_um_settled_max']:.3f} µm / {z_text(p['z_rms_stroke'])}, "
                          f"{z_text(p['z_rms_opening'])}")
+    bus = (f"; bus loop {z_text(rep['bus_z_rms_stroke'])}, {z_text(rep['bus_z_rms_opening'])}"
+           if "bus_z_rms_stroke" in rep else "")
     lines.append(f"over the lots' parts: RMS(error/σ) of the predicted stroke {z_text(rep['z_rms_stroke'])}, "
-                 f"opening {z_text(rep['z_rms_opening'])} (target {Z_RMS[0]}-{Z_RMS[1]})")
+                 f"opening {z_text(rep['z_rms_opening'])}{bus} (target {Z_RMS[0]}-{Z_RMS[1]})")
     lines.append("PASS" if not rep["failures"] else "FAIL: " + "; ".join(rep["failures"]))
     return "\n".join(lines)
+
+
+def _z_pair(loop: dict) -> str:
+    """A closed loop's RMS(error/σ) of stroke and opening over the lot, as the table shows it ("" for
+    the open loop)."""
+    zs, zo = loop.get("z_rms_stroke"), loop.get("z_rms_opening")
+    if zs is None and zo is None:
+        return ""
+    return " / ".join("-" if z is None else f"{z:.2f}" for z in (zs, zo))
 
 
 def figure(rep: dict, path) -> None:

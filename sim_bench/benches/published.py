@@ -308,6 +308,8 @@ FIGURES: tuple[Figure, ...] = (
            headline=True),
     Figure("compensation", "z_rms_opening", lambda r: r["z_rms_opening"], 2, "| RMS(error/σ) of the predicted stroke",
            headline=True),
+    *(Figure("compensation", f"bus_z_rms_{what}", _part(f"bus_z_rms_{what}"), 2,
+             "| RMS(error/σ) of the predicted stroke") for what in ("stroke", "opening")),
     # lots
     *(Figure(f"fleet-bench{option}", name, _workers(n, key), digits, row)
       for option, row in (("", "| one trace per injector"), (" --captures", "| one BLF capture"))

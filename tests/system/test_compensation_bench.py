@@ -41,6 +41,18 @@ def test_sigma_is_judged_over_all_the_lots_parts_not_part_by_part():
     assert [f for f in compensation.failures(rep) if "stroke over the lots' parts" in f]
 
 
+def test_the_bus_loops_sigma_is_judged_too():
+    """σ of the bus's loop (the correction applied through its table) is judged over the lots' parts as
+    the ECU's is: ten times too small there fails, though the ECU's loop covers."""
+    good, small = _run([0.02, 0.14], 0.1), _run([0.14, 0.02], 0.01)
+    rep = {"lots": [{"seed": 0, "closed": compensation.summarise(good, TARGET),
+                     "closed_bus": compensation.summarise(small, TARGET)}]}
+    rep.update(compensation.pooled_z(rep["lots"]))
+    assert rep["bus_z_rms_stroke"] > 5 and abs(rep["z_rms_stroke"] - 1.0) < 1e-9
+    failed = [f for f in compensation.failures(rep) if "RMS" in f]
+    assert failed and all("the bus loop's" in f for f in failed)
+
+
 def test_a_part_that_does_not_settle_fails_its_lot():
     late = _run([0.0, 0.0], 0.05)
     late.stroke_um[1, :60] += 1.0        # off target for 50 injections after its adoption at 10
