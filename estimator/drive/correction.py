@@ -163,15 +163,13 @@ class _OkEstimate:
 @dataclass
 class _Point:
     """The Newton iteration's memory at one preload force: the derivatives and what they were taken
-    with, and the last correction computed there (``nu``/``lh_um`` its estimate)."""
+    with, and the last correction computed there."""
 
     response: Response | None = None
     model: object | None = None         # the simulator the derivatives were taken with
     drive: object | None = None         # and the standard drive
     age: int = 0                        # corrections since the derivatives were refreshed
     last: Correction | None = None
-    nu: float = math.nan
-    lh_um: float = math.nan
     anchor: tuple[float, ...] | None = None   # the last simulation: scale, N_u, L_h µm, preload N, stroke µm,
                                               # opening µs (the correction's carries start from it)
 
@@ -184,7 +182,6 @@ class _Injector:
     main: _Point = field(default_factory=_Point)
     rows: list[_Point] = field(default_factory=list)   # one per preload of the table
     grid: np.ndarray = field(default_factory=lambda: np.empty((0, row_carry.COLUMNS)))   # the rows' numbers
-    rows_of: tuple[object, object] | None = None   # the model and drive of every row, once all are theirs
     next_row: int = 0
     turn: int = 0                       # injections with a table
     time_s: float = math.nan            # the last injection's time (s)
@@ -446,7 +443,7 @@ class DriveCompensator:
         corr = Correction(scale, offset, stroke, offset + opening, sigma_s, sigma_o, target_stroke, target_opening,
                           per_kn[0], per_kn[1], f_open_n, True, False, at_limit, t.scale_limits, t.offset_limits_us,
                           drive_scale=drive_scale, table=table, checked=checked, trust_limited=trust_limited)
-        pt.last, pt.nu, pt.lh_um = corr, nu, lh_um
+        pt.last = corr
         return corr
 
     def _table(self, st: _Injector, sim: FastSimulator, nominal: FastSimulator, nu: float, lh_um: float,
@@ -462,13 +459,9 @@ class DriveCompensator:
         this correction), empty before the first."""
         preloads = self.target.table_preloads_n
         if len(st.rows) != len(preloads):
-            st.rows, st.next_row, st.rows_of = [_Point() for _ in preloads], 0, None
+            st.rows, st.next_row = [_Point() for _ in preloads], 0
             st.grid = np.full((len(preloads), row_carry.COLUMNS), np.nan)
-        if st.rows_of is not None and st.rows_of[0] is sim and st.rows_of[1] is drive:
-            stale = []
-        else:
-            stale = [i for i, pt in enumerate(st.rows) if pt.model is not sim or pt.drive is not drive]
-            st.rows_of = None if stale else (sim, drive)
+        stale = [i for i, pt in enumerate(st.rows) if pt.model is not sim or pt.drive is not drive]
         todo = stale[:ROWS_AFTER_CHANGE] if stale else []
         st.turn += 1
         if not stale and st.turn % ROW_PERIOD == 0:
