@@ -338,17 +338,15 @@ def format_report(rep: dict) -> str:
     lines.append("closed loop per injector: adopted at / settled after / overshoots / max |stroke error| settled / "
                  "RMS(error/σ) of the predicted stroke, opening")
 
-    def z_text(z: float | None) -> str:
-        return "-" if z is None else f"{z:.2f}"
     for lot in rep["lots"]:
         for p in lot["closed"]["injectors"]:
             lines.append(f"  lot {lot['seed']} injector {p['injector']}: {p['adopted_at']} / {p['settle_injections']} / "
-                         f"{p['overshoots']} / {p['stroke_err_um_settled_max']:.3f} µm / {z_text(p['z_rms_stroke'])}, "
-                         f"{z_text(p['z_rms_opening'])}")
-    bus = (f"; bus loop {z_text(rep['bus_z_rms_stroke'])}, {z_text(rep['bus_z_rms_opening'])}"
+                         f"{p['overshoots']} / {p['stroke_err_um_settled_max']:.3f} µm / {_z_text(p['z_rms_stroke'])}, "
+                         f"{_z_text(p['z_rms_opening'])}")
+    bus = (f"; bus loop {_z_text(rep['bus_z_rms_stroke'])}, {_z_text(rep['bus_z_rms_opening'])}"
            if "bus_z_rms_stroke" in rep else "")
-    lines.append(f"over the lots' parts: RMS(error/σ) of the predicted stroke {z_text(rep['z_rms_stroke'])}, "
-                 f"opening {z_text(rep['z_rms_opening'])}{bus} (target {Z_RMS[0]}-{Z_RMS[1]})")
+    lines.append(f"over the lots' parts: RMS(error/σ) of the predicted stroke {_z_text(rep['z_rms_stroke'])}, "
+                 f"opening {_z_text(rep['z_rms_opening'])}{bus} (target {Z_RMS[0]}-{Z_RMS[1]})")
     lines.append("PASS" if not rep["failures"] else "FAIL: " + "; ".join(rep["failures"]))
     return "\n".join(lines)
 
@@ -359,7 +357,12 @@ def _z_pair(loop: dict) -> str:
     zs, zo = loop.get("z_rms_stroke"), loop.get("z_rms_opening")
     if zs is None and zo is None:
         return ""
-    return " / ".join("-" if z is None else f"{z:.2f}" for z in (zs, zo))
+    return " / ".join(_z_text(z) for z in (zs, zo))
+
+
+def _z_text(z: float | None) -> str:
+    """An RMS(error/σ) as the report prints it ("-": none)."""
+    return "-" if z is None else f"{z:.2f}"
 
 
 def figure(rep: dict, path) -> None:
