@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -286,7 +287,7 @@ def test_a_header_preload_force_off_by_10_percent_is_found_in_the_samples():
     assert np.isnan(off.preload_chi2) and off.to_dict()["preload_chi2"] is None
 
 
-def test_the_tracker_holds_a_wrong_header_preload_between_its_tests_and_keeps_it_in_its_state():
+def test_the_tracker_tests_a_wrong_header_preload_again_and_keeps_it_in_its_state():
     rng = np.random.default_rng(41)
     plant = Plant(PlantConfig(window_s=100e-6))
     tr = Tracker(TrackerConfig())
@@ -297,8 +298,9 @@ def test_the_tracker_holds_a_wrong_header_preload_between_its_tests_and_keeps_it
         assert not (results[-1].status == Status.OK and abs(results[-1].lh_m * 1e6 - 4.0) > 0.3)
     first, second = results[0].raw, results[1].raw
     assert first.preload_wrong and np.isfinite(first.preload_chi2) and "25.2 N disagrees" in first.message
-    # the next update is not tested: the verdict is held, and so is the move in sigma
-    assert np.isnan(second.preload_chi2) and second.preload_wrong and "as last tested" in second.message
+    # a disagreeing verdict is not held: the next update tests the header again. 10 % off at 28 N sits
+    # near the threshold; where it does not cross again, the samples' move still widens sigma
+    assert np.isfinite(second.preload_chi2) and second.preload_chi2 > 4.0 and second.preload_shift is not None
     assert results[1].status == Status.MODEL_MISMATCH
     assert results[1].sigma_lh_m * 1e6 >= abs(first.preload_shift[1])
     assert Status.OK not in [r.status for r in results]
@@ -307,6 +309,39 @@ def test_the_tracker_holds_a_wrong_header_preload_between_its_tests_and_keeps_it
     assert back.preload_shift == st.preload_shift and back.preload_wrong == st.preload_wrong
     with pytest.raises(ValueError):
         TrackerState.from_dict({**st.to_dict(), "preload_shift": [1.0, float("nan")]})
+
+
+def test_one_crossing_of_the_preload_test_is_tested_again_not_held_as_a_mismatch(monkeypatch):
+    """The preload test's threshold is crossed by noise about once in 10,000 tests. Held for the
+    PRELOAD_CHECK_EVERY updates to the next test, one crossing would make an adequate injector
+    mismatched (two mismatched injections in a row) and robust for a dozen injections or more."""
+    import estimator.ident.fit.idle_stroke as fit_module
+    from estimator.ident.tracking.recursive import PRELOAD_CHECK_EVERY
+
+    real_check, forced = fit_module.preload_check, []
+
+    def cross_once(sens, fit, n, threshold):   # the first test after the warm-up crosses, as noise can
+        check = real_check(sens, fit, n, threshold)
+        st = tr.states.get(0)
+        if check is not None and st is not None and st.updates >= PRELOAD_CHECK_EVERY and not forced:
+            forced.append(check)
+            return replace(check, chi2=threshold + 1.0)
+        return check
+
+    monkeypatch.setattr(fit_module, "preload_check", cross_once)
+    rng = np.random.default_rng(12)
+    plant = Plant(PlantConfig(window_s=150e-6))
+    tr = Tracker(TrackerConfig())
+    results = []
+    for k in range(2 * PRELOAD_CHECK_EVERY + 4):
+        m = plant.measure(17.0, 3e-6, 28.0, rng)
+        results.append(tr.update(Injection(m.current_a, m.voltage_v, m.dt_s, 28.0, counter=k, time_s=0.1 * k)))
+    crossed = next(k for k, r in enumerate(results) if r.raw.preload_wrong)
+    assert forced and results[crossed].raw.status == Status.MODEL_MISMATCH
+    after = results[crossed + 1]
+    assert np.isfinite(after.raw.preload_chi2) and not after.raw.preload_wrong   # tested again, and it agrees
+    assert not tr.states[0].mismatch and not tr.states[0].robust
+    assert [r.status for r in results[crossed:]] == [Status.OK] * (len(results) - crossed)   # one is no mismatch
 
 
 def test_a_robust_warm_search_that_runs_out_of_cycles_goes_on_instead_of_reacquiring(monkeypatch):
