@@ -166,12 +166,13 @@ class _Point:
     with, and the last correction computed there."""
 
     response: Response | None = None
-    model: object | None = None         # the simulator the derivatives were taken with
-    drive: object | None = None         # and the standard drive
+    model: FastSimulator | None = None  # the simulator the derivatives were taken with
+    drive: AmplifierDrive | None = None   # and the standard drive
     age: int = 0                        # corrections since the derivatives were refreshed
     last: Correction | None = None
     anchor: tuple[float, ...] | None = None   # the last simulation: scale, N_u, L_h µm, preload N, stroke µm,
                                               # opening µs (the correction's carries start from it)
+    due: bool = False                   # its derivatives are to be taken again (deferred)
 
 
 @dataclass
@@ -189,6 +190,8 @@ class _Injector:
     checked: tuple[float, float] | None = None   # scales at which the model below explained the injections
     checked_model: object | None = None
     jitter: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])   # samples, mean square (µm², µs²)
+    pending: tuple[FastSimulator, FastSimulator, float, float, np.ndarray, AmplifierDrive] | None = None
+    # the table's work for the last ok estimate (model, nominal, N_u, L_h µm, covariance, drive), deferred
 
 
 class DriveCompensator:
@@ -198,13 +201,22 @@ class DriveCompensator:
     ``update`` passes one). ``standard``: the amplifier's standard drive when the target configures it
     as a current table (the pipeline reads the file); ``trapezoid`` builds the built-in one, ``learned``
     learns each injector's from its first injections.
+
+    ``deferred``: the work an injection's correction does not need at once — the preload table's rows
+    and the refresh of the correction's derivatives, nearly all of its simulations — waits for
+    :meth:`background` (the daemon runs it when no injection waits), or else runs before the
+    injector's next injection: the published table is then the previous estimate's, which
+    :meth:`Correction.at` shifts to this correction. Without it, every correction is complete when
+    :meth:`update` returns.
     """
 
     def __init__(self, target: DriveTarget | None = None, nominal: FastSimulator | None = None,
-                 refresh: int = REFRESH_INJECTIONS, standard: AmplifierDrive | None = None) -> None:
+                 refresh: int = REFRESH_INJECTIONS, standard: AmplifierDrive | None = None,
+                 deferred: bool = False) -> None:
         self.target = target or DriveTarget()
         self.nominal = nominal
         self.refresh = refresh
+        self.deferred = deferred
         if standard is None and self.target.drive_file is not None:
             raise ValueError(f"amplifier_drive = {self.target.amplifier_drive!r}: the current table must be "
                              "read and passed as standard (estimator.pipeline does)")
@@ -215,6 +227,7 @@ class DriveCompensator:
         self._injectors: dict[int, _Injector] = {}
         self._learners: dict[int, DriveLearner] = {}   # kept through a reset: the amplifier is the same
         self._targets: dict[int, tuple[float, float]] = {}
+        self._due: dict[int, None] = {}     # injectors with deferred work, oldest first
 
     def warm_up(self, nominal: FastSimulator) -> None:
         """The target and one correction on a throw-away injector, so the first real one is not slow
@@ -229,6 +242,7 @@ class DriveCompensator:
         """Drop an injector's corrections (a reset: it is driven with the standard drive again); a
         learned standard drive is kept (the amplifier has not changed)."""
         self._injectors.pop(injector_id, None)
+        self._due.pop(injector_id, None)
 
     def learned_drives(self) -> dict[int, AmplifierDrive]:
         """The standard drives learned per injector (none where the drive is configured): what a
@@ -315,6 +329,8 @@ class DriveCompensator:
         st = self._injectors.get(injector_id)
         if st is None:
             st = self._injectors[injector_id] = _Injector()
+        if injector_id in self._due:   # the last injection's deferred work, not done while the worker was busy
+            self._catch_up(injector_id)
         interval = time_s - st.time_s if math.isfinite(time_s) and math.isfinite(st.time_s) else 0.0
         st.time_s = time_s
         if math.isfinite(rate_n_per_v_s) and 0.0 < interval < MAX_INTERVAL_S:
@@ -340,16 +356,23 @@ class DriveCompensator:
                 if st.ok is not None and st.ok.sim is not sim:   # another model: its jitter is measured anew
                     st.jitter = [0.0, 0.0, 0.0]
                 _check_level(st, sim, measured)
-                fresh = self._table(st, sim, nominal, nu, lh_um, cov, drive)
+                if self.deferred:
+                    st.pending, fresh = (sim, nominal, nu, lh_um, cov, drive), st.last.table
+                else:
+                    fresh = self._table(st, sim, nominal, nu, lh_um, cov, drive)
                 st.last = self._correct(st.main, sim, nominal, nu, lh_um, cov, f_open_n, drive,
                                         jitter=_jitter_var(st), checked=_checked(st, sim), drive_scale=measured,
-                                        table=fresh)
+                                        table=fresh, defer=self.deferred)
+                if st.pending is not None or st.main.due:
+                    self._due[injector_id] = None
                 st.ok = _OkEstimate(sim, nu, lh_um, cov, rate_n_per_v_s if math.isfinite(rate_n_per_v_s) else 0.0,
                                     time_s)
                 return st.last
             elif st.ok is not None and nominal is not None and math.isfinite(f_open_n):
                 corr = replace(self._again(st, nominal, f_open_n, time_s, drive), held=True,
                                reason="estimate not ok: computed again from the last ok estimate")
+                if st.main.due:
+                    self._due[injector_id] = None
             else:
                 corr = replace(st.last, held=st.last.valid, reason="no ok estimate yet" if not st.last.valid
                                else "estimate not ok")
@@ -357,6 +380,44 @@ class DriveCompensator:
             corr = replace(st.last, held=st.last.valid, reason=f"no correction: {exc}")
         st.last = replace(corr, drive_scale=measured, table=table)
         return st.last
+
+    def background(self, injectors: int = 1) -> int:
+        """The deferred work of up to ``injectors`` injectors, the oldest first (the daemon calls it when
+        no injection waits); the number served."""
+        done = 0
+        while self._due and done < injectors:
+            self._catch_up(next(iter(self._due)))
+            done += 1
+        return done
+
+    @property
+    def has_background(self) -> bool:
+        """Whether deferred work waits for :meth:`background`."""
+        return bool(self._due)
+
+    def _catch_up(self, injector_id: int) -> None:
+        """The injector's deferred work: its preload table for its last ``ok`` estimate (the last
+        correction takes it) and its derivatives due by age, taken again at its last simulation."""
+        st = self._injectors.get(injector_id)
+        try:
+            if st is None:
+                return
+            pending, st.pending = st.pending, None
+            pt = st.main
+            try:
+                if pending is not None:
+                    table = self._table(st, *pending)
+                    if table is not st.last.table:
+                        st.last = replace(st.last, table=table)
+                if pt.due and pt.model is not None and pt.anchor is not None:
+                    a = pt.anchor
+                    pt.response = linearise(pt.model, a[0], a[1], a[2], a[3], pt.drive)
+                    pt.anchor, pt.age = (*a[:4], pt.response.stroke_um, pt.response.opening_us), 0
+            except (EstimatorError, ValueError, FloatingPointError):
+                pass   # the last table and derivatives serve on (the next correction says what fails)
+            pt.due = False
+        finally:   # done (or failed) only now: whoever watches has_background sees the work finished
+            self._due.pop(injector_id, None)
 
     def _again(self, st: _Injector, nominal: FastSimulator, f_open_n: float, time_s: float,
                drive: AmplifierDrive) -> Correction:
@@ -370,13 +431,13 @@ class DriveCompensator:
         carried = ok.rate_n_per_v_s * dt if 0.0 < dt < MAX_INTERVAL_S else 0.0
         cov = ok.cov + np.diag([(CARRY_NU_SHARE * carried) ** 2, 0.0])
         return self._correct(st.main, ok.sim, nominal, ok.nu + carried, ok.lh_um, cov, f_open_n, drive,
-                             jitter=_jitter_var(st), checked=_checked(st, ok.sim))
+                             jitter=_jitter_var(st), checked=_checked(st, ok.sim), defer=self.deferred)
 
     def _correct(self, pt: _Point, sim: FastSimulator, nominal: FastSimulator, nu: float, lh_um: float,
                  cov: np.ndarray, f_open_n: float, drive: AmplifierDrive, derivatives: bool = True,
                  jitter: tuple[float, float] = (0.0, 0.0), refresh: int | None = None,
                  carry: bool = True, checked: tuple[float, float] | None = None, drive_scale: float = math.nan,
-                 table: tuple[tuple[float, float, float], ...] = ()) -> Correction:
+                 table: tuple[tuple[float, float, float], ...] = (), defer: bool = False) -> Correction:
         """The correction at ``f_open_n`` by Newton's method on the scale from ``pt``'s last one
         (``derivatives``: the per-kN sensitivities and the σ too, ``jitter`` the injection-to-injection
         variance of stroke and opening, µm² and µs², in it; ``refresh``: how many corrections the
@@ -385,18 +446,24 @@ class DriveCompensator:
         correction is carried instead of simulated (``carry`` False: always simulated). ``checked``: the
         scales the model was checked at (None: unknown, the configured limits alone); the scale stays
         within ``TRUST_STEP`` of them (:func:`_trust`). ``drive_scale`` and ``table`` are passed on to the
-        correction as they are."""
+        correction as they are. ``defer``: derivatives merely due by age are refreshed later
+        (:meth:`background`), the old ones serving until then."""
         t = self.target
         lo, hi = _trust(t.scale_limits, checked)
         target_stroke, target_opening = self.target_at(nominal)
         scale = min(max(pt.last.scale if pt.last is not None and pt.last.valid else 1.0, lo), hi)   # scalars: no numpy
-        if pt.response is None or pt.model is not sim or pt.drive is not drive or pt.age >= (refresh or self.refresh):
+        same = pt.response is not None and pt.model is sim and pt.drive is drive
+        due = not same or pt.age >= (refresh or self.refresh)
+        if due and same and defer:   # only by age: the old derivatives serve until the background refresh
+            pt.due, due = True, False
+        if due:
             if pt.model is not sim or pt.drive is not drive:   # derivatives at the drive the target asks for,
                 # not at the last one's: taken at scale 1.0 for rows that settled at 0.75–0.9, a row's
                 # carried opening instant missed by a third of its move, another's was six times its move
                 scale = _aimed(sim, scale, nu, lh_um, f_open_n, drive, target_stroke, lo, hi,
                                pt.response.d_scale[0] if pt.response is not None else STROKE_PER_SCALE_UM)
             pt.response, pt.model, pt.drive, pt.age = linearise(sim, scale, nu, lh_um, f_open_n, drive), sim, drive, 0
+            pt.due = False
             stroke, opening = pt.response.stroke_um, pt.response.opening_us
             pt.anchor = (scale, nu, lh_um, f_open_n, stroke, opening)
         else:
@@ -407,6 +474,7 @@ class DriveCompensator:
                 stroke, opening = _simulated(pt, sim, scale, nu, lh_um, f_open_n, drive)
         pt.age += 1
         r = pt.response
+        assert r is not None
         if not (math.isfinite(stroke) and math.isfinite(opening)) or r.d_scale[0] <= 0:
             # the valve does not open with this drive: the most current the limits allow, then again
             scale = hi

@@ -50,13 +50,15 @@ def build_codec(cfg: EstimatorConfig) -> Codec:
     return Codec(load_database(cfg.dbc))
 
 
-def build_compensator(cfg: EstimatorConfig) -> DriveCompensator | None:
+def build_compensator(cfg: EstimatorConfig, deferred: bool = False) -> DriveCompensator | None:
     """The drive compensator as configured (None: off), with the amplifier's standard drive read from
-    its current table when one is configured."""
+    its current table when one is configured; ``deferred``: its tables and derivative refreshes wait
+    for the worker's idle time (the pipeline's)."""
     t = cfg.drive_correction
     if t is None:
         return None
-    return DriveCompensator(t, standard=load_amplifier_drive(t.drive_file) if t.drive_file is not None else None)
+    return DriveCompensator(t, standard=load_amplifier_drive(t.drive_file) if t.drive_file is not None else None,
+                            deferred=deferred)
 
 
 def build_pipeline(cfg: EstimatorConfig, pool: SimulatorPool | None = None, codec: Codec | None = None,
@@ -68,7 +70,7 @@ def build_pipeline(cfg: EstimatorConfig, pool: SimulatorPool | None = None, code
     the live daemon's wall-clock guard (its configuration's); a replay's capture ends it."""
     codec = codec or build_codec(cfg)
     ingest = Ingest(codec, cfg.assembly_timeout_ms * 1e-3, cfg.max_injectors)
-    compensator = build_compensator(cfg)
+    compensator = build_compensator(cfg, deferred=True)
     processor = Processor(codec, build_tracker(cfg, pool, calibrator, codec), ingest.counters, cfg.commands,
                           compensator)
     return codec, ingest, processor, BusClock(silent_bus_s)

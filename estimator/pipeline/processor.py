@@ -317,6 +317,16 @@ class Processor:
         return Published(inj.injector_id, inj.counter, inj.time_s, res, self.codec, changes,
                          self.tracker.calibration.get(inj.injector_id), correction, rows)
 
+    @property
+    def has_background(self) -> bool:
+        """Whether deferred work (the drive correction's tables and derivatives) waits for :meth:`background`."""
+        return self.compensator is not None and self.compensator.has_background
+
+    def background(self) -> bool:
+        """One injector's deferred drive-correction work (the daemon's worker runs it when no injection
+        waits; left undone, it runs before that injector's next injection); whether there was any."""
+        return self.compensator is not None and self.compensator.background() > 0
+
     def _correction(self, inj: Injection, res: TrackResult, preload_n: float | None = None) -> Correction:
         assert self.compensator is not None
         before = self.compensator.drive_disagreements

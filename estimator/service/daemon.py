@@ -232,12 +232,13 @@ class Daemon:
                 next_persist = time.monotonic()
             self.progress = time.monotonic()
             try:
-                ingested = self._ingest_frames(lst, wait=not self.waiting)
+                ingested = self._ingest_frames(lst, wait=not self.waiting and not self.processor.has_background)
                 taken = self.waiting.take(time.monotonic())
                 self._count_expired()
                 if taken is not None:
                     self._estimate(*taken)
                 elif not ingested:
+                    self.processor.background()     # the drive correction's deferred work, while idle
                     t_idle = self.clock.idle(time.monotonic())     # the silent-bus guard (wall clock)
                     if t_idle is not None:
                         self.processor.handle(self.ingest.poll(t_idle))
@@ -413,7 +414,7 @@ class Daemon:
         self.processor.tracker = tracker
         self.processor.commands = new.commands
         if new.drive_correction != self.cfg.drive_correction:   # a new target: corrections start again
-            old_comp, self.processor.compensator = self.processor.compensator, build_compensator(new)
+            old_comp, self.processor.compensator = self.processor.compensator, build_compensator(new, deferred=True)
             if old_comp is not None and self.processor.compensator is not None:   # the amplifiers are the same
                 self.processor.compensator.restore_drives(old_comp.learned_drives())
         self.ingest.assembler.timeout_s = new.assembly_timeout_ms * 1e-3

@@ -426,3 +426,50 @@ def test_a_steady_operating_point_is_carried_and_carries_no_error(sim, monkeypat
     comp.update(0, True, sim, 18.05, 4.0, COV, 100.0 + 50.0, sim)
     comp.update(0, True, sim, 18.05, 4.0, COV, 100.0, sim)
     assert calls, "a rail-pressure step is simulated, not carried"
+
+
+def test_a_deferred_compensator_leaves_the_tables_simulations_to_the_idle_worker(sim, monkeypatch):
+    """Deferred (the daemon's): an injection's correction simulates nothing for the preload table and
+    refreshes no derivative merely due by age; :meth:`background` does both. It then holds exactly the
+    table an immediate compensator computes for the same estimates, and each correction is the same
+    (to rounding once the derivatives were refreshed) but for its table, the previous estimate's. Left undone, the work runs before the
+    injector's next injection."""
+    import estimator.drive.correction as corr_mod
+
+    estimates = [(17.0 + 0.01 * k, 3.0 + 0.04 * k, 90.0 + (45.0 if k % 5 == 4 else 0.0)) for k in range(40)]
+    now, later = compensator(), DriveCompensator(DriveTarget(amplifier_drive="trapezoid"), deferred=True)
+    counting: list[list[float] | None] = [None]
+    calls: list[float] = []
+    immediate: list[float] = []
+    real = corr_mod.respond
+
+    def counted(*a, **kw):   # the preload force of each simulation
+        if counting[0] is not None:
+            counting[0].append(a[4])
+        return real(*a, **kw)
+    monkeypatch.setattr(corr_mod, "respond", counted)
+    before: tuple = ()
+    for k, (nu, lh_um, preload_n) in enumerate(estimates):
+        counting[0] = immediate if k > 8 else None    # the model's first corrections (every row new) apart
+        a = now.update(0, True, sim, nu, lh_um, COV, preload_n, sim)
+        counting[0] = calls if k > 8 else None
+        b = later.update(0, True, sim, nu, lh_um, COV, preload_n, sim)
+        counting[0] = None
+        assert later.has_background
+        if k < corr_mod.REFRESH_INJECTIONS:     # then the derivatives, refreshed one injection apart
+            assert replace(b, table=()) == replace(a, table=()), k
+        else:
+            assert (b.scale, b.stroke_um, b.opening_us) == pytest.approx((a.scale, a.stroke_um, a.opening_us), abs=1e-4)
+        assert b.table == before
+        while later.background():
+            pass
+        assert not later.has_background and later.last(0).table == a.table
+        before = a.table
+    own = (90.0, 135.0)     # the corrections' preload forces: the table's rows are at others
+    assert all(f in own for f in calls), sorted(set(calls))
+    assert sum(f not in own for f in immediate) >= 20, immediate    # what the immediate one spends on the table
+    assert len(calls) < len(immediate)
+    skipped = DriveCompensator(DriveTarget(amplifier_drive="trapezoid"), deferred=True)
+    for nu, lh_um, preload_n in estimates[:6]:
+        c = skipped.update(0, True, sim, nu, lh_um, COV, preload_n, sim)   # never idle
+    assert c.table and skipped.has_background

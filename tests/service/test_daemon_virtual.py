@@ -177,3 +177,25 @@ def test_an_estimate_published_late_is_stale_never_ok(tmp_path):
         d.stop.set()
         t.join(timeout=5)
         bus.shutdown()
+
+
+def test_the_drive_corrections_deferred_work_runs_while_the_worker_is_idle(running):
+    """The correction of each injection goes out at once; its table and derivative refreshes wait for
+    the worker's idle time, and an idle worker does them (not only before the injector's next one)."""
+    from estimator.codec.records import DriveCorrection
+
+    d, bus, _ = running
+    codec = Codec()
+    assert d.processor.compensator is not None and d.processor.compensator.deferred
+    valid = []
+    for k in range(20):   # a new model's table is complete after four corrections (four passes of four rows)
+        inj, _ = measured(17.2, 3.1, 2300 + k, window_s=100e-6)
+        for fr in injection_frames(codec, 3, k, inj.dt_s, inj.current_a, inj.voltage_v, 28.0, 40.0):
+            bus.send(to_message(fr))
+        got = collect(bus, codec, lambda g: any(isinstance(r, DriveCorrection) for r in g))
+        valid += [r for r in got if isinstance(r, DriveCorrection) and r.state == 1]
+        if len(valid) == 4:
+            break
+    assert len(valid) == 4, f"{len(valid)} valid corrections in 20 injections"
+    assert wait_for(bus, lambda: not d.processor.has_background)
+    assert d.processor.compensator.last(3).table    # the last pass, done only by the idle worker
