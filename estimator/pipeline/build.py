@@ -63,14 +63,17 @@ def build_compensator(cfg: EstimatorConfig, deferred: bool = False) -> DriveComp
 
 def build_pipeline(cfg: EstimatorConfig, pool: SimulatorPool | None = None, codec: Codec | None = None,
                    calibrator: Calibrator | None = None,
-                   silent_bus_s: float = SILENT_BUS_S) -> Pipeline:
+                   silent_bus_s: float = SILENT_BUS_S, deferred: bool = False) -> Pipeline:
     """Codec, ingest, processor and bus clock: the same in the live daemon and in the replay. ``pool``
     and ``codec`` (built from ``cfg`` when not given) hold no state of a run: a fleet worker shares them
     between its inputs (the simulator tables and the DBC parse cost ≈ 35 ms each). ``silent_bus_s``:
-    the live daemon's wall-clock guard (its configuration's); a replay's capture ends it."""
+    the live daemon's wall-clock guard (its configuration's); a replay's capture ends it.
+    ``deferred``: the drive correction's tables and derivative refreshes wait for the processor's
+    :meth:`~estimator.pipeline.processor.Processor.background` (the live daemon's idle worker runs it);
+    without it every published correction is complete, as a replay's is."""
     codec = codec or build_codec(cfg)
     ingest = Ingest(codec, cfg.assembly_timeout_ms * 1e-3, cfg.max_injectors)
-    compensator = build_compensator(cfg, deferred=True)
+    compensator = build_compensator(cfg, deferred)
     processor = Processor(codec, build_tracker(cfg, pool, calibrator, codec), ingest.counters, cfg.commands,
                           compensator)
     return codec, ingest, processor, BusClock(silent_bus_s)

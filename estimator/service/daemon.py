@@ -129,7 +129,8 @@ class Daemon:
         # self-calibrations run in a low-priority process of their own, never on the injection worker
         self.calibrator = BackgroundCalibrator() if cfg.self_calibration is not None else None
         self.codec, self.ingest, self.processor, self.clock = build_pipeline(cfg, calibrator=self.calibrator,
-                                                                                 silent_bus_s=cfg.silent_bus_s)
+                                                                                 silent_bus_s=cfg.silent_bus_s,
+                                                                                 deferred=True)
         self.stop = threading.Event()
         self.reload_requested = threading.Event()
         self._send_lock = threading.Lock()

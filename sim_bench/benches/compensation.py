@@ -86,7 +86,9 @@ def run_loop(closed: bool, seed: int, injectors: int = INJECTORS, injections: in
     from estimator.pipeline import build_pipeline
 
     lives = draw_lot(injectors, seed, lot_spec(amp))
-    _, _, processor, _ = build_pipeline(EstimatorConfig())
+    # the daemon's deferred correction, its deferred work never given idle time (as on a worker that is
+    # never idle): each injector's table and derivative refresh run just before its next injection
+    _, _, processor, _ = build_pipeline(EstimatorConfig(), deferred=True)
     compensator = processor.compensator
     assert compensator is not None    # on by default
     shape = (injectors, injections)
