@@ -174,6 +174,15 @@ class _Point:
                                               # opening µs (the correction's carries start from it)
     due: bool = False                   # its derivatives are to be taken again (deferred)
 
+    def linearise(self, sim: FastSimulator, scale: float, nu: float, lh_um: float, f_open_n: float,
+                  drive: AmplifierDrive, age: int = 0) -> Response:
+        """Take the derivatives afresh at ``scale`` (N_u, L_h µm, preload N) with ``sim`` and ``drive``:
+        they become the point's, the carries' anchor this simulation, ``age`` corrections old."""
+        r = linearise(sim, scale, nu, lh_um, f_open_n, drive)
+        self.response, self.model, self.drive, self.age, self.due = r, sim, drive, age, False
+        self.anchor = (scale, nu, lh_um, f_open_n, r.stroke_um, r.opening_us)
+        return r
+
 
 @dataclass
 class _Injector:
@@ -409,10 +418,9 @@ class DriveCompensator:
                     table = self._table(st, *pending)
                     if table is not st.last.table:
                         st.last = replace(st.last, table=table)
-                if pt.due and pt.model is not None and pt.anchor is not None:
+                if pt.due and pt.model is not None and pt.drive is not None and pt.anchor is not None:
                     a = pt.anchor
-                    pt.response = linearise(pt.model, a[0], a[1], a[2], a[3], pt.drive)
-                    pt.anchor, pt.age = (*a[:4], pt.response.stroke_um, pt.response.opening_us), 0
+                    pt.linearise(pt.model, a[0], a[1], a[2], a[3], pt.drive)
             except (EstimatorError, ValueError, FloatingPointError):
                 pass   # the last table and derivatives serve on (the next correction says what fails)
             pt.due = False
@@ -462,10 +470,8 @@ class DriveCompensator:
                 # carried opening instant missed by a third of its move, another's was six times its move
                 scale = _aimed(sim, scale, nu, lh_um, f_open_n, drive, target_stroke, lo, hi,
                                pt.response.d_scale[0] if pt.response is not None else STROKE_PER_SCALE_UM)
-            pt.response, pt.model, pt.drive, pt.age = linearise(sim, scale, nu, lh_um, f_open_n, drive), sim, drive, 0
-            pt.due = False
-            stroke, opening = pt.response.stroke_um, pt.response.opening_us
-            pt.anchor = (scale, nu, lh_um, f_open_n, stroke, opening)
+            fresh = pt.linearise(sim, scale, nu, lh_um, f_open_n, drive)
+            stroke, opening = fresh.stroke_um, fresh.opening_us
         else:
             carried = _carry(pt, scale, nu, lh_um, f_open_n) if carry else None
             if carried is not None:
@@ -478,10 +484,8 @@ class DriveCompensator:
         if not (math.isfinite(stroke) and math.isfinite(opening)) or r.d_scale[0] <= 0:
             # the valve does not open with this drive: the most current the limits allow, then again
             scale = hi
-            pt.response, pt.model, pt.drive, pt.age = linearise(sim, scale, nu, lh_um, f_open_n, drive), sim, drive, 1
-            r = pt.response
+            r = pt.linearise(sim, scale, nu, lh_um, f_open_n, drive, age=1)
             stroke, opening = r.stroke_um, r.opening_us
-            pt.anchor = (scale, nu, lh_um, f_open_n, stroke, opening)
             if not (math.isfinite(stroke) and math.isfinite(opening)) or r.d_scale[0] <= 0:
                 raise ValueError("the valve does not open within the scale limits")
         for _ in range(3):   # Newton on the scale: the stroke is close to linear in it

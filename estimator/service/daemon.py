@@ -101,6 +101,7 @@ XCP_EVENT_INJECTION, XCP_EVENT_10HZ = 0, 1   # the slave's DAQ event channels
 RELOAD_MIN_S = 0.5   # the worker applies a reloaded configuration at most this often
 INGEST_BATCH = 256   # frames the worker assembles between two identifications (≈ 1.3 ms at most)
 ESTABLISHED_AFTER = 10   # injections accepted since its last reset: the worker serves such an injector first
+DEFER_CORRECTION_WORK = True   # the drive correction's tables and derivative refreshes wait for the idle worker
 RESTART_KEYS = ("bus", "bitrate", "data_bitrate", "fd", "bus_options", "dbc", "state_dir", "queue_frames",
                 "max_injectors", "xcp")
 
@@ -130,7 +131,7 @@ class Daemon:
         self.calibrator = BackgroundCalibrator() if cfg.self_calibration is not None else None
         self.codec, self.ingest, self.processor, self.clock = build_pipeline(cfg, calibrator=self.calibrator,
                                                                                  silent_bus_s=cfg.silent_bus_s,
-                                                                                 deferred=True)
+                                                                                 deferred=DEFER_CORRECTION_WORK)
         self.stop = threading.Event()
         self.reload_requested = threading.Event()
         self._send_lock = threading.Lock()
@@ -415,7 +416,8 @@ class Daemon:
         self.processor.tracker = tracker
         self.processor.commands = new.commands
         if new.drive_correction != self.cfg.drive_correction:   # a new target: corrections start again
-            old_comp, self.processor.compensator = self.processor.compensator, build_compensator(new, deferred=True)
+            old_comp = self.processor.compensator
+            self.processor.compensator = build_compensator(new, DEFER_CORRECTION_WORK)
             if old_comp is not None and self.processor.compensator is not None:   # the amplifiers are the same
                 self.processor.compensator.restore_drives(old_comp.learned_drives())
         self.ingest.assembler.timeout_s = new.assembly_timeout_ms * 1e-3
