@@ -50,6 +50,7 @@ _HOMES: dict[str, str] = {
     "DriveTarget": "estimator.drive.target",
     "Correction": "estimator.drive.correction",
     "correction_after": "estimator.drive.correction",
+    "estimate_unchecked": "estimator.drive.correction",
     "AmplifierDrive": "estimator.drive.standard",
     # the model
     "InjectorParameters": "estimator.model.parameters",

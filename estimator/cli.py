@@ -116,7 +116,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
 
 def cmd_track(args: argparse.Namespace) -> int:
     """Run the recursive estimator over trace files in order; one JSON line per injection."""
-    from estimator.drive.correction import correction_after
+    from estimator.drive.correction import correction_after, estimate_unchecked
     from estimator.errors import TraceError
     from estimator.ident.config import TrackerConfig
     from estimator.ident.estimate import rejected
@@ -141,7 +141,7 @@ def cmd_track(args: argparse.Namespace) -> int:
             print(json.dumps({"file": str(path), "injector_id": None, "status": Status.REJECTED.value,
                               "reason": str(exc), "raw": rejected(str(exc)).to_dict()}), flush=True)
             continue
-        res = tracker.update(inj)
+        res = tracker.update(inj) if compensator is None else estimate_unchecked(compensator, tracker, inj)
         # the drive that makes this injector's valve open as the nominal one does
         pub = Published(inj.injector_id, inj.counter, inj.time_s, res,
                         learning=tracker.calibration.get(inj.injector_id) if selfcal is not None else None,

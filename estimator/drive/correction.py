@@ -25,6 +25,7 @@ not explain holds the last correction as it is and says why. Pure: no clocks, no
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -63,6 +64,8 @@ CARRY_NU_SHARE = 0.5           # a held correction's N_u, carried by the drift r
                                # the carry
 STROKE_PER_SCALE_UM = 27.0     # the plateau stroke's growth per unit of scale: a first step toward the target
 TRUST_STEP = 0.1               # the scale moves at most this far beyond the levels its model was checked at
+CHECKED_SLACK = 0.01           # a measured scale this close to the checked ones is among them (the amplifier's
+                               # ripple and the scale's own noise)
 TRUST_REL = 0.05               # σ: this share of the motion the model is extrapolated to beyond those levels (a
                                # model learned at the standard drive and driven at 1.4 was 0.46 µm off in 11 µm)
 JITTER_WEIGHT = 0.1            # weight of each new injection in the running mean square of the jitter
@@ -198,6 +201,9 @@ class _Injector:
     ok: _OkEstimate | None = None
     checked: tuple[float, float] | None = None   # scales at which the model below explained the injections
     checked_model: object | None = None
+    steps: list[float] = field(default_factory=lambda: [TRUST_STEP, TRUST_STEP])   # the trust region beyond the
+    # checked scales, below and above: halved toward a level the model failed at, doubled back as levels pass
+    measured: tuple[np.ndarray, tuple[AmplifierDrive | None, str, float]] | None = None   # the last current's check
     jitter: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])   # samples, mean square (µm², µs²)
     pending: tuple[FastSimulator, FastSimulator, float, float, np.ndarray, AmplifierDrive] | None = None
     # the table's work for the last ok estimate (model, nominal, N_u, L_h µm, covariance, drive), deferred
@@ -315,11 +321,44 @@ class DriveCompensator:
                            f"(drive_tolerance {100 * self.target.drive_tolerance:.0f} %)"), check.scale
         return drive, "", check.scale
 
+    def unchecked(self, injector_id: int, sim: FastSimulator | None, current_a: np.ndarray, dt_s: float) -> bool:
+        """Whether this injection's measured drive is beyond the scales at which the injector's model
+        ``sim`` explained its injections (by more than ``CHECKED_SLACK``): the correction's probe of a
+        new level, which the model may fail without the part being mismatched (the estimator then
+        rejects the injection, :meth:`update` narrows the trust region toward it). The check of the
+        current is kept for :meth:`update` of the same injection."""
+        st = self._injectors.get(injector_id)
+        checked = _checked(st, sim) if st is not None and sim is not None else None
+        if st is None or checked is None:
+            return False
+        _, reason, measured = self._check(st, injector_id, current_a, dt_s)
+        return not reason and not checked[0] - CHECKED_SLACK <= measured <= checked[1] + CHECKED_SLACK
+
+    def _check(self, st: _Injector, injector_id: int, current_a: np.ndarray,
+               dt_s: float) -> tuple[AmplifierDrive | None, str, float]:
+        """:meth:`check_drive` once per measured current (:meth:`unchecked` and :meth:`update` share it)."""
+        if st.measured is not None and st.measured[0] is current_a:
+            return st.measured[1]
+        got = self.check_drive(injector_id, current_a, dt_s)
+        st.measured = (current_a, got)
+        return got
+
+    def _measured(self, st: _Injector, injector_id: int, sim: FastSimulator | None, current_a: np.ndarray | None,
+                  dt_s: float) -> tuple[AmplifierDrive | None, str, float]:
+        """The drive, the reason it cannot serve ("" when it can) and the measured scale of the injection
+        (:meth:`check_drive`); without a measured current the configured, learned or built-in drive,
+        unchecked (scale NaN)."""
+        if current_a is None:
+            return self.drive_of(injector_id) or trapezoid(sim.dt_s if sim else SAMPLE_PERIOD_S), "", math.nan
+        got = self._check(st, injector_id, current_a, dt_s)
+        st.measured = None
+        return got
+
     def update(self, injector_id: int, ok: bool, sim: FastSimulator | None, nu: float, lh_um: float,
                cov: np.ndarray | None, f_open_n: float, nominal: FastSimulator | None = None,
                rate_n_per_v_s: float = 0.0, time_s: float = math.nan, current_a: np.ndarray | None = None,
                dt_s: float = math.nan, this_preload_n: float = math.nan,
-               predicted: tuple[float, float] = (math.nan, math.nan)) -> Correction:
+               predicted: tuple[float, float] = (math.nan, math.nan), failed_probe: bool = False) -> Correction:
         """The correction after one injection: computed from an ``ok`` estimate (``nu`` N/V, ``lh_um``
         µm, ``cov`` their 2×2 covariance in N/V and µm) with the injector's model ``sim`` at the
         preload force ``f_open_n`` (N; the next injection's if known, else this one's). ``current_a``
@@ -334,7 +373,10 @@ class DriveCompensator:
         the estimator's own prediction of this injection's (stroke µm, opening µs after its start of
         charging) from its measured current, at its preload force ``this_preload_n`` (N): compared with
         what the last correction predicted for it, the injection-to-injection jitter a correction
-        cannot foresee (the amplifier's ripple, the estimate's noise) enters its σ."""
+        cannot foresee (the amplifier's ripple, the estimate's noise) enters its σ. ``failed_probe``: the
+        estimator rejected this injection because the model failed at its drive, beyond the checked
+        scales (:meth:`unchecked`): the trust region on that side halves toward it, and the correction
+        held from the last ``ok`` estimate stays inside."""
         st = self._injectors.get(injector_id)
         if st is None:
             st = self._injectors[injector_id] = _Injector()
@@ -345,13 +387,11 @@ class DriveCompensator:
         if math.isfinite(rate_n_per_v_s) and 0.0 < interval < MAX_INTERVAL_S:
             nu = nu + rate_n_per_v_s * interval
         nominal = self.nominal or nominal
-        if current_a is not None:
-            drive, reason, measured = self.check_drive(injector_id, current_a, dt_s)
-            if not reason:
-                _jitter(st, this_preload_n, measured, predicted)
-        else:
-            drive, reason, measured = (self.drive_of(injector_id) or trapezoid(sim.dt_s if sim else SAMPLE_PERIOD_S),
-                                       "", math.nan)
+        drive, reason, measured = self._measured(st, injector_id, sim, current_a, dt_s)
+        if current_a is not None and not reason:
+            _jitter(st, this_preload_n, measured, predicted)
+            if failed_probe:
+                _narrow(st, sim, measured)
         if drive is None or reason:
             st.last = replace(st.last, held=st.last.valid, reason=reason, drive_scale=measured)
             return st.last
@@ -370,7 +410,8 @@ class DriveCompensator:
                 else:
                     fresh = self._table(st, sim, nominal, nu, lh_um, cov, drive)
                 st.last = self._correct(st.main, sim, nominal, nu, lh_um, cov, f_open_n, drive,
-                                        jitter=_jitter_var(st), checked=_checked(st, sim), drive_scale=measured,
+                                        jitter=_jitter_var(st), checked=_checked(st, sim), steps=st.steps,
+                                        drive_scale=measured,
                                         table=fresh, defer=self.deferred)
                 if st.pending is not None or st.main.due:
                     self._due[injector_id] = None
@@ -439,12 +480,14 @@ class DriveCompensator:
         carried = ok.rate_n_per_v_s * dt if 0.0 < dt < MAX_INTERVAL_S else 0.0
         cov = ok.cov + np.diag([(CARRY_NU_SHARE * carried) ** 2, 0.0])
         return self._correct(st.main, ok.sim, nominal, ok.nu + carried, ok.lh_um, cov, f_open_n, drive,
-                             jitter=_jitter_var(st), checked=_checked(st, ok.sim), defer=self.deferred)
+                             jitter=_jitter_var(st), checked=_checked(st, ok.sim), steps=st.steps,
+                             defer=self.deferred)
 
     def _correct(self, pt: _Point, sim: FastSimulator, nominal: FastSimulator, nu: float, lh_um: float,
                  cov: np.ndarray, f_open_n: float, drive: AmplifierDrive, derivatives: bool = True,
                  jitter: tuple[float, float] = (0.0, 0.0), refresh: int | None = None,
-                 carry: bool = True, checked: tuple[float, float] | None = None, drive_scale: float = math.nan,
+                 carry: bool = True, checked: tuple[float, float] | None = None,
+                 steps: Sequence[float] = (TRUST_STEP, TRUST_STEP), drive_scale: float = math.nan,
                  table: tuple[tuple[float, float, float], ...] = (), defer: bool = False) -> Correction:
         """The correction at ``f_open_n`` by Newton's method on the scale from ``pt``'s last one
         (``derivatives``: the per-kN sensitivities and the σ too, ``jitter`` the injection-to-injection
@@ -453,11 +496,11 @@ class DriveCompensator:
         so little since ``pt``'s last correction that its derivatives hold (:func:`_carry`), that
         correction is carried instead of simulated (``carry`` False: always simulated). ``checked``: the
         scales the model was checked at (None: unknown, the configured limits alone); the scale stays
-        within ``TRUST_STEP`` of them (:func:`_trust`). ``drive_scale`` and ``table`` are passed on to the
+        within ``steps`` (below, above; at most ``TRUST_STEP``) of them (:func:`_trust`). ``drive_scale`` and ``table`` are passed on to the
         correction as they are. ``defer``: derivatives merely due by age are refreshed later
         (:meth:`background`), the old ones serving until then."""
         t = self.target
-        lo, hi = _trust(t.scale_limits, checked)
+        lo, hi = _trust(t.scale_limits, checked, steps)
         target_stroke, target_opening = self.target_at(nominal)
         scale = min(max(pt.last.scale if pt.last is not None and pt.last.valid else 1.0, lo), hi)   # scalars: no numpy
         same = pt.response is not None and pt.model is sim and pt.drive is drive
@@ -544,7 +587,7 @@ class DriveCompensator:
         if len(stale) > ROWS_AFTER_CHANGE:
             return st.last.table   # the last complete table (another model's) until every row is this one's
         target = self.target_at(nominal)
-        limits = (*_trust(self.target.scale_limits, _checked(st, sim)), *self.target.offset_limits_us)
+        limits = (*_trust(self.target.scale_limits, _checked(st, sim), st.steps), *self.target.offset_limits_us)
         scale, moved, offset, farthest = row_carry.carry_rows(st.grid, nu, lh_um, *target, limits)
         far = [] if not farthest > CARRY_OPENING_US else [
             i for i in np.argsort(-np.abs(moved))[:FAR_ROWS] if abs(moved[i]) > CARRY_OPENING_US]
@@ -566,7 +609,8 @@ class DriveCompensator:
         the injector's grid."""
         pt = st.rows[i]
         c = self._correct(pt, sim, nominal, nu, lh_um, cov, self.target.table_preloads_n[i], drive,
-                          derivatives=False, carry=False, refresh=ROW_REFRESH, checked=_checked(st, sim))
+                          derivatives=False, carry=False, refresh=ROW_REFRESH, checked=_checked(st, sim),
+                          steps=st.steps)
         r = pt.response
         assert r is not None
         st.grid[i] = (c.stroke_um, c.scale, c.opening_us - c.offset_us, nu, lh_um, r.d_nu[0], r.d_lh[0],
@@ -640,18 +684,36 @@ def _check_level(st: _Injector, sim: FastSimulator, measured_scale: float) -> No
     if not math.isfinite(measured_scale):
         return
     if st.checked_model is not sim or st.checked is None:
-        st.checked, st.checked_model = (measured_scale, measured_scale), sim
-    else:
-        st.checked = (min(st.checked[0], measured_scale), max(st.checked[1], measured_scale))
+        st.checked, st.checked_model, st.steps = (measured_scale, measured_scale), sim, [TRUST_STEP, TRUST_STEP]
+        return
+    lo, hi = st.checked
+    if measured_scale < lo - CHECKED_SLACK:   # a new level passed: the trust region on its side grows back
+        st.steps[0] = min(2.0 * st.steps[0], TRUST_STEP)
+    if measured_scale > hi + CHECKED_SLACK:
+        st.steps[1] = min(2.0 * st.steps[1], TRUST_STEP)
+    st.checked = (min(lo, measured_scale), max(hi, measured_scale))
 
 
-def _trust(limits: tuple[float, float], checked: tuple[float, float] | None) -> tuple[float, float]:
-    """The scale limits within ``TRUST_STEP`` of the checked scales (the configured ``limits`` where
-    nothing was checked)."""
+def _narrow(st: _Injector, sim: FastSimulator | None, measured_scale: float) -> None:
+    """The model failed at ``measured_scale``, beyond its checked scales: the trust region on that side
+    ends halfway to it (a trust-region method's step after a failed one)."""
+    checked = _checked(st, sim) if sim is not None else None
+    if checked is None or not math.isfinite(measured_scale):
+        return
+    if measured_scale > checked[1]:
+        st.steps[1] = min(st.steps[1], 0.5 * (measured_scale - checked[1]))
+    elif measured_scale < checked[0]:
+        st.steps[0] = min(st.steps[0], 0.5 * (checked[0] - measured_scale))
+
+
+def _trust(limits: tuple[float, float], checked: tuple[float, float] | None,
+           steps: Sequence[float] = (TRUST_STEP, TRUST_STEP)) -> tuple[float, float]:
+    """The scale limits within ``steps`` (below, above) of the checked scales (the configured ``limits``
+    where nothing was checked)."""
     lo, hi = limits
     if checked is None:
         return lo, hi
-    lo, hi = max(lo, checked[0] - TRUST_STEP), min(hi, checked[1] + TRUST_STEP)
+    lo, hi = max(lo, checked[0] - steps[0]), min(hi, checked[1] + steps[1])
     return (lo, hi) if lo <= hi else (min(max(checked[0], limits[0]), limits[1]),) * 2
 
 
@@ -685,6 +747,14 @@ def _jitter_var(st: _Injector) -> tuple[float, float]:
     return (ms_s, ms_o) if n >= JITTER_MIN else (0.0, 0.0)
 
 
+def estimate_unchecked(compensator: DriveCompensator, tracker: Tracker, inj: Injection) -> TrackResult:
+    """``tracker.update(inj)``, told whether the injection's measured drive lies beyond the levels the
+    injector's model was checked at (:meth:`DriveCompensator.unchecked`): the estimate that goes with
+    :func:`correction_after` in a closed loop."""
+    sim = tracker.model_simulator(inj.injector_id, inj.dt_s)
+    return tracker.update(inj, compensator.unchecked(inj.injector_id, sim, inj.current_a, inj.dt_s))
+
+
 def correction_after(compensator: DriveCompensator, tracker: Tracker, inj: Injection, res: TrackResult,
                      preload_n: float | None = None) -> Correction:
     """The injector's drive correction after the tracker's result ``res`` for ``inj``: from an ``ok``
@@ -713,7 +783,8 @@ def correction_after(compensator: DriveCompensator, tracker: Tracker, inj: Injec
                               cov, inj.f_open_n if preload_n is None else preload_n,
                               tracker.nominal_simulator(inj.dt_s), res.rate_n_per_v_s, inj.time_s,
                               inj.current_a, inj.dt_s, inj.f_open_n,
-                              (res.stroke_m * UM_PER_M, res.t_open_s * US_PER_S) if ok else (math.nan, math.nan))
+                              (res.stroke_m * UM_PER_M, res.t_open_s * US_PER_S) if ok else (math.nan, math.nan),
+                              res.failed_probe)
 
 
 def _validated(tracker: Tracker, injector_id: int) -> bool:

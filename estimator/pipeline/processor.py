@@ -30,7 +30,13 @@ from estimator.codec.records import (
     ModelCalibration,
     ValvePrediction,
 )
-from estimator.drive.correction import CORRECTION_STATES, Correction, DriveCompensator, correction_after
+from estimator.drive.correction import (
+    CORRECTION_STATES,
+    Correction,
+    DriveCompensator,
+    correction_after,
+    estimate_unchecked,
+)
 from estimator.errors import ParameterError
 from estimator.ident.learning.selfcal import CalibrationStatus
 from estimator.ident.measurement import Injection
@@ -191,8 +197,9 @@ class Processor:
     and its drive correction (``correction``, a :class:`~estimator.drive.correction.Correction` for that
     preload force, carried to any other by :meth:`~estimator.drive.correction.Correction.at`), and the
     CAN frames the daemon sends (``frames``). :meth:`handle` does the same for the codec's events (the
-    daemon's and a replay's path). The same correction comes from a ``Tracker`` and a
-    ``DriveCompensator`` through :func:`~estimator.drive.correction.correction_after`.
+    daemon's and a replay's path). The same estimate and correction come from a ``Tracker`` and a
+    ``DriveCompensator`` through :func:`~estimator.drive.correction.estimate_unchecked` and
+    :func:`~estimator.drive.correction.correction_after`.
     """
 
     def __init__(self, codec: Codec, tracker: Tracker, counters: Counters, commands: str = "reset-only",
@@ -289,12 +296,17 @@ class Processor:
     def estimate(self, inj: Injection, next_preload_n: float | None = None) -> Published:
         """One injection through the estimator: counted, logged, its learning and drive correction (for
         ``next_preload_n``, N, the next injection's preload force when the caller knows it, as an ECU
-        does; else this injection's)."""
-        res = self.tracker.update(inj)
+        does; else this injection's). An injection its drive correction drove beyond the levels the
+        injector's model was checked at is estimated as such (:func:`estimate_unchecked`)."""
+        res = (self.tracker.update(inj) if self.compensator is None
+               else estimate_unchecked(self.compensator, self.tracker, inj))
         # an "unconfirmed" injection is counted when the next one decides (accepted or outlier)
         self.counters.rejected_outlier += res.outliers
         self.counters.accepted += res.accepted
-        if res.status == Status.REJECTED and not res.outliers:
+        if res.failed_probe:
+            self.rlog.log(logging.INFO, "drive-probe", "injector %d counter %d: %s", inj.injector_id, inj.counter,
+                          res.reason)
+        elif res.status == Status.REJECTED and not res.outliers:
             self.counters.reject(RejectReason.INVALID)
             self.rlog.log(logging.WARNING, "reject-estimator", "injector %d counter %d rejected: %s",
                           inj.injector_id, inj.counter, res.reason)

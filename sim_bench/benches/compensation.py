@@ -17,7 +17,8 @@ of charging (the correction's offset plus the plant's own).
 Reported per injector and across each lot: the spread (max - min) and SD of the true opening instant
 and plateau stroke at each injection, before learning (the first injections) and after (the last
 ``SETTLED`` of the life), how many injections after the model's adoption the stroke takes to stay on
-target, overshoot, the share of injections at a drive limit and of corrections stopped by their trust
+target (a correction stopped short by its trust region is not on target yet), overshoot (a correction
+that claims the target and misses it by more than 2σ), the share of injections at a drive limit and of corrections stopped by their trust
 region, corrections marked valid after an estimate that was not ``ok``, parts that went
 ``model_mismatch`` under their own correction but not under the standard drive; and, over all the lots' parts, whether the predicted σ covers the
 achieved error (a learned model's error is a bias, one draw per part: eight parts alone say little
@@ -178,7 +179,11 @@ def summarise(run: Run, target_stroke: float) -> dict:
         settle = None
         overshoot = 0
         if adopted is not None:
-            ok = np.abs(err) <= np.maximum(SETTLE_UM, 2 * np.nan_to_num(run.sigma_stroke_um[i]))
+            # a correction its trust region stopped short says so and predicts what it gives (judged by
+            # RMS(error/σ)): not yet on target, and no overshoot; one that claims the target and misses
+            # it by more than 2σ is
+            aimed = ~run.trust_limited[i] if run.trust_limited is not None else np.ones(n, bool)
+            ok = (np.abs(err) <= np.maximum(SETTLE_UM, 2 * np.nan_to_num(run.sigma_stroke_um[i]))) & aimed
             for k in range(adopted, n):
                 if ok[k:].mean() >= 0.95 and ok[k]:
                     settle = k - adopted
@@ -186,7 +191,7 @@ def summarise(run: Run, target_stroke: float) -> dict:
             if settle is not None:
                 s = run.sigma_stroke_um[i, adopted + settle:]
                 e = err[adopted + settle:]
-                overshoot = int(np.sum(np.abs(e) > 2 * s + SETTLE_UM))
+                overshoot = int(np.sum((np.abs(e) > 2 * s + SETTLE_UM) & aimed[adopted + settle:]))
         z_s = (run.stroke_um[i] - run.predicted_stroke_um[i]) / run.sigma_stroke_um[i]
         z_s = z_s[late][np.isfinite(z_s[late])]
         z_o = (run.opening_us[i] - run.predicted_opening_us[i]) / run.sigma_opening_us[i]

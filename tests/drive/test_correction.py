@@ -394,6 +394,40 @@ def test_the_correction_moves_only_as_far_as_the_model_was_checked(sim):
     assert c.checked == pytest.approx((1.2, 1.2), abs=1e-3)
 
 
+def test_a_level_the_model_failed_at_halves_the_trust_region_and_levels_that_pass_grow_it_back(sim):
+    """A probe beyond the checked levels is recognised from the measured current; the estimator rejects
+    it when the model fails there (``failed_probe``): the correction, held from the last ok estimate,
+    stays halfway between the checked levels and the failed one, and each new level that passes
+    doubles the step again (at most ``TRUST_STEP``). Nothing changes below the checked levels."""
+    from estimator.drive.correction import CHECKED_SLACK, TRUST_STEP
+    from estimator.drive.standard import AmplifierDrive
+
+    current = AmplifierDrive.trapezoid().samples(0.5e-6, 200e-6)
+    comp = compensator()
+
+    def step(ok: bool, scale: float, failed: bool = False) -> Correction:
+        return comp.update(0, ok, sim, 20.5, 8.0, COV, 100.0, sim, current_a=scale * current, dt_s=0.5e-6,
+                           time_s=0.0, failed_probe=failed)
+
+    c = step(True, 1.0)
+    assert c.trust_limited and c.scale == pytest.approx(1.0 + TRUST_STEP, abs=1e-3)
+    assert not comp.unchecked(0, sim, (1.0 + 0.5 * CHECKED_SLACK) * current, 0.5e-6)
+    probe = c.scale * current
+    assert comp.unchecked(0, sim, probe, 0.5e-6) and not comp.unchecked(0, None, probe, 0.5e-6)
+    assert not comp.unchecked(1, sim, probe, 0.5e-6)                     # an injector with nothing checked
+    c = step(False, 1.0 + TRUST_STEP, failed=True)
+    assert c.held and c.scale == pytest.approx(1.0 + TRUST_STEP / 2, abs=1e-3) and c.checked == pytest.approx((1.0, 1.0))
+    c = step(False, c.scale, failed=True)                                 # failed again: halved again
+    assert c.scale == pytest.approx(1.0 + TRUST_STEP / 4, abs=1e-3)
+    c = step(True, c.scale)                                               # passed: checked, the step doubles
+    assert c.checked[1] == pytest.approx(1.0 + TRUST_STEP / 4, abs=1e-3)
+    assert c.scale == pytest.approx(1.0 + TRUST_STEP / 4 + TRUST_STEP / 2, abs=1e-3)
+    c = step(True, c.scale)                                               # more than a half step: the target
+    assert not c.trust_limited and c.scale > 1.0 + 3 * TRUST_STEP / 4 + TRUST_STEP / 2 + 0.01
+    held = step(False, 1.0, failed=True)   # not beyond the checked levels: a failure there narrows nothing
+    assert held.held and held.scale == pytest.approx(c.scale, abs=1e-3)
+
+
 def test_a_steady_operating_point_is_carried_and_carries_no_error(sim, monkeypatch):
     """At a steady preload force with a slowly drifting estimate the correction is carried from its last
     simulation by its derivatives (far fewer simulations than corrections) and stays within 0.02 µm and
@@ -473,3 +507,38 @@ def test_a_deferred_compensator_leaves_the_tables_simulations_to_the_idle_worker
     for nu, lh_um, preload_n in estimates[:6]:
         c = skipped.update(0, True, sim, nu, lh_um, COV, preload_n, sim)   # never idle
     assert c.table and skipped.has_background
+
+
+def test_a_closed_loop_steps_back_from_a_level_its_model_fails_at_through_public_names():
+    """``estimate_unchecked`` + ``correction_after``: the first injection beyond the checked levels is
+    of a part the model does not explain there (standing for a model that does not hold at that
+    drive): it is rejected as a failed probe, never ``model_mismatch``, the correction steps back
+    halfway, and the loop goes on to the target as the levels pass."""
+    from estimator import Tracker, correction_after, estimate_unchecked
+    from estimator.drive.correction import TRUST_STEP
+    from estimator.ident.measurement import Injection
+    from estimator.ident.status import Status
+    from estimator.model.drive import STANDARD_AMPLITUDE_A, StandardDrive
+    from sim_bench.hardware.plant import Plant, PlantConfig
+    from sim_bench.hardware.series_part import SeriesPart
+
+    good = Plant(PlantConfig(window_s=200e-6))
+    bad = Plant(PlantConfig(window_s=200e-6), SeriesPart({"psa.kg1_n_per_m": 0.99, "psa.kp_n_per_m": 1.01,
+                                                          "psa.m3_kg": 0.99}).params)
+    rng = np.random.default_rng(3)
+    tracker, comp, c = Tracker(), compensator(), Correction()
+    probed = None
+    for k in range(14):
+        plant = bad if c.valid and c.trust_limited and probed is None else good
+        m = plant.measure(20.5, 8e-6, 100.0, rng, StandardDrive(STANDARD_AMPLITUDE_A * c.scale) if c.valid else None)
+        inj = Injection(m.current_a, m.voltage_v, m.dt_s, 100.0, 0, k, math.nan, 0.1 * k)
+        res = estimate_unchecked(comp, tracker, inj)
+        before = c
+        c = correction_after(comp, tracker, inj, res)
+        assert res.status != Status.MODEL_MISMATCH
+        if plant is bad:
+            probed = k
+            assert res.failed_probe and res.status == Status.REJECTED
+            assert c.held and c.scale == pytest.approx(before.checked[1] + TRUST_STEP / 2, abs=2e-3)
+    assert probed is not None and res.status == Status.OK and not c.trust_limited
+    assert c.stroke_um == pytest.approx(c.target_stroke_um, abs=0.05)

@@ -321,3 +321,32 @@ def test_a_refinement_adopted_on_its_n_u_shift_states_the_disagreement_in_its_st
     assert wide.calibration.stroke_rel_sigma == 0.02 and wide.calibration.nu_rel_sigma == 0.003
     assert disagreement(params, -0.001) is params
     assert disagreement(params, float("nan")) is params
+
+
+def test_an_injection_its_model_failed_at_an_unchecked_drive_joins_the_refinement_not_the_monitor():
+    """A drive correction's probe the model failed at (rejected, ``failed_probe``) is what a monitored
+    model has yet to learn: it joins the refinement window and adds no evidence that the part changed;
+    while re-learning it joins that window. The same raw verdict on an ok injection is evidence."""
+    import numpy as np
+
+    from estimator.ident.learning.learning import Learner
+    from estimator.ident.measurement import Injection
+    from estimator.model.parameters import load_nominal
+    from sim_bench.hardware.plant import Plant, PlantConfig
+
+    m = Plant(PlantConfig(window_s=150e-6)).measure(17.0, 3e-6, 120.0, np.random.default_rng(1))
+    inj = Injection(m.current_a, m.voltage_v, m.dt_s, 120.0, 0, 1, time_s=0.1)
+    base = load_nominal()
+    learner = Learner(SelfCalConfig(), base, None, lambda *a: None, lambda iid: base)
+    monitoring = CalibrationStatus(Learning.MONITORING, source="learned", served=8)
+    learner.status[0] = monitoring
+    learner.observe(inj, 17.0, False, True, Status.REJECTED, Status.MODEL_MISMATCH, failed_probe=True)
+    assert len(learner._refine[0].items) == 1 and learner.status[0].evidence == 0.0
+    assert learner.status[0].state == Learning.MONITORING and 0 not in learner._windows
+    learner.status[1] = monitoring
+    learner.observe(replace(inj, injector_id=1), 17.0, False, True, Status.OK, Status.MODEL_MISMATCH)
+    assert learner.status[1].evidence > 0.0 and 1 not in learner._refine
+    learner.status[2] = replace(monitoring, state=Learning.RELEARNING)
+    learner.observe(replace(inj, injector_id=2), 17.0, False, True, Status.REJECTED, Status.MODEL_MISMATCH,
+                    failed_probe=True)
+    assert len(learner._windows[2].items) == 1 and learner.status[2].state == Learning.RELEARNING

@@ -396,3 +396,36 @@ def test_the_current_noise_sizing_is_held_between_tests_and_kept_in_the_state():
     old = st.to_dict()
     del old["current_noise_cov"]                            # a state written before it was kept
     assert TrackerState.from_dict(old).current_noise_cov is None
+
+
+def test_a_model_that_fails_at_an_unchecked_drive_rejects_that_injection_not_the_part():
+    """An injection driven beyond the levels the model was checked at, which the model cannot explain,
+    of an injector it explains: rejected as a failed probe (the drive correction steps back), without
+    counting toward a run of mismatched injections. The same injections at a checked drive make the
+    injector mismatched; an injector already mismatched is judged as before."""
+    rng = np.random.default_rng(5)
+    good = Plant(PlantConfig(window_s=150e-6))
+    # a part 1 % off where the model holds: inside the innovation gate, the model cannot explain it
+    bad = Plant(PlantConfig(window_s=150e-6), SeriesPart({"psa.kg1_n_per_m": 0.99, "psa.kp_n_per_m": 1.01,
+                                                          "psa.m3_kg": 0.99}).params)
+
+    def run(unchecked: bool) -> tuple[Tracker, list]:
+        tr, out = Tracker(TrackerConfig()), []
+        for k in range(10):
+            plant, probe = (bad, unchecked) if k in (6, 7) else (good, False)
+            m = plant.measure(17.0, 3e-6, 28.0, rng)
+            out.append(tr.update(Injection(m.current_a, m.voltage_v, m.dt_s, 28.0, counter=k, time_s=0.1 * k), probe))
+        return tr, out
+
+    tr, probed = run(True)
+    assert [r.status for r in probed[:6]] == [Status.OK] * 6
+    for r in probed[6:8]:
+        assert r.failed_probe and r.status == Status.REJECTED and r.raw.mismatch and "checked" in r.reason
+        assert r.outliers == 0 and np.isfinite(r.nu_n_per_v)        # the filter's prediction is published
+    assert [r.status for r in probed[8:]] == [Status.OK] * 2 and not tr.states[0].mismatch
+    tr, plain = run(False)
+    assert not any(r.failed_probe for r in plain) and tr.states[0].mismatch
+    assert Status.MODEL_MISMATCH in [r.status for r in plain[6:]]
+    m = bad.measure(17.0, 3e-6, 28.0, rng)   # mismatched already: a probe is no excuse
+    r = tr.update(Injection(m.current_a, m.voltage_v, m.dt_s, 28.0, counter=10, time_s=1.0), True)
+    assert not r.failed_probe and r.status != Status.OK and tr.states[0].mismatch

@@ -61,6 +61,27 @@ def test_a_part_that_does_not_settle_fails_its_lot():
     assert not _report([_run([0.0, 0.0], 0.05)])["lots"][0]["closed"]["injectors"][0]["overshoots"]
 
 
+def test_a_correction_stopped_short_by_its_trust_region_is_not_settled_and_not_an_overshoot():
+    """Injections whose correction said it stopped short of the target (``trust_limited``, its predicted
+    stroke what that drive gives) delay the settling and are no overshoot; the same miss from a
+    correction that claimed the target is one."""
+    def stepped(flagged: bool) -> compensation.Run:
+        run = _run([0.0, 0.0], 0.1)
+        run.trust_limited = np.zeros(run.stroke_um.shape, bool)
+        run.stroke_um[1, 14:21] -= 1.0            # a model failed at a probe: the correction steps back
+        run.stroke_um[1, 23] -= 1.0
+        if flagged:
+            run.predicted_stroke_um[1, 14:21] -= 1.0
+            run.predicted_stroke_um[1, 23] -= 1.0
+            run.trust_limited[1, 14:21] = run.trust_limited[1, 23] = True
+        return run
+
+    said = compensation.summarise(stepped(True), TARGET)["injectors"][1]
+    assert said["settle_injections"] == 11 and said["overshoots"] == 0
+    unsaid = compensation.summarise(stepped(False), TARGET)["injectors"][1]
+    assert unsaid["overshoots"] >= 1
+
+
 def test_a_part_that_goes_model_mismatch_only_under_its_own_correction_fails_its_lot():
     """The same part, truths and noise: model_mismatch after adoption in the closed loop but never with
     the standard drive is the correction's doing; in both loops alike it is not."""

@@ -111,11 +111,16 @@ class Learner:
                                        "the tables, learning again"))
 
     def observe(self, inj: Injection, nu: float, mismatch: bool, raw_mismatch: bool, status: Status,
-                raw_status: Status) -> None:
+                raw_status: Status, failed_probe: bool = False) -> None:
         """One update of ``inj.injector_id``: its raw N_u estimate (N/V), its tracker's model-mismatch
-        flag (smoothed), its own injection's adequacy verdict, the published and the raw status."""
+        flag (smoothed), its own injection's adequacy verdict, the published and the raw status.
+        ``failed_probe``: rejected because the model failed at a drive level it was not checked at
+        (:func:`_probe`)."""
         iid = inj.injector_id
         st = self.status.setdefault(iid, CalibrationStatus())
+        if failed_probe and st.state != Learning.CALIBRATING:
+            self._probe(iid, st, inj, nu)
+            return
         if st.state == Learning.CALIBRATING or status == Status.REJECTED or raw_status not in ESTIMATED:
             return
         if st.state in (Learning.ADOPTED, Learning.MONITORING, Learning.RELEARNING):
@@ -163,6 +168,15 @@ class Learner:
             self._add(iid, None, nu, Learning.RELEARNING)
             return
         self._set(iid, replace(st, state=state, evidence=evidence, served=served), quiet=state == st.state)
+
+    def _probe(self, iid: int, st: CalibrationStatus, inj: Injection, nu: float) -> None:
+        """An injection at a drive level the model in use failed at, never checked there: it is what
+        the model has to learn, not evidence that the part changed (the monitor does not count it).
+        It joins the refinement window being collected, or a re-learning window."""
+        if st.state == Learning.RELEARNING:
+            self._add(iid, inj, nu, Learning.RELEARNING)
+        elif st.state == Learning.MONITORING and not st.refined and self.config.refine_window:
+            self._refined(iid, st, inj, nu, st.served + 1)
 
     def _refined(self, iid: int, st: CalibrationStatus, inj: Injection, nu: float, served: int) -> bool:
         """Collect the refinement window of a monitored model; submit it once ready (True: submitted).

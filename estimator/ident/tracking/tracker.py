@@ -79,8 +79,11 @@ class Tracker:
         """The fast simulator for a sample period in s (from the pool, built on first use)."""
         return self.pool.get(dt_s)
 
-    def update(self, inj: Injection) -> TrackResult:
-        """Feed one injection of ``inj.injector_id``; returns the result.
+    def update(self, inj: Injection, unchecked_drive: bool = False) -> TrackResult:
+        """Feed one injection of ``inj.injector_id``; returns the result. ``unchecked_drive``: it was
+        driven beyond the levels the injector's model was checked at (a drive correction's probe:
+        :meth:`~estimator.drive.correction.DriveCompensator.unchecked`), where a model that fails is
+        rejected for that injection rather than the injector found mismatched.
 
         A sample period the pool refuses gives a ``rejected`` result and leaves the state alone.
         """
@@ -97,11 +100,11 @@ class Tracker:
             refusal = screen(inj, self.config.ident) or pool.refusal(inj.dt_s, inj.time_s)
         if refusal is not None:
             return publish(None, rejected(refusal), Status.REJECTED, refusal, None, inj, False)
-        new_state, result = update(state, inj, pool.get(inj.dt_s), self.config)
+        new_state, result = update(state, inj, pool.get(inj.dt_s), self.config, unchecked_drive)
         self.states[inj.injector_id] = new_state
         if self.learning is not None:
             self.learning.observe(inj, result.raw.nu_n_per_v, new_state.mismatch, result.raw.mismatch,
-                                  result.status, result.raw.status)
+                                  result.status, result.raw.status, result.failed_probe)
         return result
 
     def model_simulator(self, injector_id: int, dt_s: float) -> FastSimulator | None:
