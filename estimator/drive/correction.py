@@ -496,8 +496,8 @@ class DriveCompensator:
         so little since ``pt``'s last correction that its derivatives hold (:func:`_carry`), that
         correction is carried instead of simulated (``carry`` False: always simulated). ``checked``: the
         scales the model was checked at (None: unknown, the configured limits alone); the scale stays
-        within ``steps`` (below, above; at most ``TRUST_STEP``) of them (:func:`_trust`). ``drive_scale`` and ``table`` are passed on to the
-        correction as they are. ``defer``: derivatives merely due by age are refreshed later
+        within ``steps`` (below, above; at most ``TRUST_STEP``) of them (:func:`_trust`). ``drive_scale``
+        and ``table`` are passed on to the correction as they are. ``defer``: derivatives merely due by age are refreshed later
         (:meth:`background`), the old ones serving until then."""
         t = self.target
         lo, hi = _trust(t.scale_limits, checked, steps)
