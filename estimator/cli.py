@@ -420,13 +420,16 @@ def cmd_drive_table(args: argparse.Namespace) -> int:
 
 
 def cmd_a2l(args: argparse.Namespace) -> int:
-    """Write the A2L of the daemon's XCP slave (what GET_ID serves) for a calibration tool."""
+    """Write the A2L of the daemon's XCP slave (what GET_ID serves) for a calibration tool: the slave's
+    address from ``[estimator.xcp]`` of ``--config`` (its defaults without one)."""
     from estimator import __version__
     from estimator.codec.records import load_database
+    from estimator.service.config import DaemonConfig, XcpConfig
     from estimator.service.xcp.a2l import NAME, a2l_bytes
 
+    xcp = DaemonConfig.load(args.config).xcp or XcpConfig()
     out = args.out or Path(f"{NAME}.a2l")
-    data = a2l_bytes(load_database(args.dbc) if args.dbc else load_database(), __version__)
+    data = a2l_bytes(load_database(args.dbc) if args.dbc else load_database(), __version__, (xcp.host, xcp.port))
     try:
         out.write_bytes(data)
     except OSError as exc:
@@ -596,6 +599,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "characteristics from the configuration)")
     s.add_argument("--out", type=Path, default=None, help="output file (default ./injector_estimator.a2l)")
     s.add_argument("--dbc", type=Path, default=None, help="CAN database (default: the packaged dbc/injector.dbc)")
+    s.add_argument("--config", type=Path, default=None,
+                   help="the daemon's configuration: the slave's host and port from [estimator.xcp]")
     s.set_defaults(func=cmd_a2l)
 
     s = sub.add_parser("check-dbc", help="validate the DBC against the contract")

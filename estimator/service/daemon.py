@@ -44,6 +44,7 @@ from estimator.service.sdnotify import SdNotify
 from estimator.service.state_store import keep_rejected, load_all, lock_state_dir, save_states
 from estimator.service.xcp.a2l import NAME as A2L_NAME
 from estimator.service.xcp.a2l import a2l_bytes
+from estimator.service.xcp.daq_lists import EVENT_10HZ
 from estimator.service.xcp.slave import XcpSlave
 from estimator.units import US_PER_S
 
@@ -97,7 +98,6 @@ class QueueListener(can.Listener):  # type: ignore[misc]  # python-can is not fo
 
 
 # keys a SIGHUP cannot change (they shape the bus connection and the memory already allocated)
-XCP_EVENT_INJECTION, XCP_EVENT_10HZ = 0, 1   # the slave's DAQ event channels
 RELOAD_MIN_S = 0.5   # the worker applies a reloaded configuration at most this often
 INGEST_BATCH = 256   # frames the worker assembles between two identifications (≈ 1.3 ms at most)
 ESTABLISHED_AFTER = 10   # injections accepted since its last reset: the worker serves such an injector first
@@ -316,7 +316,7 @@ class Daemon:
             self.send(pub.frames[1:])
             self._dirty = True
             if self.xcp is not None:
-                self.xcp.event(XCP_EVENT_INJECTION)
+                self.xcp.injection(pub.injector_id)
         self.waiting.charge(injector, time.monotonic() - t_prev)
 
     def _heartbeat(self) -> None:
@@ -331,7 +331,7 @@ class Daemon:
                                                        time.monotonic() - self.started, stages),
                            self.processor.health_frame(len(self.waiting))])
                 if self.xcp is not None:
-                    self.xcp.event(XCP_EVENT_10HZ)
+                    self.xcp.event(EVENT_10HZ)
             except Exception:   # never let the heartbeat die with a traceback per tick
                 self.rlog.log(logging.ERROR, "heartbeat", "heartbeat error (continuing)", exc_info=True)
             self.stop.wait(self.cfg.status_period_s)
@@ -542,7 +542,7 @@ class Daemon:
         x = self.cfg.xcp
         try:
             slave = XcpSlave(self.codec.db, lambda: self.cfg, self.cfg, self.calibrate,
-                             a2l_bytes(self.codec.db, __version__), x.host, x.port, x.writes,
+                             lambda address: a2l_bytes(self.codec.db, __version__, address), x.host, x.port, x.writes,
                              ident=f"{A2L_NAME} {__version__}", name=A2L_NAME)
         except OSError as exc:
             raise ConfigError(f"[estimator.xcp] {x.host}:{x.port}: cannot listen there: {exc}") from None

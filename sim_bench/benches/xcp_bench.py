@@ -113,15 +113,16 @@ def run(out_dir: Path, rate: float = 200.0, seconds: float = 10.0, bus: str | No
                 x.connect()
                 slots = slot_layout(codec.db)
                 state = codec.db.get_message_by_name("EstimateState").frame_id
+                own = x.getDaqProcessorInfo().minDaq    # the master's list, after the predefined ones
                 x.freeDaq()
                 x.allocDaq(1)
-                x.allocOdt(0, 1)
-                x.allocOdtEntry(0, 0, len(injectors))
-                x.setDaqPtr(0, 0, 0)
+                x.allocOdt(own, 1)
+                x.allocOdtEntry(own, 0, len(injectors))
+                x.setDaqPtr(own, 0, 0)
                 for i in injectors:
                     x.writeDaq(0xFF, 8, 0, slots[(state, i)])
-                x.setDaqListMode(0x10, 0, 0, 1, 0)
-                x.startStopDaqList(2, 0)
+                x.setDaqListMode(0x10, own, 0, 1, 0)
+                x.startStopDaqList(2, own)
                 x.startStopSynch(1)
                 e0, d0 = w.estimates, recorder.daq
                 rep["daq"] = _slim(_phase(b, codec, pool, rate, seconds, w, d))

@@ -18,6 +18,7 @@ from estimator.codec.records import Codec
 from estimator.service.config import DaemonConfig
 from estimator.service.xcp import protocol as p
 from estimator.service.xcp.a2l import a2l_bytes, render
+from estimator.service.xcp.daq_lists import EVENTS, injector_event, predefined_lists
 from estimator.service.xcp.memory import CAL_BASE, apply_page, characteristics, measurements, page_bytes, slot_layout
 from estimator.service.xcp.slave import XcpSlave
 
@@ -52,8 +53,8 @@ class Client:
 def slave():
     applied: list[DaemonConfig] = []
     cfg = DaemonConfig()
-    s = XcpSlave(CODEC.db, lambda: applied[-1] if applied else cfg, cfg, applied.append, a2l_bytes(CODEC.db, "t"),
-                 port=0)
+    s = XcpSlave(CODEC.db, lambda: applied[-1] if applied else cfg, cfg, applied.append,
+                 lambda address: a2l_bytes(CODEC.db, "t", address), port=0)
     s.applied = applied   # type: ignore[attr-defined]
     s.start()
     yield s
@@ -171,9 +172,55 @@ def test_memory_outside_the_map_and_daq_out_of_sequence_are_errors(slave, client
     assert client(p.FREE_DAQ) == b"\xff"
     assert client(p.WRITE_DAQ, 0xFF, 4, 0, struct.pack("<I", CAL_BASE)) == err(p.ERR_SEQUENCE)
     assert client(p.ALLOC_DAQ, 0, struct.pack("<H", 1)) == b"\xff"
-    assert client(p.START_STOP_DAQ_LIST, 1, struct.pack("<H", 0)) == err(p.ERR_DAQ_CONFIG)   # nothing in it
-    assert client(p.SET_DAQ_LIST_MODE, 0x10, struct.pack("<HH", 0, 9), 1, 0) == err(p.ERR_OUT_OF_RANGE)
+    own = len(predefined_lists(CODEC.db))                                 # the master's lists come after them
+    assert client(p.START_STOP_DAQ_LIST, 1, struct.pack("<H", own)) == err(p.ERR_DAQ_CONFIG)   # nothing in it
+    assert client(p.START_STOP_DAQ_LIST, 1, struct.pack("<H", own + 1)) == err(p.ERR_OUT_OF_RANGE)
+    assert client(p.SET_DAQ_LIST_MODE, 0x10, struct.pack("<HH", own, len(EVENTS)), 1, 0) == err(p.ERR_OUT_OF_RANGE)
     assert client(p.DOWNLOAD) == err(p.ERR_CMD_SYNTAX)                   # too short to be a command
+
+
+def frame_of(message: str, injector: int, counter: int) -> tuple[int, bytes]:
+    """A frame the daemon would send: ``message`` of ``injector``, its fields filled from ``counter``."""
+    msg = CODEC.db.get_message_by_name(message)
+    data = bytearray((injector,)) + bytes((counter + k) & 0xFF for k in range(1, msg.length))
+    return msg.frame_id, bytes(data)
+
+
+def test_an_injectors_predefined_list_sends_its_injections_frames_on_its_own_event(slave, client):
+    """A ready DAQ list per injector: described as the standard says (predefined, its event fixed, one
+    ODT of its frames), read-only, started without configuring anything, and sampled on that
+    injector's estimates only: one DTO, its PID, a timestamp and the bytes its CAN frames had."""
+    lists = predefined_lists(CODEC.db)
+    client(p.CONNECT, 0)
+    r = client(p.GET_DAQ_PROCESSOR_INFO)
+    max_daq, events, min_daq = struct.unpack_from("<HHB", r, 2)
+    assert r[1] & 0x01 and (min_daq, max_daq, events) == (len(lists), len(lists) + 16, len(EVENTS))
+    three = lists[3]
+    r = client(p.GET_DAQ_LIST_INFO, 0, struct.pack("<H", 3))
+    assert r[1] == 0x07 and (r[2], r[3], struct.unpack_from("<H", r, 4)[0]) == (1, len(three.entries), 5)
+    assert injector_event(3) == three.event == 5
+    assert client(p.SET_DAQ_PTR, 0, struct.pack("<HBB", 3, 0, 0)) == b"\xff"
+    read = [struct.unpack_from("<BBI", client(p.READ_DAQ), 2) for _ in three.entries]
+    assert [(a, n) for n, _, a in read] == list(three.entries)
+    assert client(p.READ_DAQ) == err(p.ERR_DAQ_CONFIG)                       # past its last entry
+    assert client(p.SET_DAQ_PTR, 0, struct.pack("<HBB", 3, 0, 0)) == b"\xff"
+    assert client(p.WRITE_DAQ, 0xFF, 4, 0, struct.pack("<I", CAL_BASE)) == err(p.ERR_WRITE_PROTECTED)
+    assert client(p.CLEAR_DAQ_LIST, 0, struct.pack("<H", 3)) == err(p.ERR_WRITE_PROTECTED)
+    assert client(p.SET_DAQ_LIST_MODE, 0x10, struct.pack("<HH", 3, 0), 1, 0) == err(p.ERR_OUT_OF_RANGE)
+    assert client(p.FREE_DAQ) == b"\xff"                                      # frees the master's lists only
+    assert client(p.START_STOP_DAQ_LIST, 1, struct.pack("<H", 3)) == b"\xff\x03"   # PID 3, timestamped
+    frames = {inj: [frame_of(m, inj, 10 * inj) for m in ("EstimateState", "EstimateQuality", "ValvePrediction",
+                                                         "ModelCalibration", "DriveCorrection")] for inj in (3, 5)}
+    for inj in (5, 3):
+        for fid, data in frames[inj]:
+            slave.store(fid, data)
+        slave.injection(inj)
+    dto, _ = client.sock.recvfrom(65535)
+    (_, pid), = [(c, x) for c, x in p.packets(dto)]
+    assert pid[0] == 3                                                         # injector 5's event sent nothing
+    assert pid[5:] == b"".join(data for _, data in frames[3])
+    assert client(p.START_STOP_SYNCH, 0) == b"\xff"
+    assert slave.counters.dtos == 1
 
 
 def test_the_a2l_is_served_by_get_id_and_passes_a2ltool(slave, client, tmp_path):
@@ -183,13 +230,35 @@ def test_the_a2l_is_served_by_get_id_and_passes_a2ltool(slave, client, tmp_path)
     got = b""
     while len(got) < length:
         got += client(p.UPLOAD, min(254, length - len(got)))[1:]
-    assert got == a2l_bytes(CODEC.db, "t")
+    assert got == a2l_bytes(CODEC.db, "t", slave.address)
     tool = shutil.which("a2ltool", path=str(Path(sys.executable).parent)) or shutil.which("a2ltool")
     assert tool, "a2ltool (the test extra) is not installed"
     f = tmp_path / "x.a2l"
     f.write_bytes(got)
     out = subprocess.run([tool, str(f), "--check", "--strict"], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and "No problems found" in out.stdout + out.stderr, out.stdout + out.stderr
+    # the IF_DATA XCP block parses by the A2L's own A2ML (a2ltool drops every block that does not) ...
+    kept = tmp_path / "kept.a2l"
+    subprocess.run([tool, str(f), "--ifdata-cleanup", "--output", str(kept)], capture_output=True, timeout=60,
+                   check=True)
+    text = kept.read_text()
+    assert text.count("/begin IF_DATA XCP") == 1
+    assert text.count("/begin DAQ_LIST") == len(predefined_lists(CODEC.db))
+    assert text.count("/begin EVENT ") == len(EVENTS)
+    # ... and a tool that knows the standard's layout reads the address the slave listens on from it
+    xcp = subprocess.run([tool, str(f), "--show-xcp"], capture_output=True, text=True, timeout=60).stdout
+    assert "UDP" in xcp and "127.0.0.1" in xcp and f"port: {slave.address[1]}" in xcp, xcp
+
+
+def test_an_a2l_whose_if_data_breaks_its_a2ml_is_caught(tmp_path):
+    """The check above can fail: one wrong keyword in the IF_DATA and a2ltool drops the block."""
+    tool = shutil.which("a2ltool", path=str(Path(sys.executable).parent)) or shutil.which("a2ltool")
+    assert tool, "a2ltool (the test extra) is not installed"
+    f, kept = tmp_path / "x.a2l", tmp_path / "kept.a2l"
+    f.write_text(render(CODEC.db).replace("BYTE_ORDER_MSB_LAST ADDRESS", "BYTE_ORDER_LAST ADDRESS"))
+    subprocess.run([tool, str(f), "--ifdata-cleanup", "--output", str(kept)], capture_output=True, timeout=60,
+                   check=True)
+    assert "/begin IF_DATA XCP" not in kept.read_text()
 
 
 def test_a2l_dbc_and_configuration_agree():
@@ -268,3 +337,19 @@ def test_a_daemon_that_cannot_take_a_write_answers_generic_and_keeps_its_page():
     finally:
         c.close()
         s.close()
+
+
+def test_the_a2l_command_writes_the_configured_slaves_address(tmp_path):
+    """``estimator a2l --config``: the A2L says where the configured slave listens (what GET_ID serves
+    from that daemon); a configuration it cannot read is one error line and a non-zero exit."""
+    from estimator import __version__
+    from estimator.cli import main
+
+    cfg = tmp_path / "e.toml"
+    cfg.write_text('[estimator.xcp]\nmode = "on"\nhost = "127.0.0.1"\nport = 6123\n')
+    out = tmp_path / "e.a2l"
+    assert main(["a2l", "--config", str(cfg), "--out", str(out)]) == 0
+    assert out.read_bytes() == a2l_bytes(CODEC.db, __version__, ("127.0.0.1", 6123))
+    assert '0x0100 6123 ADDRESS "127.0.0.1"' in out.read_text()
+    cfg.write_text('[estimator.xcp]\nmode = "on"\nport = 99999\n')
+    assert main(["a2l", "--config", str(cfg), "--out", str(out)]) != 0

@@ -20,6 +20,7 @@ from estimator.codec.frame import Frame
 from estimator.codec.records import Codec, EstimatorHealth
 from estimator.service.bus import open_bus
 from estimator.service.xcp.a2l import a2l_bytes
+from estimator.service.xcp.daq_lists import EVENT_INJECTION, injector_event, predefined_lists
 from estimator.service.xcp.memory import characteristics, slot_layout
 from sim_bench.hardware.procs import DaemonProcess, wait_until
 
@@ -79,33 +80,46 @@ def test_a_calibration_tool_measures_and_calibrates_the_running_daemon(hub, moni
             # the A2L it serves is the one the command writes
             gid = x.getId(4)
             a2l = b"".join(x.upload(min(254, gid.length - k)) for k in range(0, gid.length, 254))
-            assert a2l == a2l_bytes(codec.db, __version__)
+            assert a2l == a2l_bytes(codec.db, __version__, ("127.0.0.1", port))
             # every characteristic as the configuration file says
             from estimator.service.config import DaemonConfig
             running = DaemonConfig.load(cfg)
             for c in characteristics():
                 value = struct.unpack("<" + c.fmt, x.shortUpload(c.size, c.address))[0]
                 assert value == pytest.approx(c.get(running), rel=1e-6), c.name
-            # DAQ: injector 0's EstimateState on the injection event, timestamped
+            # DAQ: injector 0's EstimateState on the injection event in a list of the master's own, and
+            # injector 0's predefined list on its own event, both timestamped
             slot = slot_layout(codec.db)[(codec.db.get_message_by_name("EstimateState").frame_id, 0)]
+            own = x.getDaqProcessorInfo().minDaq                 # the master's lists come after the predefined
+            assert own == len(predefined_lists(codec.db))
             x.freeDaq()
             x.allocDaq(1)
-            x.allocOdt(0, 1)
-            x.allocOdtEntry(0, 0, 1)
-            x.setDaqPtr(0, 0, 0)
+            x.allocOdt(own, 1)
+            x.allocOdtEntry(own, 0, 1)
+            x.setDaqPtr(own, 0, 0)
             x.writeDaq(0xFF, 8, 0, slot)
-            x.setDaqListMode(0x10, 0, 0, 1, 0)
+            x.setDaqListMode(0x10, own, EVENT_INJECTION, 1, 0)
+            x.startStopDaqList(2, own)
+            x.setDaqListMode(0x10, 0, injector_event(0), 1, 0)
             x.startStopDaqList(2, 0)
             x.startStopSynch(1)
             got = feed_and_collect(bus, monitor, codec, injs[:6])
-            # the event fires after the CAN frames are sent: wait for its DTO before stopping DAQ
-            assert wait_until(lambda: len(recorder.frames) >= 6, 10)
+            # the event fires after the CAN frames are sent: wait for its DTOs before stopping DAQ
+            assert wait_until(lambda: len(recorder.frames) >= 12, 10)
             x.startStopSynch(0)
             states = [got[(0, k)]["EstimateState"] for k in range(6)]
-            daq = [codec.decode(Frame(0x200, f[5:13])) for f in recorder.frames]
+            mine = [f for f in recorder.frames if f[0] == own]
+            daq = [codec.decode(Frame(0x200, f[5:13])) for f in mine]
             assert daq[-6:] == states                         # the same values as the CAN frames, in order
-            stamps = [struct.unpack_from("<I", f, 1)[0] for f in recorder.frames[-6:]]
+            stamps = [struct.unpack_from("<I", f, 1)[0] for f in mine[-6:]]
             assert stamps == sorted(stamps) and len(set(stamps)) == 6
+            # the predefined list: the injection's EstimateState, EstimateQuality and ValvePrediction in a row
+            ready = [f for f in recorder.frames if f[0] == 0][-6:]
+            assert [codec.decode(Frame(0x200, f[5:13])) for f in ready] == states
+            assert [codec.decode(Frame(0x201, f[13:25], is_fd=True)) for f in ready] == [got[(0, k)]["EstimateQuality"]
+                                                                            for k in range(6)]
+            assert [codec.decode(Frame(0x202, f[25:33])) for f in ready] == [got[(0, k)]["ValvePrediction"]
+                                                                            for k in range(6)]
             assert all(s.status == 0 for s in states)          # ok
             # a characteristic written: the next estimates use it (sigma gate far below any sigma)
             sigma = next(c for c in characteristics() if c.name == "ident.sigma_limit_lh_um")

@@ -8,6 +8,7 @@ import re
 
 from cantools.database import Database
 
+from estimator.service.xcp.if_data import a2ml, if_data
 from estimator.service.xcp.memory import (
     A2L_BASE,
     CAL_BASE,
@@ -25,6 +26,7 @@ from estimator.service.xcp.memory import (
 )
 
 NAME = "injector_estimator"     # the A2L's name: GET_ID type 1, and the file name the command suggests
+ADDRESS = ("127.0.0.1", 5555)   # [estimator.xcp]'s default host and port
 
 
 def _text(s: str) -> str:
@@ -54,8 +56,9 @@ def _vtab(name: str, values: tuple[tuple[int, str], ...] | tuple[str, ...]) -> l
     return [f"    /begin COMPU_VTAB VT_{name} \"\" TAB_VERB {len(pairs)} {body}", "    /end COMPU_VTAB"]
 
 
-def render(db: Database, version: str = "") -> str:
-    """The A2L text for the DBC ``db`` (the daemon's own) and the calibratable configuration keys."""
+def render(db: Database, version: str = "", address: tuple[str, int] = ADDRESS) -> str:
+    """The A2L text for the DBC ``db`` (the daemon's own), the calibratable configuration keys and the
+    slave listening on ``address`` (host, UDP port)."""
     meas = measurements(db) + counter_measurements()
     chars = characteristics()
     slots = len(slot_layout(db))
@@ -65,6 +68,7 @@ def render(db: Database, version: str = "") -> str:
            f"    VERSION {_text(version or 'unversioned')}",
            "  /end HEADER",
            f"  /begin MODULE estimator {_text('The estimator daemon (XCP on Ethernet, UDP)')}",
+           a2ml(),
            "    /begin MOD_COMMON \"\"",
            "      BYTE_ORDER MSB_LAST",
            "      ALIGNMENT_BYTE 1",
@@ -80,6 +84,7 @@ def render(db: Database, version: str = "") -> str:
            f" DATA FLASH INTERN 0x{CAL_BASE:X} 0x{CAL_BYTES:X} -1 -1 -1 -1 -1",
            "      /end MEMORY_SEGMENT",
            "    /end MOD_PAR",
+           *if_data(db, address),
            "    /begin COMPU_METHOD CM_IDENTICAL \"\" IDENTICAL \"%10.3\" \"\"",
            "    /end COMPU_METHOD"]
     methods: dict[str, str] = {}
@@ -148,9 +153,9 @@ def _groups(meas: list[Measurement], chars: list[Characteristic]) -> list[str]:
     return out
 
 
-def a2l_bytes(db: Database, version: str = "") -> bytes:
+def a2l_bytes(db: Database, version: str = "", address: tuple[str, int] = ADDRESS) -> bytes:
     """:func:`render` as the bytes GET_ID serves and the command writes (UTF-8)."""
-    return render(db, version).encode("utf-8")
+    return render(db, version, address).encode("utf-8")
 
 
-__all__ = ["A2L_BASE", "NAME", "a2l_bytes", "render"]
+__all__ = ["A2L_BASE", "ADDRESS", "NAME", "a2l_bytes", "render"]

@@ -22,6 +22,15 @@ GET_DAQ_PROCESSOR_INFO, GET_DAQ_RESOLUTION_INFO, GET_DAQ_LIST_INFO, GET_DAQ_EVEN
 FREE_DAQ, ALLOC_DAQ, ALLOC_ODT, ALLOC_ODT_ENTRY = 0xD6, 0xD5, 0xD4, 0xD3
 LEVEL_1_COMMAND, GET_VERSION = 0xC0, 0x00
 
+# the optional commands the slave answers (the A2L's OPTIONAL_CMD; CONNECT, DISCONNECT, GET_STATUS and
+# SYNCH are every slave's)
+OPTIONAL_COMMANDS = ("GET_COMM_MODE_INFO", "GET_ID", "SET_MTA", "UPLOAD", "SHORT_UPLOAD", "DOWNLOAD",
+                     "SET_CAL_PAGE", "GET_CAL_PAGE", "GET_PAG_PROCESSOR_INFO", "GET_SEGMENT_INFO", "GET_PAGE_INFO",
+                     "COPY_CAL_PAGE", "CLEAR_DAQ_LIST", "SET_DAQ_PTR", "WRITE_DAQ", "SET_DAQ_LIST_MODE",
+                     "GET_DAQ_LIST_MODE", "START_STOP_DAQ_LIST", "START_STOP_SYNCH", "GET_DAQ_CLOCK", "READ_DAQ",
+                     "GET_DAQ_PROCESSOR_INFO", "GET_DAQ_RESOLUTION_INFO", "GET_DAQ_LIST_INFO", "GET_DAQ_EVENT_INFO",
+                     "FREE_DAQ", "ALLOC_DAQ", "ALLOC_ODT", "ALLOC_ODT_ENTRY")
+
 # error codes
 ERR_CMD_SYNCH, ERR_CMD_BUSY, ERR_DAQ_ACTIVE, ERR_PGM_ACTIVE = 0x00, 0x10, 0x11, 0x12
 ERR_CMD_UNKNOWN, ERR_CMD_SYNTAX, ERR_OUT_OF_RANGE, ERR_WRITE_PROTECTED = 0x20, 0x21, 0x22, 0x23
@@ -33,6 +42,7 @@ TRANSPORT_LAYER_VERSION = 1     # XCP on Ethernet 1.x
 MAX_CTO = 255                   # bytes of a command or response packet
 MAX_DTO = 1400                  # bytes of a DAQ packet (one UDP datagram below a 1500-byte MTU)
 HEADER = struct.Struct("<HH")   # LEN (packet bytes after the header), CTR
+TIMEOUTS_MS = (1000, 2000, 0, 0, 0, 0, 0)   # T1 (a command's answer) .. T7, as the A2L states them
 
 
 class XcpError(Exception):

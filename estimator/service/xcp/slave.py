@@ -1,9 +1,10 @@
-"""The XCP slave: a UDP server thread answering one master's commands, and DAQ on two events.
+"""The XCP slave: a UDP server thread answering one master's commands, and DAQ on its events.
 
-Events: 0 ``injection`` (after every published estimate, from the worker), 1 ``10 Hz`` (with the
-heartbeat). DAQ is configured dynamically (FREE_DAQ, ALLOC_DAQ, ALLOC_ODT, ALLOC_ODT_ENTRY), every
-DTO carries an absolute ODT number, and the first ODT of a list a 4-byte timestamp in µs when its
-mode asks for one. Calibration: DOWNLOAD writes whole characteristics on the working page; the values
+Events and predefined DAQ lists: :mod:`estimator.service.xcp.daq_lists` (an event per injection, one
+per injector's injections, and a 10 Hz one; a ready list per injector and one for the daemon). A
+master may add lists of its own dynamically (FREE_DAQ, ALLOC_DAQ, ALLOC_ODT, ALLOC_ODT_ENTRY), numbered
+after the predefined ones; every DTO carries an absolute ODT number, and the first ODT of a list a
+4-byte timestamp in µs when its mode asks for one (the predefined lists' does at start). Calibration: DOWNLOAD writes whole characteristics on the working page; the values
 are checked as a configuration and handed to the daemon (``apply``), which takes them between two
 injections, all at once. A malformed datagram is counted and dropped; an unknown or refused command
 is answered with its error code. Nothing here runs on the worker but :meth:`XcpSlave.store` and
@@ -23,6 +24,16 @@ from typing import Any
 
 from estimator.service.xcp import protocol as p
 from estimator.service.xcp.a2l import NAME as A2L_NAME
+from estimator.service.xcp.daq_lists import (
+    EVENT_INJECTION,
+    EVENTS,
+    MAX_DYNAMIC_LISTS,
+    MAX_ENTRIES,
+    MAX_ENTRY_BYTES,
+    MAX_ODTS,
+    injector_event,
+    predefined_lists,
+)
 from estimator.service.xcp.memory import (
     A2L_BASE,
     CAL_BASE,
@@ -40,8 +51,6 @@ from estimator.units import US_PER_S
 log = logging.getLogger(__name__)
 
 ID_BASE = 0x1100_0000           # GET_ID's text identifications, uploaded from here
-EVENTS = (("injection", 0, 0), ("10 Hz", 100, 6))   # name, cycle, time unit (6: 1 ms; 0 cycle: sporadic)
-MAX_DAQ_LISTS, MAX_ODTS, MAX_ENTRIES = 16, 64, 64   # per allocation (bounded memory)
 WORKING, REFERENCE = 0, 1
 SESSION_DAQ_RUNNING = 0x40
 TIMESTAMP_MODE = 0x04 | 0x08 | (3 << 4)   # 4 bytes, fixed, unit 1 µs
@@ -63,6 +72,7 @@ class _DaqList:
     running: bool = False
     first_pid: int = 0
     count: int = 0                     # events seen (the prescaler's)
+    predefined: bool = False           # read-only ODTs on a fixed event
 
 
 @dataclass
@@ -86,11 +96,13 @@ class XcpSlave:
     ``db``: the DBC (the measurement image's layout); ``config``: returns the running configuration;
     ``reference``: the configuration file's (the reference page); ``apply``: hands a calibrated
     configuration to the daemon (raises ValueError/PermissionError to refuse it); ``a2l``: the A2L's
-    bytes; ``ident``: GET_ID type 0's text.
+    bytes, or a function of the address the slave listens on that writes them; ``ident``: GET_ID type
+    0's text.
     """
 
     def __init__(self, db: Any, config: Callable[[], Any], reference: Any, apply: Callable[[Any], None],
-                 a2l: bytes, host: str = "127.0.0.1", port: int = 5555, writes: bool = True,
+                 a2l: bytes | Callable[[tuple[str, int]], bytes], host: str = "127.0.0.1", port: int = 5555,
+                 writes: bool = True,
                  ident: str = A2L_NAME, name: str = A2L_NAME) -> None:
         self.image = MeasurementImage(db)
         self.config = config
@@ -100,16 +112,19 @@ class XcpSlave:
         self.lock = threading.Lock()    # the DAQ lists and the counter (commands vs events), the pages
         self.reload(reference)
         self.xcp_page = WORKING
-        self.a2l = a2l
-        self.ids = {0: ident.encode(), 1: name.encode(), 4: a2l}
         self.counters = SlaveCounters()
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind((host, port))
         self.sock.settimeout(0.2)
         self.address = self.sock.getsockname()
+        self.a2l = a2l(self.address) if callable(a2l) else a2l
+        self.ids = {0: ident.encode(), 1: name.encode(), 4: self.a2l}
         self.master: tuple[str, int] | None = None
         self.mta = 0
-        self.daq: list[_DaqList] = []
+        self.daq: list[_DaqList] = [
+            _DaqList([_Odt(list(pl.entries))], DAQ_MODE_TIMESTAMP, pl.event, first_pid=i, predefined=True)
+            for i, pl in enumerate(predefined_lists(db))]
+        self.min_daq = len(self.daq)
         self.daq_ptr: tuple[int, int, int] | None = None
         self.ctr = 0
         self.t0 = time.monotonic()
@@ -155,12 +170,18 @@ class XcpSlave:
         """A frame the daemon sent: its payload becomes the measurements of its slot."""
         self.image.store(frame_id, payload)
 
-    def event(self, channel: int) -> None:
-        """Event ``channel`` happened: sample and send every running DAQ list on it."""
+    def injection(self, injector: int) -> None:
+        """An estimate of ``injector`` was published (all its frames stored): its events happened."""
+        own = injector_event(injector)
+        self.event(EVENT_INJECTION) if own is None else self.event(EVENT_INJECTION, own)
+
+    def event(self, *channels: int) -> None:
+        """Events ``channels`` happened together: sample and send every running DAQ list on one of
+        them (one timestamp)."""
         if self.master is None:
             return
         with self.lock:
-            lists = [d for d in self.daq if d.running and d.event == channel]
+            lists = [d for d in self.daq if d.running and d.event in channels]
             if not lists:
                 return
             stamp = struct.pack("<I", int((time.monotonic() - self.t0) * US_PER_S) & 0xFFFFFFFF)
@@ -240,8 +261,9 @@ class XcpSlave:
             p.SET_DAQ_LIST_MODE: self._set_daq_list_mode, p.GET_DAQ_LIST_MODE: self._get_daq_list_mode,
             p.START_STOP_DAQ_LIST: self._start_stop_daq_list, p.START_STOP_SYNCH: self._start_stop_synch,
             p.GET_DAQ_CLOCK: self._daq_clock, p.GET_DAQ_PROCESSOR_INFO: self._daq_processor_info,
-            p.GET_DAQ_RESOLUTION_INFO: lambda c: bytes((p.RES, 1, 8, 1, 8, TIMESTAMP_MODE)) + struct.pack("<H", 1),
+            p.GET_DAQ_RESOLUTION_INFO: lambda c: bytes((p.RES, 1, MAX_ENTRY_BYTES, 1, MAX_ENTRY_BYTES, TIMESTAMP_MODE)) + struct.pack("<H", 1),
             p.GET_DAQ_EVENT_INFO: self._daq_event_info, p.CLEAR_DAQ_LIST: self._clear_daq_list,
+            p.READ_DAQ: self._read_daq, p.GET_DAQ_LIST_INFO: self._get_daq_list_info,
             p.LEVEL_1_COMMAND: self._level1,
         }
 
@@ -436,18 +458,19 @@ class XcpSlave:
                 d.running = d.selected = False
 
     def _free_daq(self, c: bytes) -> bytes:
+        """The master's own lists go; the predefined ones stay as they are."""
         with self.lock:
-            self.daq, self.daq_ptr = [], None
+            self.daq, self.daq_ptr = self.daq[:self.min_daq], None
         return bytes((p.RES,))
 
     def _alloc_daq(self, c: bytes) -> bytes:
         (count,) = struct.unpack_from("<H", c, 2)
-        if self.daq and any(d.odts for d in self.daq):
+        if any(d.odts for d in self.daq[self.min_daq:]):
             raise p.XcpError(p.ERR_SEQUENCE)
-        if count > MAX_DAQ_LISTS:
+        if count > MAX_DYNAMIC_LISTS:
             raise p.XcpError(p.ERR_MEMORY_OVERFLOW)
         with self.lock:
-            self.daq = [_DaqList() for _ in range(count)]
+            self.daq = self.daq[:self.min_daq] + [_DaqList() for _ in range(count)]
         return bytes((p.RES,))
 
     def _list(self, number: int) -> _DaqList:
@@ -455,11 +478,19 @@ class XcpSlave:
             raise p.XcpError(p.ERR_OUT_OF_RANGE)
         return self.daq[number]
 
+    def _own_list(self, number: int) -> _DaqList:
+        """List ``number`` for a change of its ODTs: ERR_WRITE_PROTECTED for a predefined one."""
+        d = self._list(number)
+        if d.predefined:
+            raise p.XcpError(p.ERR_WRITE_PROTECTED)
+        return d
+
     def _alloc_odt(self, c: bytes) -> bytes:
         (number,) = struct.unpack_from("<H", c, 2)
         count = c[4]
-        d = self._list(number)
-        if sum(len(x.odts) for x in self.daq) + count > MAX_ODTS or any(o.entries for o in d.odts):
+        d = self._own_list(number)
+        if (sum(len(x.odts) for x in self.daq[self.min_daq:]) + count > MAX_ODTS
+                or any(o.entries for o in d.odts)):
             raise p.XcpError(p.ERR_MEMORY_OVERFLOW)
         with self.lock:
             d.odts.extend(_Odt() for _ in range(count))
@@ -472,7 +503,7 @@ class XcpSlave:
     def _alloc_odt_entry(self, c: bytes) -> bytes:
         (number,) = struct.unpack_from("<H", c, 2)
         odt, count = c[4], c[5]
-        d = self._list(number)
+        d = self._own_list(number)
         if odt >= len(d.odts):
             raise p.XcpError(p.ERR_OUT_OF_RANGE)
         if count > MAX_ENTRIES or d.odts[odt].entries:
@@ -498,10 +529,10 @@ class XcpSlave:
         if self.daq_ptr is None:
             raise p.XcpError(p.ERR_SEQUENCE)
         number, odt, entry = self.daq_ptr
-        d = self._list(number)
+        d = self._own_list(number)
         if entry >= len(d.odts[odt].entries):
             raise p.XcpError(p.ERR_DAQ_CONFIG)
-        if bit != 0xFF or ext != 0 or not 1 <= size <= 8 or self._read(address, size) is None:
+        if bit != 0xFF or ext != 0 or not 1 <= size <= MAX_ENTRY_BYTES or self._read(address, size) is None:
             raise p.XcpError(p.ERR_OUT_OF_RANGE)
         odt_bytes = sum(s for _, s in d.odts[odt].entries) - d.odts[odt].entries[entry][1] + size
         if 1 + 4 + odt_bytes > p.MAX_DTO:
@@ -511,13 +542,35 @@ class XcpSlave:
         self.daq_ptr = (number, odt, entry + 1)
         return bytes((p.RES,))
 
+    def _read_daq(self, c: bytes) -> bytes:
+        """The ODT entry at the DAQ pointer (a predefined list's, or one the master wrote); the pointer
+        moves on."""
+        if self.daq_ptr is None:
+            raise p.XcpError(p.ERR_SEQUENCE)
+        number, odt, entry = self.daq_ptr
+        entries = self._list(number).odts[odt].entries
+        if entry >= len(entries):
+            raise p.XcpError(p.ERR_DAQ_CONFIG)
+        address, size = entries[entry]
+        self.daq_ptr = (number, odt, entry + 1)
+        return struct.pack("<BBBBI", p.RES, 0xFF, size, 0, address)
+
+    def _get_daq_list_info(self, c: bytes) -> bytes:
+        (number,) = struct.unpack_from("<H", c, 2)
+        d = self._list(number)
+        if d.predefined:      # predefined, its event fixed, DAQ
+            props, odts, entries = 0x01 | 0x02 | 0x04, len(d.odts), max(len(o.entries) for o in d.odts)
+        else:
+            props, odts, entries = 0x04, MAX_ODTS, MAX_ENTRIES
+        return struct.pack("<BBBBH", p.RES, props, odts, entries, d.event if d.predefined else 0xFFFF)
+
     def _set_daq_list_mode(self, c: bytes) -> bytes:
         mode = c[1]
         number, event = struct.unpack_from("<HH", c, 2)
         prescaler = c[6]
         d = self._list(number)
-        if event >= len(EVENTS) or prescaler == 0 or mode & 0x02:   # no STIM
-            raise p.XcpError(p.ERR_OUT_OF_RANGE)
+        if event >= len(EVENTS) or prescaler == 0 or mode & 0x02 or (d.predefined and event != d.event):
+            raise p.XcpError(p.ERR_OUT_OF_RANGE)     # no STIM; a predefined list's event is fixed
         with self.lock:
             d.mode, d.event, d.prescaler = mode, event, prescaler
         return bytes((p.RES,))
@@ -560,7 +613,7 @@ class XcpSlave:
 
     def _clear_daq_list(self, c: bytes) -> bytes:
         (number,) = struct.unpack_from("<H", c, 2)
-        d = self._list(number)
+        d = self._own_list(number)
         with self.lock:
             d.running = d.selected = False
             for o in d.odts:
@@ -572,13 +625,13 @@ class XcpSlave:
 
     def _daq_processor_info(self, c: bytes) -> bytes:
         properties = 0x01 | 0x02 | 0x10             # dynamic configuration, prescaler, timestamps
-        return struct.pack("<BBHHBB", p.RES, properties, MAX_DAQ_LISTS, len(EVENTS), 0, 0)
+        return struct.pack("<BBHHBB", p.RES, properties, self.min_daq + MAX_DYNAMIC_LISTS, len(EVENTS), self.min_daq, 0)
 
     def _daq_event_info(self, c: bytes) -> bytes:
         (event,) = struct.unpack_from("<H", c, 2)
         if event >= len(EVENTS):
             raise p.XcpError(p.ERR_OUT_OF_RANGE)
-        name, cycle, unit = EVENTS[event]
-        self.ids[0x100 + event] = name.encode()
+        e = EVENTS[event]
+        self.ids[0x100 + event] = e.name.encode()
         self.mta = ID_BASE + ((0x100 + event) << 16)
-        return bytes((p.RES, 0x04, 0xFF, len(name), cycle, unit, 0))
+        return bytes((p.RES, 0x04, 0xFF, len(e.name), e.cycle, e.unit, 0))
