@@ -68,6 +68,11 @@ CHECKED_SLACK = 0.01           # a measured scale this close to the checked ones
                                # ripple and the scale's own noise)
 TRUST_REL = 0.05               # σ: this share of the motion the model is extrapolated to beyond those levels (a
                                # model learned at the standard drive and driven at 1.4 was 0.46 µm off in 11 µm)
+PRELOAD_REL = 0.5              # σ: this share of the motion a model extrapolates from the lowest preload force it
+                               # was calibrated over toward idle, where the valve's own spring and pressure balance,
+                               # which the voltage hardly sees, decide the motion. On the compensation bench's lots
+                               # the error was 0.03-0.3 of it for most parts, 0.58-0.68 for one (0.45 µm short at
+                               # 30 N, calibrated at 47-180 N); above the span 0.02-0.06, within the stated σ
 JITTER_WEIGHT = 0.1            # weight of each new injection in the running mean square of the jitter
 JITTER_MIN = 5                 # injections compared before the jitter enters σ
 JITTER_CLIP = 4.0              # a difference beyond this many RMS (plus the floor, µm and µs) counts as that much
@@ -554,7 +559,8 @@ class DriveCompensator:
         sigma_s = sigma_o = math.nan
         per_kn = (0.0, 0.0)
         if derivatives:
-            sigma_s, sigma_o, per_kn = _uncertainty(r, sim, cov, scale, stroke, jitter, checked)
+            idle = _toward_idle(sim, scale, nu, lh_um, f_open_n, drive, stroke, opening)
+            sigma_s, sigma_o, per_kn = _uncertainty(r, sim, cov, scale, stroke, jitter, checked, idle)
         corr = Correction(scale, offset, stroke, offset + opening, sigma_s, sigma_o, target_stroke, target_opening,
                           per_kn[0], per_kn[1], f_open_n, True, False, at_limit, t.scale_limits, t.offset_limits_us,
                           drive_scale=drive_scale, table=table, checked=checked, trust_limited=trust_limited)
@@ -636,22 +642,38 @@ def _carry(pt: _Point, scale: float, nu: float, lh_um: float, f_open_n: float) -
 
 
 def _uncertainty(r: Response, sim: FastSimulator, cov: np.ndarray, scale: float, stroke: float,
-                 jitter: tuple[float, float], checked: tuple[float, float] | None
-                 ) -> tuple[float, float, tuple[float, float]]:
+                 jitter: tuple[float, float], checked: tuple[float, float] | None,
+                 idle: tuple[float, float] = (0.0, 0.0)) -> tuple[float, float, tuple[float, float]]:
     """σ of the stroke (µm) and the opening instant (µs) a correction at ``scale`` gives (the estimate's
     covariance ``cov`` through the derivatives ``r``, what the model ``sim``'s own calibration leaves in
-    the motion, the injection-to-injection ``jitter`` variances, and the extrapolation beyond the
-    ``checked`` scales), and the per-kN sensitivities of scale and offset that keep stroke and opening on
-    target at another preload force (to first order)."""
+    the motion, the injection-to-injection ``jitter`` variances, the extrapolation beyond the
+    ``checked`` scales, and ``PRELOAD_REL`` of ``idle``, the motion the model extrapolates toward idle
+    below the preload forces it was calibrated over: :func:`_toward_idle`), and the per-kN
+    sensitivities of scale and offset that keep stroke and opening on target at another preload force
+    (to first order)."""
     ds_df = -r.d_f[0] / r.d_scale[0]
     per_kn = (ds_df * N_PER_KN, -(r.d_f[1] + r.d_scale[1] * ds_df) * N_PER_KN)
     cal = sim.params.calibration   # what the model's own uncertainty leaves in the motion (0: in cov)
     beyond = 0.0 if checked is None else max(scale - checked[1], checked[0] - scale, 0.0)
     var_s = (_quadratic(r.d_nu[0], r.d_lh[0], cov) + (cal.stroke_rel_sigma * stroke) ** 2 + jitter[0]
-             + (TRUST_REL * r.d_scale[0] * beyond) ** 2)
+             + (TRUST_REL * r.d_scale[0] * beyond) ** 2 + (PRELOAD_REL * idle[0]) ** 2)
     var_o = (_quadratic(r.d_nu[1], r.d_lh[1], cov) + (cal.opening_sigma_s * US_PER_S) ** 2 + jitter[1]
-             + (TRUST_REL * r.d_scale[1] * beyond) ** 2)
+             + (TRUST_REL * r.d_scale[1] * beyond) ** 2 + (PRELOAD_REL * idle[1]) ** 2)
     return math.sqrt(max(var_s, 0.0)), math.sqrt(max(var_o, 0.0)), per_kn
+
+
+def _toward_idle(sim: FastSimulator, scale: float, nu: float, lh_um: float, f_open_n: float,
+                 drive: AmplifierDrive, stroke: float, opening: float) -> tuple[float, float]:
+    """How far (µm, µs) the model ``sim`` moves the stroke and the opening instant at ``scale`` from the
+    lowest preload force it was calibrated over down to ``f_open_n`` (N): (0, 0) at or above it, and for
+    a model that does not state its preload forces. One simulation, only below that force."""
+    lo = sim.params.calibration.preload_lo_n
+    if sim.params.calibration.preload_hi_n <= 0.0 or f_open_n >= lo:
+        return 0.0, 0.0
+    s_lo, o_lo = respond(sim, scale, nu, lh_um, lo, drive)
+    if not (math.isfinite(s_lo) and math.isfinite(o_lo)):
+        return 0.0, 0.0
+    return stroke - s_lo, opening - o_lo
 
 
 def _aimed(sim: FastSimulator, scale: float, nu: float, lh_um: float, f_open_n: float, drive: AmplifierDrive,

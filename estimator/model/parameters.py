@@ -200,19 +200,26 @@ class CalibrationUncertainty:
     plateau stroke (relative) and ``opening_sigma_s`` of the opening instant (s) predicted from an
     estimate made with these parameters. A structural error moves N_u and L_h so that the voltage
     still fits, and the valve's predicted motion keeps less of it than either (zero: not known, the
-    prediction's σ then comes from N_u's and L_h's). Zero for the tables' values, taken as exact."""
+    prediction's σ then comes from N_u's and L_h's). ``preload_lo_n``..``preload_hi_n``: the preload
+    forces (N) of the injections it was calibrated on, the span its valve motion was checked over (0:
+    not stated). Zero for the tables' values, taken as exact."""
 
     nu_rel_sigma: float = 0.0
     lh_sigma_m: float = 0.0
     stroke_rel_sigma: float = 0.0
     opening_sigma_s: float = 0.0
+    preload_lo_n: float = 0.0
+    preload_hi_n: float = 0.0
 
     def __post_init__(self) -> None:
         for name, limit in (("nu_rel_sigma", 0.1), ("lh_sigma_m", 10e-6), ("stroke_rel_sigma", 1.0),
-                            ("opening_sigma_s", 100e-6)):
+                            ("opening_sigma_s", 100e-6), ("preload_lo_n", 1e5), ("preload_hi_n", 1e5)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and 0 <= v <= limit):
                 raise ParameterError(f"[calibration] {name} = {v!r} must be a number within 0..{limit:g}")
+        if self.preload_lo_n > self.preload_hi_n:
+            raise ParameterError(f"[calibration] preload_lo_n = {self.preload_lo_n!r} is above preload_hi_n = "
+                                 f"{self.preload_hi_n!r}")
 
     @property
     def zero(self) -> bool:
@@ -267,8 +274,8 @@ class InjectorParameters:
             raise ParameterError("a parameter set needs the tables psa and valve")
         cal = data.get("calibration", {})
         if not isinstance(cal, Mapping) or set(cal) - {f.name for f in fields(CalibrationUncertainty)}:
-            raise ParameterError("[calibration] must be a table of nu_rel_sigma, lh_sigma_m, stroke_rel_sigma "
-                                 "and opening_sigma_s")
+            raise ParameterError("[calibration] must be a table of nu_rel_sigma, lh_sigma_m, stroke_rel_sigma, "
+                                 "opening_sigma_s, preload_lo_n and preload_hi_n")
         return cls(PsaParameters.from_mapping(data["psa"]), ValveParameters.from_mapping(data["valve"]),
                    chain_from_mapping(data.get("chain", {})), CalibrationUncertainty(**cal))
 

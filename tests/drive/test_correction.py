@@ -271,6 +271,34 @@ def test_a_calibrations_stated_motion_uncertainty_is_in_the_sigma():
     assert b.sigma_opening_us ** 2 == pytest.approx(a.sigma_opening_us ** 2 + 0.5 ** 2, rel=1e-3)
 
 
+def test_below_the_preload_forces_a_model_was_calibrated_over_sigma_covers_its_extrapolation_to_idle():
+    """A model calibrated at 60-250 N and used at 30 N: the motion it extrapolates from 60 N down is
+    half in σ (the valve's own spring and pressure balance decide it there, and the voltage hardly
+    sees them); at 100 N, and above 250 N, σ is what the calibration states; a parameter set that does
+    not state its preload forces adds nothing."""
+    from estimator.model.fast_sim import FastSimulator
+    from estimator.model.parameters import CalibrationUncertainty, ParameterError, load_nominal
+
+    plain = SimulatorPool().get(0.5e-6)
+    spanned = FastSimulator(replace(load_nominal(), calibration=CalibrationUncertainty(
+        preload_lo_n=60.0, preload_hi_n=250.0)), 0.5e-6)
+    for f in (100.0, 280.0):
+        a = compensator().update(0, True, plain, 16.0, 5.0, COV, f, plain)
+        b = compensator().update(0, True, spanned, 16.0, 5.0, COV, f, plain)
+        assert b.sigma_stroke_um == pytest.approx(a.sigma_stroke_um) and b.sigma_opening_us == a.sigma_opening_us
+    a = compensator().update(0, True, plain, 16.0, 5.0, COV, 30.0, plain)
+    b = compensator().update(0, True, spanned, 16.0, 5.0, COV, 30.0, plain)
+    s60, o60 = respond(plain, b.scale, 16.0, 5.0, 60.0)
+    assert b.scale == a.scale and b.stroke_um == a.stroke_um
+    assert b.sigma_stroke_um ** 2 == pytest.approx(a.sigma_stroke_um ** 2 + (0.5 * (b.stroke_um - s60)) ** 2,
+                                                   rel=1e-3)
+    assert b.sigma_opening_us ** 2 == pytest.approx(
+        a.sigma_opening_us ** 2 + (0.5 * (b.opening_us - b.offset_us - o60)) ** 2, rel=1e-3)
+    assert b.sigma_opening_us > a.sigma_opening_us + 0.2          # the opening instant bends toward idle
+    with pytest.raises(ParameterError):
+        CalibrationUncertainty(preload_lo_n=250.0, preload_hi_n=60.0)
+
+
 def test_the_motion_uncertainty_replaces_the_share_of_n_u_and_l_h_it_stands_for():
     """An injector estimated with a parameter set that leaves 0.2 µm in L_h but states 0.1 % in the
     stroke: its published σ(L_h) is at least 0.2 µm, yet the correction's σ of the stroke is not built

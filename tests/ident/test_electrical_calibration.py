@@ -257,6 +257,9 @@ def test_the_pull_of_the_measured_currents_noise_on_the_chain_is_in_its_sigma(mo
 
     batch = _nominal_batch(0.02)
     res = calibrate_electrical(batch)
+    # the preload forces it was calibrated over, which its valve motion was checked at
+    f = [inj.f_open_n for inj in batch]
+    assert (res.params.calibration.preload_lo_n, res.params.calibration.preload_hi_n) == (min(f), max(f))
     for name, sd in res.chain_sigma_us.items():
         assert abs(getattr(res.params.chain, name) * 1e6) <= 3 * sd, (name, getattr(res.params.chain, name), sd)
     monkeypatch.setattr(electrical, "current_noise_a", lambda current: 0.0)   # the pull left out

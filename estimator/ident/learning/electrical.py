@@ -554,7 +554,8 @@ def _result(problem: _Problem, fit: LeastSquaresResult, restarts: int, base: Inj
                      chain=replace(base.chain, **{n: getattr(chain, n) for n in problem.chain_names}),
                      calibration=replace(problem.left_uncertainty(fit, cov),
                                          **dict(zip(("stroke_rel_sigma", "opening_sigma_s"),
-                                                    problem.left_response(fit, cov)))))
+                                                    problem.left_response(fit, cov))),
+                                         preload_lo_n=float(np.min(f_open)), preload_hi_n=float(np.max(f_open))))
     return ElectricalCalibration(
         params, tuple(names), np.exp(x[:k]), sd[:k], x[p::2].copy(), x[p + 1::2].copy(), rms_before,
         float(np.sqrt(np.mean(np.concatenate(after) ** 2))), correlated, weak, warnings,
