@@ -429,7 +429,8 @@ def cmd_a2l(args: argparse.Namespace) -> int:
 
     xcp = DaemonConfig.load(args.config).xcp or XcpConfig()
     out = args.out or Path(f"{NAME}.a2l")
-    data = a2l_bytes(load_database(args.dbc) if args.dbc else load_database(), __version__, (xcp.host, xcp.port))
+    data = a2l_bytes(load_database(args.dbc) if args.dbc else load_database(), __version__, (xcp.host, xcp.port),
+                     xcp.writes)
     try:
         out.write_bytes(data)
     except OSError as exc:

@@ -542,7 +542,8 @@ class Daemon:
         x = self.cfg.xcp
         try:
             slave = XcpSlave(self.codec.db, lambda: self.cfg, self.cfg, self.calibrate,
-                             lambda address: a2l_bytes(self.codec.db, __version__, address), x.host, x.port, x.writes,
+                             lambda address: a2l_bytes(self.codec.db, __version__, address, x.writes),
+                             x.host, x.port, x.writes,
                              ident=f"{A2L_NAME} {__version__}", name=A2L_NAME)
         except OSError as exc:
             raise ConfigError(f"[estimator.xcp] {x.host}:{x.port}: cannot listen there: {exc}") from None

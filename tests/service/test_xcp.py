@@ -242,7 +242,9 @@ def test_the_a2l_is_served_by_get_id_and_passes_a2ltool(slave, client, tmp_path)
     subprocess.run([tool, str(f), "--ifdata-cleanup", "--output", str(kept)], capture_output=True, timeout=60,
                    check=True)
     text = kept.read_text()
-    assert text.count("/begin IF_DATA XCP") == 1
+    assert text.count("/begin IF_DATA XCP") == 2                     # the module's, the calibration segment's
+    assert "/begin PAGE 0 ECU_ACCESS_DONT_CARE XCP_READ_ACCESS_DONT_CARE XCP_WRITE_ACCESS_DONT_CARE" in text
+    assert "/begin PAGE 1 ECU_ACCESS_DONT_CARE XCP_READ_ACCESS_DONT_CARE XCP_WRITE_ACCESS_NOT_ALLOWED" in text
     assert text.count("/begin DAQ_LIST") == len(predefined_lists(CODEC.db))
     assert text.count("/begin EVENT ") == len(EVENTS)
     # ... and a tool that knows the standard's layout reads the address the slave listens on from it
@@ -258,7 +260,7 @@ def test_an_a2l_whose_if_data_breaks_its_a2ml_is_caught(tmp_path):
     f.write_text(render(CODEC.db).replace("BYTE_ORDER_MSB_LAST ADDRESS", "BYTE_ORDER_LAST ADDRESS"))
     subprocess.run([tool, str(f), "--ifdata-cleanup", "--output", str(kept)], capture_output=True, timeout=60,
                    check=True)
-    assert "/begin IF_DATA XCP" not in kept.read_text()
+    assert "/begin PROTOCOL_LAYER" not in kept.read_text()       # the module's block went; the segment's stays
 
 
 def test_a2l_dbc_and_configuration_agree():
@@ -351,5 +353,10 @@ def test_the_a2l_command_writes_the_configured_slaves_address(tmp_path):
     assert main(["a2l", "--config", str(cfg), "--out", str(out)]) == 0
     assert out.read_bytes() == a2l_bytes(CODEC.db, __version__, ("127.0.0.1", 6123))
     assert '0x0100 6123 ADDRESS "127.0.0.1"' in out.read_text()
+    assert "/begin PAGE 0 ECU_ACCESS_DONT_CARE XCP_READ_ACCESS_DONT_CARE XCP_WRITE_ACCESS_DONT_CARE" in out.read_text()
+    cfg.write_text('[estimator.xcp]\nmode = "on"\nwrites = false\n')          # a read-only working page says so
+    assert main(["a2l", "--config", str(cfg), "--out", str(out)]) == 0
+    assert "/begin PAGE 0 ECU_ACCESS_DONT_CARE XCP_READ_ACCESS_DONT_CARE XCP_WRITE_ACCESS_NOT_ALLOWED" in out.read_text()
+    assert '0x0100 5555 ADDRESS "127.0.0.1"' in out.read_text()
     cfg.write_text('[estimator.xcp]\nmode = "on"\nport = 99999\n')
     assert main(["a2l", "--config", str(cfg), "--out", str(out)]) != 0

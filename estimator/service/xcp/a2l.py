@@ -8,7 +8,7 @@ import re
 
 from cantools.database import Database
 
-from estimator.service.xcp.if_data import a2ml, if_data
+from estimator.service.xcp.if_data import a2ml, if_data, segment
 from estimator.service.xcp.memory import (
     A2L_BASE,
     CAL_BASE,
@@ -56,9 +56,9 @@ def _vtab(name: str, values: tuple[tuple[int, str], ...] | tuple[str, ...]) -> l
     return [f"    /begin COMPU_VTAB VT_{name} \"\" TAB_VERB {len(pairs)} {body}", "    /end COMPU_VTAB"]
 
 
-def render(db: Database, version: str = "", address: tuple[str, int] = ADDRESS) -> str:
+def render(db: Database, version: str = "", address: tuple[str, int] = ADDRESS, writes: bool = True) -> str:
     """The A2L text for the DBC ``db`` (the daemon's own), the calibratable configuration keys and the
-    slave listening on ``address`` (host, UDP port)."""
+    slave listening on ``address`` (host, UDP port), its working page writable when ``writes``."""
     meas = measurements(db) + counter_measurements()
     chars = characteristics()
     slots = len(slot_layout(db))
@@ -82,6 +82,7 @@ def render(db: Database, version: str = "", address: tuple[str, int] = ADDRESS) 
            "      /end MEMORY_SEGMENT",
            f"      /begin MEMORY_SEGMENT calibration {_text('Calibratable configuration: page 0 working, page 1 reference')}"
            f" DATA FLASH INTERN 0x{CAL_BASE:X} 0x{CAL_BYTES:X} -1 -1 -1 -1 -1",
+           *segment(writes),
            "      /end MEMORY_SEGMENT",
            "    /end MOD_PAR",
            *if_data(db, address),
@@ -153,9 +154,9 @@ def _groups(meas: list[Measurement], chars: list[Characteristic]) -> list[str]:
     return out
 
 
-def a2l_bytes(db: Database, version: str = "", address: tuple[str, int] = ADDRESS) -> bytes:
+def a2l_bytes(db: Database, version: str = "", address: tuple[str, int] = ADDRESS, writes: bool = True) -> bytes:
     """:func:`render` as the bytes GET_ID serves and the command writes (UTF-8)."""
-    return render(db, version, address).encode("utf-8")
+    return render(db, version, address, writes).encode("utf-8")
 
 
 __all__ = ["A2L_BASE", "ADDRESS", "NAME", "a2l_bytes", "render"]

@@ -1,10 +1,10 @@
-"""The A2L's description of the XCP slave itself: its ``IF_DATA XCP`` block (the protocol layer, the DAQ
-processor with its events and predefined lists, the calibration pages, the UDP address) and the A2ML
-that block is written in.
+"""The A2L's description of the XCP slave itself: the module's ``IF_DATA XCP`` block (the protocol layer,
+the DAQ processor with its events and predefined lists, the page processor, the UDP address), the
+calibration segment's (its two pages and who may write them), and the A2ML those blocks are written in.
 
 The A2ML declares the part of ASAM's XCP 1.x ``IF_DATA`` layout this slave uses, each field in the
 standard's order, so a tool that reads the standard's definition reads the same values; ``a2ltool
---check --strict`` checks the block against it.
+--ifdata-cleanup`` keeps only blocks that parse by it (the tests check that both survive).
 """
 
 from __future__ import annotations
@@ -98,8 +98,27 @@ A2ML = """    /begin A2ML
         uchar;  /* MAX_SEGMENTS */
         taggedstruct { "FREEZE_SUPPORTED"; };
       };
+      struct Segment {
+        uchar;  /* segment logical number */
+        uchar;  /* number of pages */
+        uchar;  /* address extension */
+        uchar;  /* compression method */
+        uchar;  /* encryption method */
+        taggedstruct {
+          (block "PAGE" struct {
+            uchar;  /* page number */
+            enum { "ECU_ACCESS_NOT_ALLOWED" = 0, "ECU_ACCESS_WITHOUT_XCP_ONLY" = 1, "ECU_ACCESS_WITH_XCP_ONLY" = 2,
+                   "ECU_ACCESS_DONT_CARE" = 3 };
+            enum { "XCP_READ_ACCESS_NOT_ALLOWED" = 0, "XCP_READ_ACCESS_WITHOUT_ECU_ONLY" = 1,
+                   "XCP_READ_ACCESS_WITH_ECU_ONLY" = 2, "XCP_READ_ACCESS_DONT_CARE" = 3 };
+            enum { "XCP_WRITE_ACCESS_NOT_ALLOWED" = 0, "XCP_WRITE_ACCESS_WITHOUT_ECU_ONLY" = 1,
+                   "XCP_WRITE_ACCESS_WITH_ECU_ONLY" = 2, "XCP_WRITE_ACCESS_DONT_CARE" = 3 };
+          })*;
+        };
+      };
       taggedstruct Common_Parameters {
         block "PROTOCOL_LAYER" struct Protocol_Layer;
+        block "SEGMENT" struct Segment;
         block "DAQ" struct Daq;
         block "PAG" struct Pag;
       };
@@ -174,4 +193,17 @@ def if_data(db: Database, address: tuple[str, int]) -> list[str]:
     return out
 
 
-__all__ = ["a2ml", "if_data"]
+def segment(writes: bool) -> list[str]:
+    """The calibration MEMORY_SEGMENT's ``IF_DATA XCP``: segment 0 of two pages, both used by the
+    estimator and read by XCP at any time; page 0 (working) written by XCP when ``writes``, page 1
+    (reference) never."""
+    working = "XCP_WRITE_ACCESS_DONT_CARE" if writes else "XCP_WRITE_ACCESS_NOT_ALLOWED"
+    return ["        /begin IF_DATA XCP",
+            "          /begin SEGMENT 0 2 0 0 0",
+            *(f"            /begin PAGE {page} ECU_ACCESS_DONT_CARE XCP_READ_ACCESS_DONT_CARE {access} /end PAGE"
+              for page, access in ((0, working), (1, "XCP_WRITE_ACCESS_NOT_ALLOWED"))),
+            "          /end SEGMENT",
+            "        /end IF_DATA"]
+
+
+__all__ = ["a2ml", "if_data", "segment"]
