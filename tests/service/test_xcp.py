@@ -360,3 +360,56 @@ def test_the_a2l_command_writes_the_configured_slaves_address(tmp_path):
     assert '0x0100 5555 ADDRESS "127.0.0.1"' in out.read_text()
     cfg.write_text('[estimator.xcp]\nmode = "on"\nport = 99999\n')
     assert main(["a2l", "--config", str(cfg), "--out", str(out)]) != 0
+
+
+def test_pyxcps_own_daq_setup_numbers_the_masters_lists_after_the_predefined_ones(slave):
+    """pyxcp's high-level DAQ (``DaqOnlinePolicy``: FREE_DAQ, ALLOC_DAQ and its lists numbered from the
+    slave's MIN_DAQ) measures on the slave as a user's script would: every estimate of injector 0 on
+    the injection event, decoded by pyxcp, with its timestamp."""
+    pytest.importorskip("pyxcp", reason="pyxcp is the test extra's XCP master")
+    import logging
+    import warnings
+
+    from pyxcp.config import create_application_from_config
+    from pyxcp.daq_stim import DaqList, DaqOnlinePolicy
+    from pyxcp.master import Master
+
+    from estimator.service.xcp.daq_lists import EVENT_INJECTION
+    from sim_bench.hardware.procs import wait_until
+
+    class Collect(DaqOnlinePolicy):
+        def __init__(self, lists) -> None:
+            super().__init__(lists)
+            self.rows: list[tuple[int, list]] = []
+
+        def initialize(self) -> None:
+            pass
+
+        def on_daq_list(self, daq_list: int, timestamp0: int, timestamp1: int, payload: list) -> None:
+            self.rows.append((timestamp1, list(payload)))
+
+        def finalize(self) -> None:
+            pass
+
+    slot = slot_layout(CODEC.db)[(CODEC.db.get_message_by_name("EstimateState").frame_id, 0)]
+    policy = Collect([DaqList(name="state0", event_num=EVENT_INJECTION, stim=False, enable_timestamps=True,
+                              measurements=[("low", slot, 0, "U32"), ("high", slot + 4, 0, "U32")])])
+    app = create_application_from_config({"Transport": {"Eth": {"host": "127.0.0.1", "port": slave.address[1],
+                                                                "protocol": "UDP"}}}, log_level=logging.WARNING)
+    app.transport.layer = "ETH"
+    frames = [frame_of("EstimateState", 0, 20 * k) for k in range(5)]
+    with warnings.catch_warnings(), Master("eth", config=app, policy=policy) as x:
+        warnings.simplefilter("ignore")
+        x.connect()
+        policy.setup()
+        policy.start()
+        for fid, data in frames:
+            slave.store(fid, data)
+            slave.injection(0)
+        assert wait_until(lambda: len(policy.rows) == 5, 10), policy.rows
+        policy.stop()
+        x.disconnect()
+    assert [struct.pack("<II", *values) for _, values in policy.rows] == [data for _, data in frames]
+    stamps = [t for t, _ in policy.rows]
+    assert stamps == sorted(stamps)
+    assert slave.daq[len(predefined_lists(CODEC.db))].odts     # the master's list, after the predefined ones
