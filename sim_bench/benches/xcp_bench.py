@@ -65,7 +65,8 @@ class _Raw:
         return dict(zip((name for name, _ in SLAVE_COUNTERS), struct.unpack(f"<{len(SLAVE_COUNTERS)}I", r[1:])))
 
 
-def _master(port: int, policy: Any) -> Any:
+def pyxcp_master(port: int, policy: Any = None) -> Any:
+    """A pyxcp master for the slave on UDP 127.0.0.1:``port``, its DAQ packets to ``policy``."""
     from pyxcp.config import create_application_from_config
     from pyxcp.master import Master
 
@@ -111,7 +112,7 @@ def run(out_dir: Path, rate: float = 200.0, seconds: float = 10.0, bus: str | No
             _warm_up(b, codec, pool, rate, w, False)
             rep["without_client"] = _slim(_phase(b, codec, pool, rate, seconds, w, d))
             recorder = _recorder()
-            with warnings.catch_warnings(), _master(port, recorder) as x:
+            with warnings.catch_warnings(), pyxcp_master(port, recorder) as x:
                 warnings.simplefilter("ignore")
                 x.connect()
                 slots = slot_layout(codec.db)

@@ -367,14 +367,12 @@ def test_pyxcps_own_daq_setup_numbers_the_masters_lists_after_the_predefined_one
     slave's MIN_DAQ) measures on the slave as a user's script would: every estimate of injector 0 on
     the injection event, decoded by pyxcp, with its timestamp."""
     pytest.importorskip("pyxcp", reason="pyxcp is the test extra's XCP master")
-    import logging
     import warnings
 
-    from pyxcp.config import create_application_from_config
     from pyxcp.daq_stim import DaqList, DaqOnlinePolicy
-    from pyxcp.master import Master
 
     from estimator.service.xcp.daq_lists import EVENT_INJECTION
+    from sim_bench.benches.xcp_bench import pyxcp_master
     from sim_bench.hardware.procs import wait_until
 
     class Collect(DaqOnlinePolicy):
@@ -394,11 +392,8 @@ def test_pyxcps_own_daq_setup_numbers_the_masters_lists_after_the_predefined_one
     slot = slot_layout(CODEC.db)[(CODEC.db.get_message_by_name("EstimateState").frame_id, 0)]
     policy = Collect([DaqList(name="state0", event_num=EVENT_INJECTION, stim=False, enable_timestamps=True,
                               measurements=[("low", slot, 0, "U32"), ("high", slot + 4, 0, "U32")])])
-    app = create_application_from_config({"Transport": {"Eth": {"host": "127.0.0.1", "port": slave.address[1],
-                                                                "protocol": "UDP"}}}, log_level=logging.WARNING)
-    app.transport.layer = "ETH"
     frames = [frame_of("EstimateState", 0, 20 * k) for k in range(5)]
-    with warnings.catch_warnings(), Master("eth", config=app, policy=policy) as x:
+    with warnings.catch_warnings(), pyxcp_master(slave.address[1], policy) as x:
         warnings.simplefilter("ignore")
         x.connect()
         policy.setup()

@@ -5,8 +5,6 @@ with the CAN frames, a characteristic written and used by the next estimate, the
 
 from __future__ import annotations
 
-import logging
-import socket
 import struct
 import subprocess
 import sys
@@ -22,6 +20,7 @@ from estimator.service.bus import open_bus
 from estimator.service.xcp.a2l import a2l_bytes
 from estimator.service.xcp.daq_lists import EVENT_INJECTION, injector_event, predefined_lists
 from estimator.service.xcp.memory import characteristics, slot_layout
+from sim_bench.benches.xcp_bench import free_udp_port, pyxcp_master
 from sim_bench.hardware.procs import DaemonProcess, wait_until
 
 from ..helpers import measured
@@ -29,22 +28,6 @@ from .test_processes import feed_and_collect
 
 pytestmark = pytest.mark.timeout(300)
 pyxcp = pytest.importorskip("pyxcp", reason="pyxcp is the test extra's XCP master")
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def master(port: int, policy=None):
-    from pyxcp.config import create_application_from_config
-    from pyxcp.master import Master
-
-    app = create_application_from_config({"Transport": {"Eth": {"host": "127.0.0.1", "port": port,
-                                                                "protocol": "UDP"}}}, log_level=logging.WARNING)
-    app.transport.layer = "ETH"
-    return Master("eth", config=app, policy=policy)
 
 
 def daq_recorder():
@@ -74,7 +57,7 @@ def test_a_calibration_tool_measures_and_calibrates_the_running_daemon(hub, moni
     try:
         d.wait_ready(monitor)
         recorder = daq_recorder()
-        with warnings.catch_warnings(), master(port, recorder) as x, open_bus(hub.spec) as bus:
+        with warnings.catch_warnings(), pyxcp_master(port, recorder) as x, open_bus(hub.spec) as bus:
             warnings.simplefilter("ignore")
             x.connect()
             # the A2L it serves is the one the command writes

@@ -8,6 +8,7 @@ import re
 
 from cantools.database import Database
 
+from estimator.service.config import XcpConfig
 from estimator.service.xcp.if_data import a2ml, if_data, segment
 from estimator.service.xcp.memory import (
     A2L_BASE,
@@ -26,7 +27,7 @@ from estimator.service.xcp.memory import (
 )
 
 NAME = "injector_estimator"     # the A2L's name: GET_ID type 1, and the file name the command suggests
-ADDRESS = ("127.0.0.1", 5555)   # [estimator.xcp]'s default host and port
+ADDRESS = (XcpConfig.host, XcpConfig.port)   # [estimator.xcp]'s default host and port
 
 
 def _text(s: str) -> str:

@@ -27,7 +27,7 @@ from estimator.service.xcp.memory import (
     slot_layout,
 )
 
-EVENT_INJECTION, EVENT_10HZ = 0, 1
+EVENT_INJECTION, EVENT_10HZ, FIRST_INJECTOR_EVENT = 0, 1, 2   # injector k's event: FIRST_INJECTOR_EVENT + k
 MAX_ENTRY_BYTES = 8                       # the largest ODT entry (A2L: MAX_ODT_ENTRY_SIZE_DAQ)
 MAX_DYNAMIC_LISTS, MAX_ODTS, MAX_ENTRIES = 16, 64, 64   # what a master may allocate (bounded memory)
 UNPUBLISHED = ("DriveCorrectionTable",)   # per-injector messages whose rows a DAQ list of one frame cannot hold
@@ -50,7 +50,7 @@ EVENTS: tuple[Event, ...] = (Event("injection", "inj", 0, 0), Event("10 Hz", "10
 
 def injector_event(injector: int) -> int | None:
     """The event channel of injector ``injector``'s estimates (None beyond the DBC's eight)."""
-    return 2 + injector if 0 <= injector < INJECTOR_SLOTS else None
+    return FIRST_INJECTOR_EVENT + injector if 0 <= injector < INJECTOR_SLOTS else None
 
 
 @dataclass(frozen=True)
@@ -75,7 +75,7 @@ def predefined_lists(db: Database) -> list[PredefinedList]:
     for k in range(INJECTOR_SLOTS):
         entries = [e for m in messages if m.is_multiplexed() and m.name not in UNPUBLISHED
                    for e in _entries(layout[(m.frame_id, k)], m.length)]
-        out.append(PredefinedList(f"injector_{k}", 2 + k, tuple(entries)))
+        out.append(PredefinedList(f"injector_{k}", FIRST_INJECTOR_EVENT + k, tuple(entries)))
     daemon = [e for m in messages if not m.is_multiplexed() for e in _entries(layout[(m.frame_id, None)], m.length)]
     daemon += _entries(STATS_BASE, 4 * len(SLAVE_COUNTERS))
     out.append(PredefinedList("daemon", EVENT_10HZ, tuple(daemon)))

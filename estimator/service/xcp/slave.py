@@ -173,7 +173,10 @@ class XcpSlave:
     def injection(self, injector: int) -> None:
         """An estimate of ``injector`` was published (all its frames stored): its events happened."""
         own = injector_event(injector)
-        self.event(EVENT_INJECTION) if own is None else self.event(EVENT_INJECTION, own)
+        if own is None:
+            self.event(EVENT_INJECTION)
+        else:
+            self.event(EVENT_INJECTION, own)
 
     def event(self, *channels: int) -> None:
         """Events ``channels`` happened together: sample and send every running DAQ list on one of
