@@ -82,7 +82,7 @@ def _recorder() -> Any:
     class Recorder(FrameAcquisitionPolicy):
         def __init__(self) -> None:
             super().__init__(None)
-            self.pids: Counter[int] = Counter()    # DAQ packets by PID (one ODT a list: the list)
+            self.pids: Counter[int] = Counter()    # DAQ packets by PID (a list's first ODT's)
 
         def feed(self, category: Any, counter: int, timestamp: int, payload: bytes) -> None:
             if category == FrameCategory.DAQ and payload:
@@ -126,17 +126,18 @@ def run(out_dir: Path, rate: float = 200.0, seconds: float = 10.0, bus: str | No
                 for i in injectors:
                     x.writeDaq(0xFF, 8, 0, slots[(state, i)])
                 x.setDaqListMode(0x10, own, 0, 1, 0)
-                x.startStopDaqList(2, own)
+                own_pid = x.startStopDaqList(2, own).firstPid
+                ready_pids = []
                 for i in injectors:                    # and each injector's predefined list on its own event
                     x.setDaqListMode(0x10, i, injector_event(i), 1, 0)
-                    x.startStopDaqList(2, i)
+                    ready_pids.append(x.startStopDaqList(2, i).firstPid)
                 x.startStopSynch(1)
                 e0, d0 = w.estimates, recorder.pids.copy()
                 rep["daq"] = _slim(_phase(b, codec, pool, rate, seconds, w, d))
                 time.sleep(0.2)    # DAQ packets of the last estimates in flight (UDP on loopback)
                 rep["daq"]["estimates"] = w.estimates - e0
-                rep["daq"]["daq_packets"] = recorder.pids[own] - d0[own]
-                rep["daq"]["ready_packets"] = sum(recorder.pids[i] - d0[i] for i in injectors)
+                rep["daq"]["daq_packets"] = recorder.pids[own_pid] - d0[own_pid]
+                rep["daq"]["ready_packets"] = sum(recorder.pids[pid] - d0[pid] for pid in ready_pids)
                 x.startStopSynch(0)
                 x.disconnect()
             raw = _Raw(port)
