@@ -238,6 +238,12 @@ FIGURES: tuple[Figure, ...] = (
            "| the same through the daemon's processor"),
     Figure("speed", "cold_median_ms", lambda r: r["cold_median_ms"], 2, "| cold start, median", headline=True),
     Figure("speed", "first_call_ms", lambda r: r["first_call_ms"], 0, "| first identification in a process"),
+    Figure("speed", "yardstick_us_per_candidate", lambda r: r["yardstick_us_per_candidate"], 1,
+           "| the warm update in candidate simulations"),
+    Figure("speed", "warm_median_candidates", lambda r: r["warm_median_candidates"], 0,
+           "| the warm update in candidate simulations"),
+    Figure("speed", "warm_with_correction_median_candidates", lambda r: r["warm_with_correction_median_candidates"],
+           0, "| the warm update in candidate simulations"),
     # the daemon
     Figure("daemon", "ingest_frames_per_s", lambda r: r["ingest"]["frames_per_s"], -2, "| ingest", headline=True,
            spread=True),

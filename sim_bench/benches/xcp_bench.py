@@ -96,6 +96,7 @@ def _recorder() -> Any:
 def run(out_dir: Path, rate: float = 200.0, seconds: float = 10.0, bus: str | None = None) -> dict:
     """The three phases; the report."""
     from sim_bench.benches.bench import resolve_bus
+    from sim_bench.benches.speed import yardstick_us_per_candidate
 
     out_dir = out_dir.resolve()
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -106,7 +107,8 @@ def run(out_dir: Path, rate: float = 200.0, seconds: float = 10.0, bus: str | No
     port = free_udp_port()
     cfg = out_dir / "xcp.toml"
     cfg.write_text(f"[estimator.xcp]\nmode = \"on\"\nport = {port}\n")
-    rep: dict = {"benchmark": "xcp-bench", "bus": bus, "rate_per_s": rate, "seconds": seconds, "port": port}
+    rep: dict = {"benchmark": "xcp-bench", "bus": bus, "rate_per_s": rate, "seconds": seconds, "port": port,
+                 "yardstick_us_per_candidate": yardstick_us_per_candidate()}
     try:
         with watched_daemon(bus, codec, out_dir / "xcp-bench.log", cfg) as (d, b, w):
             _warm_up(b, codec, pool, rate, w, False)
@@ -218,4 +220,6 @@ def format_report(rep: dict) -> str:
         render(cols, rows, lambda r: ""),
         f"hostile datagrams: {h.get('sent', 0)} sent, {h.get('counted', 0)} counted by the slave "
         f"({h.get('seconds', math.nan):.1f} s); daemon alive {rep.get('daemon_alive')}, exit {rep.get('daemon_exit')}",
-        f"slave counters: {rep.get('slave', {})}"])
+        f"slave counters: {rep.get('slave', {})}",
+        f"machine yardstick: {rep.get('yardstick_us_per_candidate', math.nan):.1f} µs a candidate simulation at "
+        "batch 256, measured before the daemon started"])
