@@ -22,6 +22,7 @@ from estimator.model.automaton import Automaton, build_automaton
 from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.model.dynamics import STATUS_TEXT
 from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters, check_nu_in, load_nominal
+from estimator.units import PER_MICRO
 
 PLATEAU_WINDOW_S = (215e-6, 490e-6)  # Table 3: mean plunger stroke s_4,s over 215-490 µs
 FREE_RUN_LH_M = 1.0   # L_h of a grid column's free run (m): a gap no actuator closes
@@ -154,12 +155,17 @@ class FastSimulator:
         a_const = np.ascontiguousarray(self._scaled(self.structure.a_const))
         a_coup = np.ascontiguousarray(np.broadcast_to(self._scaled(self.structure.a_coupling), per_region))
         a_damp = np.ascontiguousarray(np.broadcast_to(self._scaled(self.structure.a_damping), per_region))
+        hys = self.params.hysteresis
         self._model = kernel.KernelModel(
             nu0=float(self._nu0), dnu=float(self._dnu), a_const=a_const, a_coup=a_coup, a_damp=a_damp,
-            ks=float(psa.ks_n_per_m), rb=float(psa.rb_v2s_per_mn), r0a=float(psa.r0a_ohm),
+            ks=float(psa.ks_n_per_m), rb=float(psa.rb_v2s_per_mn),
+            r0a=0.0 if hys.present else float(psa.r0a_ohm),   # the element replaces R(N_u) I
             r0b=float(psa.r0b_v_per_n), z_scale=np.ascontiguousarray(self._d),
             springs=np.ascontiguousarray(dyn.spring_constants(self.params), dtype=float),
-            a_pattern=kernel.sparsity(a_const, a_coup, a_damp))
+            a_pattern=kernel.sparsity(a_const, a_coup, a_damp), hys_on=hys.present,
+            hys_thr=np.array(hys.thresholds_c, dtype=float) * PER_MICRO,
+            hys_w=np.array(hys.weights_v_per_c, dtype=float) / PER_MICRO,
+            hys_rs=float(hys.series_ohm), hys_nu_ref=float(hys.nu_ref_n_per_v))
         # a plain dict, not functools.lru_cache on a bound method: that makes a reference cycle, and
         # a simulator dropped from a pool would then stay in memory until the cyclic GC runs
         self._exact: dict[float, np.ndarray] = {}

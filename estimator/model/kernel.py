@@ -36,6 +36,7 @@ from estimator.model.dynamics import (
     output_row_into,
     precompressed_starts,
 )
+from estimator.model.hysteresis import play_sum_into
 from estimator.units import M_PER_UM, S_PER_US
 
 MAX_EVENTS_PER_SAMPLE = 12
@@ -64,6 +65,13 @@ class KernelModel(NamedTuple):
     z_scale: np.ndarray     # (NZ,) dynamics.Z_SCALE
     springs: np.ndarray     # (6,) dynamics.spring_constants (SI): the static pre-compression of L_h <= 0
     a_pattern: np.ndarray   # (6, ZI + 1, NZ + 2) uint64: the non-zero columns of the region matrices (sparsity)
+    # the hysteresis element (estimator.model.hysteresis), added to the voltage after a simulation;
+    # with it, r0a is 0 (the element replaces R(N_u) I)
+    hys_on: bool
+    hys_thr: np.ndarray     # (M,) play half-widths in µC
+    hys_w: np.ndarray       # (M,) their weights in V/µC
+    hys_rs: float           # series resistance in Ohm
+    hys_nu_ref: float       # N/V where the element's temperature scale is 1
 
 
 @njit(cache=True, nogil=True, _nrt=False)
@@ -626,6 +634,21 @@ def _candidates(model: KernelModel, idx: np.ndarray, w: np.ndarray, nu: np.ndarr
 
 
 @njit(cache=True, nogil=True)
+def _add_element(model: KernelModel, cur: np.ndarray, h: float, nu: np.ndarray, u: np.ndarray) -> None:
+    """Add the hysteresis element's voltage R_s I + s(N_u) H[Q] to the voltages ``u`` (B, N) of the
+    candidates at ``nu`` (B,) driven by ``cur`` (N,) A with step ``h`` µs; nothing without the element."""
+    if not model.hys_on:
+        return
+    n = cur.shape[0]
+    hq = np.empty(n)
+    play_sum_into(cur, h, model.hys_thr, model.hys_w, hq)
+    for b in range(u.shape[0]):
+        s = np.exp(-model.r0b * (nu[b] - model.hys_nu_ref))
+        for k in range(n):
+            u[b, k] += s * hq[k] + model.hys_rs * cur[k]
+
+
+@njit(cache=True, nogil=True)
 def run_batch(model: KernelModel, aut: Automaton, src: np.ndarray, stencil: bool, idx_in: np.ndarray, w_in: np.ndarray, nu: np.ndarray,
               lh: np.ndarray, fo: np.ndarray, cur: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One call for a whole batch: set up each candidate, interpolate its matrices, simulate.
@@ -650,6 +673,7 @@ def run_batch(model: KernelModel, aut: Automaton, src: np.ndarray, stencil: bool
                        np.empty(nb), np.empty(nb), np.empty(nb, dtype=np.int64))
     simulate_kernel(src, model, aut, cand, cur, h, out, np.zeros(nb, dtype=np.int64), np.empty((0, n, NZ)))
     u, s3, s4, mode, tc, to, status = out
+    _add_element(model, cur, h, nu, u)
     success = np.empty(nb, dtype=np.bool_)
     for b in range(nb):
         if not feasible[b]:
@@ -788,6 +812,7 @@ def grid_voltages(model: KernelModel, aut: Automaton, src: np.ndarray, col_nu: n
     out = Trajectories(u, np.empty((nb, n)), np.empty((nb, n)), np.empty((nb, n), dtype=np.int8),
                        np.empty(nb), np.empty(nb), np.empty(nb, dtype=np.int64))
     simulate_kernel(src, model, aut, cand, cur, h, out, k0, np.empty((0, n, NZ)))
+    _add_element(model, cur, h, nu, u)
     success = np.empty(nb, dtype=np.bool_)
     for b in range(nb):
         success[b] = out.status[b] == STATUS_OK

@@ -23,6 +23,7 @@ import numpy as np
 from estimator._compiled import njit
 from estimator.errors import ParameterError
 from estimator.model.chain import NO_CHAIN, MeasurementChain
+from estimator.model.hysteresis import NO_HYSTERESIS, Hysteresis
 from estimator.units import UM_PER_M
 
 NOMINAL_FILE = Path(__file__).with_name("parameters.toml")
@@ -246,6 +247,12 @@ class InjectorParameters:
     valve: ValveParameters
     chain: MeasurementChain = NO_CHAIN
     calibration: CalibrationUncertainty = field(default_factory=CalibrationUncertainty)
+    hysteresis: Hysteresis = NO_HYSTERESIS
+
+    def feedthrough_ohm(self, nu_n_per_v: float) -> float:
+        """The resistance (Ω) through which the current reaches the terminal voltage directly: R(N_u)
+        (eq. 22), or the hysteresis element's series resistance where the set has the element."""
+        return self.hysteresis.series_ohm if self.hysteresis.present else self.psa.resistance_ohm(nu_n_per_v)
 
     def to_toml(self, header: str = "") -> str:
         """This parameter set as a TOML file in the layout of ``parameters.toml`` (every key of
@@ -257,14 +264,21 @@ class InjectorParameters:
             lines += ["", "[chain]"] + [f"{k} = {float(v)!r}" for k, v in self.chain.__dict__.items()]
         if not self.calibration.zero:
             lines += ["", "[calibration]"] + [f"{k} = {float(v)!r}" for k, v in self.calibration.__dict__.items()]
+        if self.hysteresis.present:
+            lines += ["", *self.hysteresis.to_toml_lines()]
         return "\n".join(lines) + "\n"
 
-    def to_mapping(self) -> dict[str, dict[str, float]]:
-        """{"psa": {...}, "valve": {...}, "chain": {...}} of SI values (JSON-ready; :meth:`from_mapping`)."""
-        return {"psa": {k: float(v) for k, v in self.psa.__dict__.items()},
-                "valve": {k: float(v) for k, v in self.valve.__dict__.items()},
-                "chain": {k: float(v) for k, v in self.chain.__dict__.items()},
-                "calibration": {k: float(v) for k, v in self.calibration.__dict__.items()}}
+    def to_mapping(self) -> dict[str, dict[str, Any]]:
+        """{"psa": {...}, "valve": {...}, "chain": {...}, "calibration": {...}} of SI values, and
+        "hysteresis" where the set has the element (JSON-ready; :meth:`from_mapping`)."""
+        out: dict[str, dict[str, Any]] = {
+            "psa": {k: float(v) for k, v in self.psa.__dict__.items()},
+            "valve": {k: float(v) for k, v in self.valve.__dict__.items()},
+            "chain": {k: float(v) for k, v in self.chain.__dict__.items()},
+            "calibration": {k: float(v) for k, v in self.calibration.__dict__.items()}}
+        if self.hysteresis.present:
+            out["hysteresis"] = self.hysteresis.to_mapping()
+        return out
 
     @classmethod
     def from_mapping(cls, data: Any) -> InjectorParameters:
@@ -277,13 +291,15 @@ class InjectorParameters:
             raise ParameterError("[calibration] must be a table of nu_rel_sigma, lh_sigma_m, stroke_rel_sigma, "
                                  "opening_sigma_s, preload_lo_n and preload_hi_n")
         return cls(PsaParameters.from_mapping(data["psa"]), ValveParameters.from_mapping(data["valve"]),
-                   chain_from_mapping(data.get("chain", {})), CalibrationUncertainty(**cal))
+                   chain_from_mapping(data.get("chain", {})), CalibrationUncertainty(**cal),
+                   Hysteresis.from_mapping(data.get("hysteresis", {})))
 
     @classmethod
     def from_toml(cls, path: str | Path) -> InjectorParameters:
         """Read ``[psa]`` and ``[valve]`` tables (SI values) and an optional ``[chain]`` table
-        (``u_filter_tau_s``, ``i_filter_tau_s``, ``i_skew_s``: :class:`MeasurementChain`) and an optional
-        ``[calibration]`` table (:class:`CalibrationUncertainty`) from a TOML file."""
+        (``u_filter_tau_s``, ``i_filter_tau_s``, ``i_skew_s``: :class:`MeasurementChain`), an optional
+        ``[calibration]`` table (:class:`CalibrationUncertainty`) and an optional ``[hysteresis]`` table
+        (:class:`~estimator.model.hysteresis.Hysteresis`) from a TOML file."""
         path = Path(path)
         try:
             data = tomllib.loads(path.read_text())

@@ -18,6 +18,7 @@ from estimator.model.automaton import apply_reset, build_automaton, guard_value,
 from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.model.dynamics import MODE_OPEN, STATUS_EVENT_CAP, STATUS_INFEASIBLE, STATUS_OK
 from estimator.model.fast_sim import BatchResult
+from estimator.model.hysteresis import element_voltage
 from estimator.model.parameters import InjectorParameters, check_nu_in, load_nominal
 from estimator.units import UM_PER_M
 
@@ -55,7 +56,13 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
     aut = build_automaton(st, d)
     seated = False   # after a close, reopening needs the spring force alone (see dynamics)
 
-    cout = dyn.output_row(p, nu_n_per_v) / d
+    # the hysteresis element replaces R(N_u) I and adds its own voltage (estimator.model.hysteresis)
+    hys = p.hysteresis
+    row = dyn.output_row(p, nu_n_per_v)
+    if hys.present:
+        row[dyn.ZI] = 0.0
+    cout = row / d
+    element = element_voltage(hys, p.psa.r0b_v_per_n, cur, dt_s, nu_n_per_v)
 
     out = {k: np.full(n, np.nan) for k in ("u", "s3", "s4")}
     mode = np.zeros(n, dtype=np.int8)
@@ -67,7 +74,7 @@ def simulate_reference(current_a: np.ndarray, nu_n_per_v: float, lh_m: float, f_
 
         return BatchResult(
             t_s=t_us / dyn.TIME_SCALE, current_a=cur, nu_n_per_v=one(nu_n_per_v), lh_m=one(lh_m),
-            f_open_n=one(f_open), voltage_v=out["u"][None], s3_m=out["s3"][None] / UM_PER_M,
+            f_open_n=one(f_open), voltage_v=(out["u"] + element)[None], s3_m=out["s3"][None] / UM_PER_M,
             s4_m=out["s4"][None] / UM_PER_M, mode=mode[None], t_contact_s=one(t_contact / dyn.TIME_SCALE),
             t_open_s=one(t_open / dyn.TIME_SCALE), success=np.array([status == STATUS_OK]),
             status=np.array([status]))

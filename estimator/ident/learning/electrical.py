@@ -388,9 +388,9 @@ class _Problem:
         x, k, p = fit.x, self.k, self.p
         cov = np.linalg.pinv(fit.jac.T @ fit.jac)
         if self.nc:
-            psa = self.sims.params(x[:k]).psa
+            params = self.sims.params(x[:k])
             share = sum(inj.n * (current_noise_a(inj.current_a) / self.sigma[j]) ** 2
-                        * psa.resistance_ohm(float(x[p + 2 * j])) ** 2 for j, inj in enumerate(self.usable))
+                        * params.feedthrough_ohm(float(x[p + 2 * j])) ** 2 for j, inj in enumerate(self.usable))
             pull = np.zeros(x.size)       # the gradient of half the share (the cost is half the squares)
             pull[k:p] = 0.5 * share * self.gain_slope(x[k:p])
             bias = cov @ pull
