@@ -14,12 +14,13 @@ import pytest
 
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateQuality, EstimateState, ValvePrediction
+from estimator.ident.fit.idle_stroke import identify
 from estimator.io.captures import to_frame, to_message
 from estimator.service.bus import open_bus
 from sim_bench.hardware.procs import DaemonProcess, wait_until
 
 from ..conftest import REPO
-from ..helpers import WARM_MAX_EVALUATIONS, measured
+from ..helpers import measured
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -70,7 +71,11 @@ def test_restart_after_sigkill_resumes_from_persisted_state(hub, monitor, tmp_pa
             assert d.stop() == 0
     last = before[(0, 7)]["EstimateState"]
     nxt = after[(0, 8)]
-    assert nxt["EstimateQuality"].evaluations <= WARM_MAX_EVALUATIONS            # warm start from the persisted state
+    # a warm start from the persisted state: fewer simulations than a cold start of the same injection. Not a
+    # fixed count: the daemon times injections by their arrival, so a restart slowed by a busy machine widens
+    # the filter's prediction across the gap, and the warm search may take a second cycle (26 against <= 20)
+    cold = identify(injs[8]).evaluations
+    assert nxt["EstimateQuality"].evaluations < cold, (nxt["EstimateQuality"].evaluations, cold)
     assert abs(nxt["EstimateState"].lh_um - last.lh_um) < 0.1
     assert nxt["EstimateQuality"].sigma_lh_um < 0.05          # the accumulated information survived
     assert "restored the state of 1 injector" in (tmp_path / "daemon2.log").read_text()
