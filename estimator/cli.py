@@ -154,7 +154,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 
 def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     """The injector's structural parameters from current and voltage alone (no displacement)."""
-    from estimator.ident.learning.electrical import calibrate_electrical, confirmed_out_of_tolerance
+    from estimator.ident.learning.electrical import calibrate_with_hysteresis_if_needed, confirmed_out_of_tolerance
     from estimator.io.mdf import read_injections
 
     meta = {k: str(v) for k, v in (("preload_force_n", args.preload_n), ("temperature_c", args.temperature_c))
@@ -167,7 +167,7 @@ def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     window_s = (200.0 if args.window_us is None else args.window_us) * S_PER_US
     base = _params(args)
     try:
-        res = calibrate_electrical(injections, base, tolerance=args.tolerance, window_s=window_s)
+        res = calibrate_with_hysteresis_if_needed(injections, base, tolerance=args.tolerance, window_s=window_s)
     except ValueError as exc:
         raise EstimatorError(str(exc)) from None
     header = (f"parameters calibrated electrically (python -m estimator calibrate --electrical) from "

@@ -35,7 +35,7 @@ from estimator._compiled import njit
 from estimator.errors import ParameterError
 
 NU_REF_N_PER_V = 16.39          # N_u at which s(N_u) = 1 (the paper's reference temperature)
-MAX_PLAYS = 8                   # play operators an element may have
+MAX_PLAYS = 16                  # play operators an element may have
 MAX_THRESHOLD_C = 10e-3         # a play's half-width at most this charge (C; a stack holds ≈ 0.4 mC)
 MAX_WEIGHT_V_PER_C = 1e7        # |w_i| at most this (V/C: 10 V per µC)
 MAX_SERIES_OHM = 10.0

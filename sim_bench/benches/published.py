@@ -207,7 +207,13 @@ FIGURES: tuple[Figure, ...] = (
            "| false refusals, offline / online", headline=True),
     Figure("selfcal-refusals", "false_flags", lambda r: _both(r, "false_flags"), 0,
            "| false `out_of_tolerance`, offline / online", headline=True),
-    Figure("selfcal-refusals", "hysteresis_refused", _summary("hysteresis_refused"), 0, "| hysteresis parts refused"),
+    Figure("selfcal-hysteresis", "learned", _summary("learned"), 0, "| hysteresis parts learned with an element"),
+    Figure("selfcal-hysteresis", "pi_learned", _summary("pi_learned"), 0, "| hysteresis parts learned with an element"),
+    Figure("selfcal-hysteresis", "max_lh_from_um", _summary("max_lh_from_um"), 3,
+           "| hysteresis parts learned, filtered L_h"),
+    Figure("selfcal-hysteresis", "max_opening_from_us", _summary("max_opening_from_us"), 2,
+           "| hysteresis parts learned, filtered L_h"),
+    Figure("selfcal-hysteresis", "ok_while_off", _summary("ok_while_off"), 0, "| hysteresis parts learned, filtered L_h"),
     *(Figure("selfcal-refusals", key, _summary(key), 0, "| parts beyond tolerance flagged, first window")
       for key in ("beyond_flagged_online", "beyond_flagged_refined")),
     # self-calibration

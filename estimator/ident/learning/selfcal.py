@@ -35,7 +35,7 @@ from estimator.ident.fit.adequacy import noise_level_v
 from estimator.ident.fit.idle_stroke import identify
 from estimator.ident.learning.electrical import (
     WINDOW_S,
-    calibrate_electrical,
+    calibrate_with_hysteresis_if_needed,
     confirmed_out_of_tolerance,
     measured_voltage,
 )
@@ -243,12 +243,13 @@ def _calibrate(window: CalibrationWindow, base: InjectorParameters, config: Self
     injections = [i for i, _ in window.items]
     batch, held = injections[:-config.held_out], injections[-config.held_out:]
     try:
-        res = calibrate_electrical(batch, base, tolerance=config.tolerance, also_from=current)
+        res = calibrate_with_hysteresis_if_needed(batch, base, tolerance=config.tolerance, also_from=current)
     except ValueError as exc:
         return CalibrationStatus(Learning.REFUSED, len(batch), message=str(exc)), None
     status = CalibrationStatus(Learning.REFUSED, len(batch), res.rms_before_v, res.rms_after_v)
     if not res.adequate:
-        status.message = "the calibrated model does not explain the batch"
+        status.message = (f"the calibrated model does not explain the batch, with a hysteresis element "
+                          f"either (residual {res.misfit_z:.0f} sd above the noise)")
         return status, None
     status.out_of_tolerance = tuple(confirmed_out_of_tolerance(batch, base, res, config.part_tolerance,
                                                                config.tolerance_sigmas, config.tolerance))
@@ -279,8 +280,10 @@ def _calibrate(window: CalibrationWindow, base: InjectorParameters, config: Self
         if params is not res.params:
             new = FastSimulator(params, dt)
     narrow = window.narrow(config)
+    with_element = "; with a hysteresis element in place of R(N_u) I" if res.params.hysteresis.present else ""
     status.state, status.message = Learning.ADOPTED, (f"held-out chi-square gain {chi2:.0f}, N_u moved "
-                                                     f"{status.nu_shift_z:+.1f} sd" + (f"; {narrow}" if narrow else ""))
+                                                     f"{status.nu_shift_z:+.1f} sd" + with_element
+                                                     + (f"; {narrow}" if narrow else ""))
     if narrow:
         status.learned_lo_n, status.learned_hi_n = window.preload_range()
     return status, new
