@@ -167,7 +167,8 @@ def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     window_s = (200.0 if args.window_us is None else args.window_us) * S_PER_US
     base = _params(args)
     try:
-        res = calibrate_with_hysteresis_if_needed(injections, base, tolerance=args.tolerance, window_s=window_s)
+        res = calibrate_with_hysteresis_if_needed(injections, base, hysteresis=args.hysteresis,
+                                                  tolerance=args.tolerance, window_s=window_s)
     except ValueError as exc:
         raise EstimatorError(str(exc)) from None
     header = (f"parameters calibrated electrically (python -m estimator calibrate --electrical) from "
@@ -513,6 +514,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "injection's N_u and L_h to the voltage (no displacement channel needed)")
     s.add_argument("--serial", default=None, help="--electrical: only the traces of this injector (metadata "
                    "serial= or injector_key=); default: all traces, one structure shared by all (a lot)")
+    s.add_argument("--hysteresis", action="store_true", help="--electrical: where R(N_u)·I cannot explain the "
+                   "batch, calibrate it again with a hysteresis element in its place (its sigma does not yet carry "
+                   "the element's shape error)")
     s.add_argument("--tolerance", type=float, default=0.10, help="--electrical: relative standard deviation of "
                    "the prior on each structural parameter (default 0.10)")
     s.add_argument("--part-tolerance", type=float, default=0.10, help="--electrical: the part's datasheet tolerance "

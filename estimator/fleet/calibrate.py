@@ -53,7 +53,7 @@ def calibrate_group(key: str, paths: tuple[str, ...], params_path: str | None, t
     return a JSON-ready row with the parameter file's text."""
     for k, v in WORKER_ENV.items():
         os.environ.setdefault(k, v)
-    from estimator.ident.learning.electrical import calibrate_with_hysteresis_if_needed
+    from estimator.ident.learning.electrical import calibrate_electrical
     from estimator.io.mdf import read_injections
     from estimator.model.parameters import load_parameters
 
@@ -66,7 +66,7 @@ def calibrate_group(key: str, paths: tuple[str, ...], params_path: str | None, t
         return row
     t0 = time.perf_counter()
     try:
-        res = calibrate_with_hysteresis_if_needed(injections, load_parameters(params_path), tolerance=tolerance)
+        res = calibrate_electrical(injections, load_parameters(params_path), tolerance=tolerance)
     except ValueError as exc:
         row["error"] = str(exc)
         return row

@@ -301,7 +301,7 @@ def test_cli_refuses_a_batch_without_writing_a_file_and_flags_a_part_beyond_tole
     parameter out_of_tolerance."""
     from sim_bench.benches.refusal_bench import _life
 
-    run = [sys.executable, "-m", "estimator", "calibrate", "--electrical"]
+    run = [sys.executable, "-m", "estimator", "calibrate", "--electrical", "--hysteresis"]
     part = (1.0, "prandtl-ishlinskii")
     wrong = _write_life(tmp_path, _life(2000, hysteresis=part), 16, "w", stated_preload_n=150.0)
     r = subprocess.run([*run, *map(str, wrong), "--out", str(tmp_path / "w.toml")], capture_output=True, text=True,

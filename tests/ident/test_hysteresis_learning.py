@@ -54,7 +54,8 @@ def test_the_element_is_fitted_where_r_i_fails_and_gives_the_plants_voltage_and_
 def test_the_learner_gives_a_hysteresis_part_an_element_and_a_good_part_none():
     """A series part on the mismatch plant: its window is refused by the paper's model and adopted with
     an element; a good part's window is adopted without one."""
-    cfg = SelfCalConfig()
+    cfg = SelfCalConfig(hysteresis=True)
+    assert not SelfCalConfig().hysteresis          # off by default
     for hysteresis in (True, False):
         life = draw_lot(1, 2000 if hysteresis else 3000, LotSpec())[0]
         if hysteresis:

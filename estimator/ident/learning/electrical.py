@@ -625,13 +625,13 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
 
 
 def calibrate_with_hysteresis_if_needed(injections: list[Injection], base: InjectorParameters | None = None,
-                                        **kw: Any) -> ElectricalCalibration:
-    """:func:`calibrate_electrical` with the paper's R(N_u)·I, and where that does not explain the
-    batch, again with a hysteresis element in its place: the calibration that explains it (the
-    element's if both fail but it comes closer, so that the refusal names the nearer miss). A part the
-    paper's model explains never gets an element (``docs/design.md``)."""
+                                        hysteresis: bool = True, **kw: Any) -> ElectricalCalibration:
+    """:func:`calibrate_electrical` with the paper's R(N_u)·I, and (``hysteresis``) where that does not
+    explain the batch, again with a hysteresis element in its place: the calibration that explains it
+    (the element's if both fail but it comes closer, so that the refusal names the nearer miss). A
+    part the paper's model explains never gets an element (``docs/design.md``)."""
     res = calibrate_electrical(injections, base, **kw)
-    if res.adequate:
+    if res.adequate or not hysteresis:
         return res
     element = calibrate_electrical(injections, base, hysteresis=True, **kw)
     return element if element.adequate or element.misfit_z < res.misfit_z else res

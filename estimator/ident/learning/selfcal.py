@@ -68,6 +68,8 @@ class SelfCalConfig:
     retry_after: int = 12          # injections after a refused calibration before the next window (doubling, x8 at most)
     refine_window: int = 24        # once monitoring: one more calibration over this many injections (0: none)
     adopt_shift_sigmas: float = 3.0   # ... or adopted if it moves the held-out N_u by more than this many sd
+    hysteresis: bool = False       # where the tables' R(N_u) I is refused, try a hysteresis element (off: σ does not
+                                   # yet carry the element's shape error; docs/design.md)
 
     def __post_init__(self) -> None:
         if not (isinstance(self.window, int) and isinstance(self.held_out, int) and self.held_out >= 1
@@ -78,6 +80,8 @@ class SelfCalConfig:
                 and (self.refine_window == 0 or self.refine_window >= self.held_out + 3)):
             raise ValueError(f"self-calibration refine_window {self.refine_window!r} must be 0 or hold held_out "
                              f"{self.held_out!r} injections and at least three more")
+        if not isinstance(self.hysteresis, bool):
+            raise ValueError(f"self-calibration hysteresis = {self.hysteresis!r} must be true or false")
         for name in ("confirm", "retry_after", "narrow_after"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
@@ -243,7 +247,8 @@ def _calibrate(window: CalibrationWindow, base: InjectorParameters, config: Self
     injections = [i for i, _ in window.items]
     batch, held = injections[:-config.held_out], injections[-config.held_out:]
     try:
-        res = calibrate_with_hysteresis_if_needed(batch, base, tolerance=config.tolerance, also_from=current)
+        res = calibrate_with_hysteresis_if_needed(batch, base, tolerance=config.tolerance, also_from=current,
+                                                  hysteresis=config.hysteresis)
     except ValueError as exc:
         return CalibrationStatus(Learning.REFUSED, len(batch), message=str(exc)), None
     status = CalibrationStatus(Learning.REFUSED, len(batch), res.rms_before_v, res.rms_after_v)
