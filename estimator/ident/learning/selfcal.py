@@ -253,8 +253,9 @@ def _calibrate(window: CalibrationWindow, base: InjectorParameters, config: Self
         return CalibrationStatus(Learning.REFUSED, len(batch), message=str(exc)), None
     status = CalibrationStatus(Learning.REFUSED, len(batch), res.rms_before_v, res.rms_after_v)
     if not res.adequate:
-        status.message = (f"the calibrated model does not explain the batch, with a hysteresis element "
-                          f"either (residual {res.misfit_z:.0f} sd above the noise)")
+        tried = ", with a hysteresis element either" if config.hysteresis else ""
+        status.message = (f"the calibrated model does not explain the batch{tried} (residual {res.misfit_z:.0f} "
+                          "sd above the noise)")
         return status, None
     status.out_of_tolerance = tuple(confirmed_out_of_tolerance(batch, base, res, config.part_tolerance,
                                                                config.tolerance_sigmas, config.tolerance))
