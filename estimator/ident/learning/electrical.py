@@ -624,8 +624,8 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
     return _result(problem, fit, restarts, base, rms_before)
 
 
-def calibrate_with_hysteresis_if_needed(injections: list[Injection], base: InjectorParameters | None = None,
-                                        hysteresis: bool = True, **kw: Any) -> ElectricalCalibration:
+def calibrate_with_hysteresis_if_needed(injections: list[Injection], base: InjectorParameters | None = None, *,
+                                        hysteresis: bool, **kw: Any) -> ElectricalCalibration:
     """:func:`calibrate_electrical` with the paper's R(N_u)·I, and (``hysteresis``) where that does not
     explain the batch, again with a hysteresis element in its place: the calibration that explains it
     (the element's if both fail but it comes closer, so that the refusal names the nearer miss). A
