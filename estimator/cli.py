@@ -154,7 +154,8 @@ def cmd_track(args: argparse.Namespace) -> int:
 
 def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
     """The injector's structural parameters from current and voltage alone (no displacement)."""
-    from estimator.ident.learning.electrical import calibrate_with_hysteresis_if_needed, confirmed_out_of_tolerance
+    from estimator.ident.learning.electrical import confirmed_out_of_tolerance
+    from estimator.ident.learning.element import calibrate_with_hysteresis_if_needed
     from estimator.io.mdf import read_injections
 
     meta = {k: str(v) for k, v in (("preload_force_n", args.preload_n), ("temperature_c", args.temperature_c))
@@ -191,8 +192,8 @@ def cmd_calibrate_electrical(args: argparse.Namespace) -> int:
         args.json.write_text(json.dumps(res.to_dict() | {"out_of_tolerance": flagged,
                                                          "part_tolerance": args.part_tolerance}, indent=1))
     if not res.adequate:
-        print("error: calibration refused: the calibrated model does not explain the batch; no parameter file "
-              "written", file=sys.stderr)
+        print(f"error: calibration refused: {res.refusal or 'the calibrated model does not explain the batch'}; "
+              "no parameter file written", file=sys.stderr)
     if bad:
         print(f"error: {bad} of {len(args.traces)} file(s) could not be read (skipped, named above)", file=sys.stderr)
     return 0 if res.adequate and not bad else 1
@@ -515,8 +516,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--serial", default=None, help="--electrical: only the traces of this injector (metadata "
                    "serial= or injector_key=); default: all traces, one structure shared by all (a lot)")
     s.add_argument("--hysteresis", action="store_true", help="--electrical: where R(N_u)·I cannot explain the "
-                   "batch, calibrate it again with a hysteresis element in its place (its sigma does not yet carry "
-                   "the element's shape error)")
+                   "batch, calibrate it again with a hysteresis element in its place, on two grids of plays that must "
+                   "both explain it (their disagreement is written into [calibration])")
     s.add_argument("--tolerance", type=float, default=0.10, help="--electrical: relative standard deviation of "
                    "the prior on each structural parameter (default 0.10)")
     s.add_argument("--part-tolerance", type=float, default=0.10, help="--electrical: the part's datasheet tolerance "

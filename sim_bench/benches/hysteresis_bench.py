@@ -3,8 +3,8 @@
 Each part is a seeded series part (±10 %) on the mismatch plant: a Prandtl–Ishlinskii or a Bouc–Wen
 hysteresis of the charge (the second is a form no sum of the estimator's plays is built from) at half,
 once and twice its size, and a 0.2 Ω series resistance (:func:`refusal_bench.hysteresis_variant`).
-Each runs through the tracker with learning on and ``hysteresis = true`` (off by default), as the
-daemon does with it, for ``injections`` injections
+Each runs through the tracker with learning on (``hysteresis = true``, the default), as the
+daemon does, for ``injections`` injections
 with the rail pressure wandering, and is scored from injection 40 on (the issue of learning: the
 first window, its adoption, the refinement): the largest error of the filtered L_h, the valve's
 predicted opening instant against the plant's, and any ``ok`` estimate more than 0.3 µm off.
@@ -33,7 +33,7 @@ def part(i: int, injections: int = 70) -> dict[str, Any]:
     """The ``i``-th hysteresis part through the learning tracker; its row."""
     gain, shape = hysteresis_variant(i)
     life = _life(SEED_HYSTERESIS + i, hysteresis=(gain, shape))
-    tracker = Tracker(self_calibration=SelfCalConfig(hysteresis=True))
+    tracker = Tracker(self_calibration=SelfCalConfig())
     lh_err, open_err, ok_off = [], [], []
     t0 = time.perf_counter()
     for inj, m, truth in life.injections(injections):

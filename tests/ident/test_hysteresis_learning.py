@@ -54,8 +54,8 @@ def test_the_element_is_fitted_where_r_i_fails_and_gives_the_plants_voltage_and_
 def test_the_learner_gives_a_hysteresis_part_an_element_and_a_good_part_none():
     """A series part on the mismatch plant: its window is refused by the paper's model and adopted with
     an element, and refused without the option; a good part's window is adopted without one."""
-    cfg = SelfCalConfig(hysteresis=True)
-    assert not SelfCalConfig().hysteresis          # off by default
+    cfg = SelfCalConfig()
+    assert cfg.hysteresis                          # on by default
     for hysteresis in (True, False):
         life = draw_lot(1, 2000 if hysteresis else 3000, LotSpec())[0]
         if hysteresis:
@@ -69,6 +69,6 @@ def test_the_learner_gives_a_hysteresis_part_an_element_and_a_good_part_none():
         assert params is not None, status.message
         assert params.hysteresis.present == hysteresis, status.message
         assert ("hysteresis element" in status.message) == hysteresis
-        if hysteresis:      # off (the default): refused, and the refusal does not claim the element was tried
-            status, params = self_calibrate(window, load_nominal(), SelfCalConfig())
+        if hysteresis:      # off: refused, and the refusal does not claim the element was tried
+            status, params = self_calibrate(window, load_nominal(), SelfCalConfig(hysteresis=False))
             assert params is None and "does not explain the batch (" in status.message, status.message

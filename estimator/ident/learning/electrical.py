@@ -38,7 +38,6 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from dataclasses import dataclass, field, fields, replace
-from typing import Any
 
 import numpy as np
 
@@ -115,6 +114,7 @@ class ElectricalCalibration:
     solution : the fitted unknowns (log factors, chain µs, the hysteresis element's, each injection's N_u
         and L_h), to start from.
     hysteresis : fitted with a hysteresis element in place of R(N_u)·I (its parameters in ``params``).
+    refusal : why a calibration that fits is still not adequate ("" when the misfit says it, or it is).
     """
 
     params: InjectorParameters
@@ -137,6 +137,7 @@ class ElectricalCalibration:
     chi2: float = float("nan")
     solution: np.ndarray = field(default_factory=lambda: np.zeros(0))
     hysteresis: bool = False
+    refusal: str = ""
 
     def to_dict(self) -> dict[str, object]:
         """JSON-ready: each fitted parameter's factor and relative sigma, the chain, the residuals and
@@ -247,7 +248,7 @@ class _Problem:
     """
 
     def __init__(self, batch: _Batch, base: InjectorParameters, names: tuple[str, ...], tolerance: float,
-                 limits: dict[str, tuple[float, float]] | None, hysteresis: bool = False) -> None:
+                 limits: dict[str, tuple[float, float]] | None, thresholds_c: tuple[float, ...] = ()) -> None:
         self.batch, self.names = batch, names
         self.usable = batch.injections
         self.n_win = [inj.n for inj in self.usable]
@@ -255,7 +256,8 @@ class _Problem:
         self.chain_names = CHAIN_NAMES if batch.fit_chain else ()
         self.nc = len(self.chain_names)
         self.q = self.k + self.nc
-        self.element = Hysteresis(HYSTERESIS_THRESHOLDS_C, (0.0,) * len(HYSTERESIS_THRESHOLDS_C)) if hysteresis \
+        hysteresis = bool(thresholds_c)
+        self.element = Hysteresis(thresholds_c, (0.0,) * len(thresholds_c)) if hysteresis \
             else base.hysteresis     # a configured element, if any, is the simulators' own
         self.nh = len(self.element.thresholds_c) + 1 if hysteresis else 0
         self.p = self.q + self.nh
@@ -590,7 +592,8 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
                          limits: dict[str, tuple[float, float]] | None = None,
                          start: np.ndarray | None = None,
                          also_from: InjectorParameters | None = None,
-                         hysteresis: bool = False) -> ElectricalCalibration:
+                         hysteresis: bool = False,
+                         thresholds_c: tuple[float, ...] = HYSTERESIS_THRESHOLDS_C) -> ElectricalCalibration:
     """Fit the structural parameters ``names`` (shared) and each injection's N_u and L_h to the
     voltage of a batch of injections of one injector (or of one lot, whose injectors share a
     structure). ``tolerance`` is the prior's relative standard deviation of each parameter. With
@@ -605,13 +608,13 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
     ``solution`` of the same batch) is where the fit starts: :func:`confirmed_out_of_tolerance` uses both.
     ``also_from`` (an earlier calibration of the same injector, e.g. the model in use) is a second
     start, every injection re-identified on it; the fit with the lower cost (prior included) is kept.
-    ``hysteresis``: the model has a hysteresis element in place of R(N_u)·I, whose weights at
-    :data:`HYSTERESIS_THRESHOLDS_C` and series resistance are fitted too (:mod:`estimator.model.hysteresis`)."""
+    ``hysteresis``: the model has a hysteresis element in place of R(N_u)·I, whose weights at the play
+    half-widths ``thresholds_c`` (C) and series resistance are fitted too (:mod:`estimator.model.hysteresis`)."""
     base = base or load_nominal()
     if hysteresis:     # the element replaces R(N_u) I: R_0a no longer reaches the voltage
         names = tuple(n for n in names if n != "psa.r0a_ohm")
     problem = _Problem(_batch(injections, base, names, tolerance, window_s, fit_chain), base, names, tolerance, limits,
-                       hysteresis)
+                       tuple(thresholds_c) if hysteresis else ())
     x0, before = problem.start()
     rms_before = float(np.sqrt(np.mean(np.concatenate(before) ** 2)))
     if start is not None and start.shape == x0.shape:
@@ -622,19 +625,6 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
         fit = second if second.cost < fit.cost else fit
     fit, restarts = problem.restarted(fit, max_restarts, max_iterations)
     return _result(problem, fit, restarts, base, rms_before)
-
-
-def calibrate_with_hysteresis_if_needed(injections: list[Injection], base: InjectorParameters | None = None, *,
-                                        hysteresis: bool, **kw: Any) -> ElectricalCalibration:
-    """:func:`calibrate_electrical` with the paper's R(N_u)·I, and (``hysteresis``) where that does not
-    explain the batch, again with a hysteresis element in its place: the calibration that explains it
-    (the element's if both fail but it comes closer, so that the refusal names the nearer miss). A
-    part the paper's model explains never gets an element (``docs/design.md``)."""
-    res = calibrate_electrical(injections, base, **kw)
-    if res.adequate or not hysteresis:
-        return res
-    element = calibrate_electrical(injections, base, hysteresis=True, **kw)
-    return element if element.adequate or element.misfit_z < res.misfit_z else res
 
 
 def _result(problem: _Problem, fit: LeastSquaresResult, restarts: int, base: InjectorParameters,
@@ -718,7 +708,8 @@ def confirmed_out_of_tolerance(injections: list[Injection], base: InjectorParame
     for name in out_of_tolerance(res, part_tolerance, sigmas):
         held = calibrate_electrical(injections, base, tolerance=tolerance, window_s=window_s, max_restarts=0,
                                     limits={name: (1.0 - part_tolerance, 1.0 + part_tolerance)},
-                                    start=res.solution, hysteresis=res.hysteresis)
+                                    start=res.solution, hysteresis=res.hysteresis,
+                                    thresholds_c=res.params.hysteresis.thresholds_c or HYSTERESIS_THRESHOLDS_C)
         if held.chi2 - res.chi2 > sigmas ** 2:
             out.append(name)
     return out

@@ -33,12 +33,8 @@ import numpy as np
 from estimator.ident.config import IdentConfig
 from estimator.ident.fit.adequacy import noise_level_v
 from estimator.ident.fit.idle_stroke import identify
-from estimator.ident.learning.electrical import (
-    WINDOW_S,
-    calibrate_with_hysteresis_if_needed,
-    confirmed_out_of_tolerance,
-    measured_voltage,
-)
+from estimator.ident.learning.electrical import WINDOW_S, confirmed_out_of_tolerance, measured_voltage
+from estimator.ident.learning.element import calibrate_with_hysteresis_if_needed
 from estimator.ident.measurement import Injection
 from estimator.ident.status import CALIBRATION_STATES, Learning
 from estimator.model.fast_sim import FastSimulator
@@ -68,8 +64,8 @@ class SelfCalConfig:
     retry_after: int = 12          # injections after a refused calibration before the next window (doubling, x8 at most)
     refine_window: int = 24        # once monitoring: one more calibration over this many injections (0: none)
     adopt_shift_sigmas: float = 3.0   # ... or adopted if it moves the held-out N_u by more than this many sd
-    hysteresis: bool = False       # where the tables' R(N_u) I is refused, try a hysteresis element (off: σ does not
-                                   # yet carry the element's shape error; docs/design.md)
+    hysteresis: bool = True        # where the tables' R(N_u) I is refused, try a hysteresis element (adopted where
+                                   # two grids of plays both explain the batch; element.py, docs/design.md)
 
     def __post_init__(self) -> None:
         if not (isinstance(self.window, int) and isinstance(self.held_out, int) and self.held_out >= 1
@@ -254,8 +250,8 @@ def _calibrate(window: CalibrationWindow, base: InjectorParameters, config: Self
     status = CalibrationStatus(Learning.REFUSED, len(batch), res.rms_before_v, res.rms_after_v)
     if not res.adequate:
         tried = ", with a hysteresis element either" if config.hysteresis else ""
-        status.message = (f"the calibrated model does not explain the batch{tried} (residual {res.misfit_z:.0f} "
-                          "sd above the noise)")
+        status.message = res.refusal or (f"the calibrated model does not explain the batch{tried} (residual "
+                                         f"{res.misfit_z:.0f} sd above the noise)")
         return status, None
     status.out_of_tolerance = tuple(confirmed_out_of_tolerance(batch, base, res, config.part_tolerance,
                                                                config.tolerance_sigmas, config.tolerance))
