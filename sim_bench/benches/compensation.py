@@ -51,6 +51,8 @@ INJECTIONS = 150           # per injector
 SETTLED = 60               # the last injections of the life, where learning is over
 SETTLE_UM = 0.15           # |stroke - target| within this (half the lot spread target), or within 2σ of the
                            # predicted stroke, counts as on target
+HYSTERESIS_LOT = ((3, 1.0, "prandtl-ishlinskii"), (6, 0.5, "bouc-wen"))   # with ``hysteresis``: parts whose
+                           # hysteresis R(N_u) I cannot explain (the learned element's own form, and one it is not)
 Z_RMS = (limit("compensation", "z_rms_min"), limit("compensation", "z_rms_max"))   # RMS(error/σ) of the predictions
 
 
@@ -72,21 +74,22 @@ class Run:
     trust_limited: np.ndarray | None = None  # the correction that drove this injection stopped at its trust region
 
 
-def lot_spec(amp: str = "standard") -> LotSpec:
-    """The compensation bench's lot on the amplifier profile ``amp``."""
+def lot_spec(amp: str = "standard", hysteresis: bool = False) -> LotSpec:
+    """The compensation bench's lot on the amplifier profile ``amp`` (``hysteresis``: with the parts
+    of :data:`HYSTERESIS_LOT`)."""
     return LotSpec(swap_at=SWAP_AT, swapped=SWAPPED, nu_rise=NU_RISE, lh_um=LH_UM, wear_um=WEAR_UM,
-                   amplifier=amplifier(amp))
+                   amplifier=amplifier(amp), hysteresis=HYSTERESIS_LOT if hysteresis else ())
 
 
 def run_loop(closed: bool, seed: int, injectors: int = INJECTORS, injections: int = INJECTIONS,
-             ecu: bool = True, amp: str = "standard") -> Run:
+             ecu: bool = True, amp: str = "standard", hysteresis: bool = False) -> Run:
     """The lot through ``injections`` injections each, with learning on; ``closed``: drive each
     injection with the injector's last correction, computed for that injection's preload force
     (``ecu``: as an ECU that knows its next rail pressure asks for it) or carried there by the
     correction's own sensitivity (as an amplifier on the bus applies it)."""
     from estimator.pipeline import build_pipeline
 
-    lives = draw_lot(injectors, seed, lot_spec(amp))
+    lives = draw_lot(injectors, seed, lot_spec(amp, hysteresis))
     # the daemon's deferred correction, its deferred work never given idle time (as on a worker that is
     # never idle): each injector's table and derivative refresh run just before its next injection
     _, _, processor, _ = build_pipeline(EstimatorConfig(), deferred=True)
@@ -216,22 +219,24 @@ def rms(z: np.ndarray) -> float | None:
 
 
 def run(seed: int = 1, injectors: int = INJECTORS, injections: int = INJECTIONS, lots: int = LOTS,
-        amplifiers: tuple[str, ...] = PROFILES) -> dict:
+        amplifiers: tuple[str, ...] = PROFILES, hysteresis: bool = False) -> dict:
     """Open and closed loops on ``lots`` lots per amplifier profile (seeds ``seed``, ``seed + 1``, ...
-    across all of them); the report."""
+    across all of them; ``hysteresis``: with the parts of :data:`HYSTERESIS_LOT`); the report."""
     from estimator.ident.simulators import SimulatorPool
 
     target = DriveCompensator().target_at(SimulatorPool().get(0.5e-6))
     rep: dict = {"benchmark": "compensation", "seed": seed, "lots": [], "injectors": injectors,
                  "injections": injections, "target_stroke_um": target[0], "target_opening_us": target[1],
-                 "amplifiers": list(amplifiers), "targets": [t._asdict() for t in TARGETS["compensation"]]}
+                 "amplifiers": list(amplifiers), "targets": [t._asdict() for t in TARGETS["compensation"]],
+                 "hysteresis": [list(h) for h in HYSTERESIS_LOT if h[0] < injectors] if hysteresis else []}
     n = 0
     for amp in amplifiers:
         for _ in range(lots):
             lot_seed = seed + n
-            runs = {"open": run_loop(False, lot_seed, injectors, injections, amp=amp),
-                    "closed": run_loop(True, lot_seed, injectors, injections, amp=amp),
-                    "closed_bus": run_loop(True, lot_seed, injectors, injections, ecu=False, amp=amp)}
+            runs = {"open": run_loop(False, lot_seed, injectors, injections, amp=amp, hysteresis=hysteresis),
+                    "closed": run_loop(True, lot_seed, injectors, injections, amp=amp, hysteresis=hysteresis),
+                    "closed_bus": run_loop(True, lot_seed, injectors, injections, ecu=False, amp=amp,
+                                           hysteresis=hysteresis)}
             lot = {"seed": lot_seed, "amplifier": amp, **{name: summarise(r, target[0]) for name, r in runs.items()}}
             lot["own_mismatch"] = own_mismatch(runs)
             rep["lots"].append(lot)
@@ -319,7 +324,8 @@ def format_report(rep: dict) -> str:
     """The table."""
     lines = [f"drive compensation, {len(rep['lots'])} lot(s) of {rep['injectors']} series injectors, "
              f"{rep['injections']} injections each, learning on; target stroke {rep['target_stroke_um']:.3f} µm, "
-             f"opening {rep['target_opening_us']:.2f} µs",
+             f"opening {rep['target_opening_us']:.2f} µs" + "".join(
+                 f"; injector {i}: a {shape} hysteresis at {gain:g}x" for i, gain, shape in rep.get("hysteresis", [])),
              f"{'':<34} {'stroke spread µm':>30} {'opening spread µs':>30}",
              f"{'lot  amplifier          loop':<34} {'first 10':>10} {'settled':>9} {'p95':>9} {'first 10':>10} "
              f"{'settled':>9} {'p95':>9} {'at limit':>9} {'trust':>7} {'z s / o':>11}"]

@@ -13,6 +13,12 @@ the run is deterministic). Judged on what a user of the lot needs:
   counted and shown (the false-flag rate, at most 1 %, is measured over many more parts by
   ``python -m sim_bench selfcal --refusals``), not failed here.
 
+With ``hysteresis`` three positions carry parts whose charge-voltage hysteresis R(N_u)·I cannot
+explain (:data:`HYSTERESIS_LOT`: Prandtl–Ishlinskii, the learned element's own form, once and twice
+its size, and a Bouc–Wen one, a form no sum of plays is built from), which learning (by default) may
+give a hysteresis element. A Prandtl–Ishlinskii part must be learned with one and then meet the L_h target;
+a Bouc–Wen part must meet it if learned, or stay refused (``model_mismatch``, never ``ok`` while off).
+
 With ``preload_n`` the rail pressure stands still at that preload force (a test bench at one
 operating point): with the default settings the parts do not learn (no span of preload forces); with
 ``narrow_after`` they learn over that one force.
@@ -37,22 +43,23 @@ BEYOND_FRACTION = 2 / 12
 FROM, LH_UM, OK_UM, SWAP_SETTLE = 40, 0.15, 0.3, 30
 INTERVAL_S = 1.0
 DEFAULT_SEED = 5
+HYSTERESIS_LOT = ((1, 1.0, "prandtl-ishlinskii"), (4, 0.5, "bouc-wen"), (7, 2.0, "prandtl-ishlinskii"))
 
 
 def run(seed: int = DEFAULT_SEED, positions: int = POSITIONS, injections: int = INJECTIONS,
-        preload_n: float | None = None, narrow_after: int = 0) -> dict[str, Any]:
+        preload_n: float | None = None, narrow_after: int = 0, hysteresis: bool = False) -> dict[str, Any]:
     """Every position of a seeded lot through its life (at one preload force ``preload_n``, N, or
-    the rail pressure wandering; learning with ``narrow_after``); a JSON-ready report with a row per
-    position."""
+    the rail pressure wandering; learning with ``narrow_after``; with ``hysteresis`` parts of
+    :data:`HYSTERESIS_LOT`); a JSON-ready report with a row per position."""
     spec = LotSpec(beyond_fraction=BEYOND_FRACTION, swap_at=SWAP_AT if injections > SWAP_AT else None,
-                   swapped=SWAPPED)
+                   swapped=SWAPPED, hysteresis=HYSTERESIS_LOT if hysteresis else ())
     preloads = None if preload_n is None else [float(preload_n)] * injections
     learning = SelfCalConfig(narrow_after=narrow_after)
     rows = [_run_life(life, injections, learning, preloads) for life in draw_lot(positions, seed, spec)]
     fails = [f"position {r['position']}: {f}" for r in rows for f in r["failures"]]
     return {"benchmark": "tracking", "scenario": "lot-life", "seed": seed, "positions": positions,
             "injections": injections, "swap_at": spec.swap_at, "preload_n": preload_n, "narrow_after": narrow_after,
-            "rows": rows, "summary": _summary(rows, fails, injections)}
+            "hysteresis": hysteresis, "rows": rows, "summary": _summary(rows, fails, injections)}
 
 
 def _run_life(life: Any, n: int, learning: SelfCalConfig, preloads: list[float] | None = None) -> dict[str, Any]:
@@ -67,14 +74,16 @@ def _run_life(life: Any, n: int, learning: SelfCalConfig, preloads: list[float] 
         out.append({**truth, "lh_um": r.lh_m * 1e6, "sigma_lh_um": r.sigma_lh_m * 1e6, "status": r.status.value,
                     "learning": str(st.state) if st else "idle",
                     "flagged": list(st.out_of_tolerance) if st else []})
-    return _score_life(life, out, seconds)
+    own = tracker.own_parameters().get(life.position % 8)
+    return _score_life(life, out, seconds, own is not None and own.hysteresis.present)
 
 
-def _score_life(life: Any, out: list[dict[str, Any]], seconds: list[float]) -> dict[str, Any]:
+def _score_life(life: Any, out: list[dict[str, Any]], seconds: list[float], element: bool = False) -> dict[str, Any]:
     err = np.array([o["lh_um"] - o["lh_true_um"] for o in out])
     sigma = np.array([o["sigma_lh_um"] for o in out])
     swap = life.swap_at
-    judged = [k for k in range(len(out)) if k >= FROM and not out[k]["beyond"]
+    refused = life.hysteresis is not None and not element     # honestly refused: judged by its status alone
+    judged = [k for k in range(len(out)) if k >= FROM and not out[k]["beyond"] and not refused
               and (swap is None or k < swap or k >= swap + SWAP_SETTLE)]
     max_err = float(np.nanmax(np.abs(err[judged]))) if judged else float("nan")
     ok_far = [o["k"] for o, e in zip(out, err) if o["status"] == "ok" and not abs(e) <= OK_UM]
@@ -93,10 +102,13 @@ def _score_life(life: Any, out: list[dict[str, Any]], seconds: list[float]) -> d
         fails.append(f"ok while > {OK_UM} µm off at injection(s) {ok_far[:5]}")
     if beyond and not flagged:
         fails.append("beyond tolerance, not flagged")
+    if refused and life.hysteresis[1] == "prandtl-ishlinskii":
+        fails.append("a hysteresis of the element's own form, not learned with the element")
     if swap is not None and (settled is None or settled > SWAP_SETTLE):
         fails.append(f"swapped part not within {LH_UM} µm {SWAP_SETTLE} injections after the swap")
     z = err[FROM:] / sigma[FROM:]
     return {"position": life.position, "beyond": beyond, "swap_at": swap, "parts": [p.describe() for p in life.parts],
+            "hysteresis": list(life.hysteresis) if life.hysteresis else None, "element": element,
             "lh_true_um": life.lh_um, "max_lh_err_from_um": max_err, "ok_far": ok_far,
             "first_adopted": adopted[0] if adopted else None, "relearning_at": relearned_at,
             "swap_settled_after": settled, "flagged": flagged, "final_learning": out[-1]["learning"],
@@ -113,11 +125,13 @@ def _summary(rows: list[dict[str, Any]], fails: list[str], injections: int) -> d
             "flagged_beyond": sum(1 for r in rows if r["beyond"] and r["flagged"]),
             "beyond": sum(1 for r in rows if r["beyond"]),
             "false_flags": sum(1 for r in within if r["flagged"]), "within": len(within),
+            "hysteresis": sum(1 for r in rows if r.get("hysteresis")),
+            "with_element": sum(1 for r in rows if r.get("hysteresis") and r["element"]),
             "failures": fails, "passed": not fails}
 
 
 COLUMNS = [keyed("pos", "", ">3", "position"),
-           Column("part", "", "<34", lambda r: ("BEYOND " if r["beyond"] else "") + r["parts"][-1][:27]),
+           Column("part", "", "<34", lambda r: ("BEYOND " if r["beyond"] else "") + _hysteresis(r) + r["parts"][-1][:27]),
            Column("adopted", "[inj]", ">7", lambda r: "-" if r["first_adopted"] is None else r["first_adopted"]),
            Column("swap", "settled", ">7", lambda r: "-" if r["swap_at"] is None else
                   (r["swap_settled_after"] if r["swap_settled_after"] is not None else "never")),
@@ -127,13 +141,23 @@ COLUMNS = [keyed("pos", "", ">3", "position"),
            keyed("learning", "", "<11", "final_learning"), keyed("status", "", "<15", "final_status")]
 
 
+def _hysteresis(r: dict[str, Any]) -> str:
+    """A hysteresis part's mark: its shape's initials and size, + when learned with the element."""
+    h = r.get("hysteresis")
+    if not h:
+        return ""
+    return f"{'PI' if h[1] == 'prandtl-ishlinskii' else 'BW'}{h[0]:g}{'+' if r['element'] else '-'} "
+
+
 def format_report(rep: dict[str, Any]) -> str:
     """A row per position, then the lot's verdict."""
     s = rep["summary"]
     rail = "the rail pressure wandering" if rep.get("preload_n") is None else f"at {rep['preload_n']:g} N throughout"
     settings = (f"learning on with narrow_after {rep['narrow_after']}" if rep.get("narrow_after")
                 else "default settings (learning on)")
-    title = (f"lot-life - {rep['positions']} series injectors (±10 %, {s['beyond']} beyond tolerance, one swapped at "
+    hyst = (f", {s.get('hysteresis', 0)} with a hysteresis (PI/BW, size; + learned with the element, "
+            f"{s.get('with_element', 0)})" if rep.get("hysteresis") else "")
+    title = (f"lot-life - {rep['positions']} series injectors (±10 %, {s['beyond']} beyond tolerance{hyst}, one swapped at "
              f"injection {rep['swap_at']}), {rep['injections']} injections each, {rail}, {settings}; "
              f"targets: filtered L_h within {LH_UM} µm from injection {FROM} (swapped: {SWAP_SETTLE} after the swap), "
              f"never ok while > {OK_UM} µm off, parts beyond tolerance flagged (BEYOND: the part mounted at the end)")

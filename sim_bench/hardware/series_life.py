@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -44,7 +44,10 @@ class LotSpec:
     """What a lot is made of: its parts' spread, the share beyond tolerance, its chain and swaps.
 
     ``swap_at``: the injection at which the part at each of ``swapped`` positions is replaced by
-    another one drawn from the same lot (None: no swap).
+    another one drawn from the same lot (None: no swap). ``hysteresis``: (position, gain, shape) of
+    parts whose charge-voltage hysteresis R(N_u)·I cannot explain (the mismatch plant's, of that size
+    and :data:`~sim_bench.hardware.plant.HYSTERESIS_SHAPES` form); such a part is within tolerance and
+    stays mounted.
     """
 
     spread: float = TOLERANCE
@@ -57,6 +60,7 @@ class LotSpec:
     nu_rise: float = NU_RISE               # N/V: the warm-up's rise from NU_COLD
     lh_um: tuple[float, float] = LH_UM     # a part's idle stroke, uniform
     amplifier: Amplifier = STANDARD        # whose standard drive a correction scales
+    hysteresis: tuple[tuple[int, float, str], ...] = ()
 
 
 @dataclass
@@ -75,6 +79,7 @@ class Life:
     seed: int
     nu_rise: float = NU_RISE
     amplifier: Amplifier = STANDARD
+    hysteresis: tuple[float, str] | None = None   # the first part's (gain, shape) of a hysteresis R(N_u) I misses
     _plants: list[Plant] = field(default_factory=list, repr=False)
     _preload: float | None = field(default=None, repr=False)
 
@@ -99,7 +104,11 @@ class Life:
             amp = self.amplifier
             cfg = PlantConfig(window_s=self.window_s, chain=self.chain, drive=amp.standard, ripple_a=amp.ripple_a,
                               ripple_period_s=amp.ripple_period_s)
-            self._plants = [Plant(cfg, p.params) for p in self.parts]
+            own = [cfg] * len(self.parts)
+            if self.hysteresis is not None:
+                own[0] = replace(cfg, mismatch=True, hysteresis_gain=self.hysteresis[0],
+                                 hysteresis_shape=self.hysteresis[1])
+            self._plants = [Plant(c, p.params) for c, p in zip(own, self.parts)]
         f = self._walk(rng) if preload_n is None else preload_n
         nu, lh = self.truth(k, n, f)
         p = self.part_at(k)
@@ -151,7 +160,9 @@ def draw_lot(positions: int, seed: int, spec: LotSpec = LotSpec()) -> list[Life]
     """``positions`` seeded injector lives of one lot (``spec``)."""
     rng = np.random.default_rng(seed)
     n_beyond = int(round(spec.beyond_fraction * positions))
-    kept = [p for p in range(positions) if spec.swap_at is None or p not in spec.swapped]   # parts that stay
+    hysteresis = {pos: (gain, shape) for pos, gain, shape in spec.hysteresis}
+    kept = [p for p in range(positions) if (spec.swap_at is None or p not in spec.swapped)   # parts that stay
+            and p not in hysteresis]
     beyond_at = set(rng.choice(kept, size=min(n_beyond, len(kept)), replace=False).tolist()) if n_beyond else set()
     lives = []
     for pos in range(positions):
@@ -165,5 +176,5 @@ def draw_lot(positions: int, seed: int, spec: LotSpec = LotSpec()) -> list[Life]
         lives.append(Life(pos, parts, flags, lhs, float(rng.uniform(-NU_OFFSET, NU_OFFSET)),
                           spec.swap_at if len(parts) > 1 else None, spec.chain, spec.window_s,
                           float(rng.uniform(0.0, spec.wear_um)), int(rng.integers(2 ** 31)), spec.nu_rise,
-                          spec.amplifier))
+                          spec.amplifier, hysteresis.get(pos)))
     return lives

@@ -98,3 +98,21 @@ def test_a_part_that_goes_model_mismatch_only_under_its_own_correction_fails_its
     assert any("injector 1 went model_mismatch under its own correction" in f for f in compensation.failures(rep))
     runs["open"] = with_mismatch([40])
     assert compensation.own_mismatch(runs) == {"closed": [], "closed_bus": []}
+
+
+def test_a_lot_with_hysteresis_parts_changes_only_their_voltage():
+    """The benches' hysteresis lots: the same draws as the lot without, the named positions' parts on
+    the mismatch plant (their voltage differs, their valve motion not), never beyond tolerance."""
+    from sim_bench.hardware.series_life import LotSpec, draw_lot
+
+    spec = compensation.lot_spec("standard")
+    plain, hyst = draw_lot(4, 7, spec), draw_lot(4, 7, compensation.lot_spec("standard", hysteresis=True))
+    marked = {pos for pos, _gain, _shape in compensation.HYSTERESIS_LOT if pos < 4}
+    assert marked and [life.hysteresis is not None for life in hyst] == [i in marked for i in range(4)]
+    for a, b in zip(plain, hyst):
+        assert a.parts[0].factors == b.parts[0].factors and a.lh_um == b.lh_um and a.seed == b.seed
+        (ma, _), (mb, _) = a.measure(0, 10, np.random.default_rng(1)), b.measure(0, 10, np.random.default_rng(1))
+        assert ma.stroke_m == mb.stroke_m
+        assert (np.max(np.abs(ma.voltage_v - mb.voltage_v)) > 1.0) == (b.hysteresis is not None)
+    lot = draw_lot(12, 5, LotSpec(beyond_fraction=0.5, hysteresis=((2, 1.0, "bouc-wen"),)))
+    assert lot[2].hysteresis == (1.0, "bouc-wen") and not lot[2].beyond[0]
