@@ -405,9 +405,9 @@ def cmd_selfcal(args: argparse.Namespace) -> int:
     if args.hysteresis:
         from sim_bench.benches import hysteresis_bench
 
-        rep = hysteresis_bench.run()
+        rep = hysteresis_bench.run(online=args.online)
         print(hysteresis_bench.format_report(rep))
-        _write_json(args.json_out or DEFAULT_OUT / "selfcal-hysteresis.json", rep)
+        _write_json(args.json_out or DEFAULT_OUT / f"{rep['benchmark']}.json", rep)
         return 0 if rep["passed"] else 1
     if args.online:
         rep = selfcal_bench.run_online(args.injectors, args.seed)
@@ -616,7 +616,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--hysteresis", action="store_true",
                    help="instead: series parts whose hysteresis R(N_u) I cannot explain (two shapes, three sizes) "
                         "through the tracker with learning on: learned with a hysteresis element, L_h and the opening "
-                        "from injection 40, no ok while more than 0.3 µm off (about 3 min a part)")
+                        "from injection 40, no ok while more than 0.3 µm off (about 3 min a part); with --online: "
+                        "through the background calibrator, an injection every 0.25 s")
     s.add_argument("--online", action="store_true",
                    help="instead: each injector through the tracker with self-calibration on and the daemon's "
                         "background calibrator, an injection every 0.25 s, and an exact injector (no harm)")
