@@ -74,7 +74,7 @@ def _run_life(life: Any, n: int, learning: SelfCalConfig, preloads: list[float] 
         out.append({**truth, "lh_um": r.lh_m * 1e6, "sigma_lh_um": r.sigma_lh_m * 1e6, "status": r.status.value,
                     "learning": str(st.state) if st else "idle",
                     "flagged": list(st.out_of_tolerance) if st else []})
-    own = tracker.own_parameters().get(life.position % 8)
+    own = tracker.own_parameters().get(inj.injector_id)
     return _score_life(life, out, seconds, own is not None and own.hysteresis.present)
 
 

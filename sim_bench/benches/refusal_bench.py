@@ -29,7 +29,7 @@ from estimator.ident.learning.selfcal import CalibrationWindow, SelfCalConfig, s
 from estimator.model.chain import NO_CHAIN
 from estimator.model.parameters import load_nominal
 from sim_bench.hardware import series_part
-from sim_bench.hardware.plant import HYSTERESIS_SHAPES, Plant, PlantConfig
+from sim_bench.hardware.plant import HYSTERESIS_SHAPES
 from sim_bench.hardware.series_life import Life, LotSpec, draw_lot
 
 OFFLINE_BATCH = 30
@@ -46,12 +46,8 @@ def hysteresis_variant(i: int) -> tuple[float, str]:
 
 def _life(seed: int, beyond: bool = False, hysteresis: tuple[float, str] | None = None) -> Life:
     chain = series_part.TYPICAL_CHAIN if seed % 2 else NO_CHAIN
-    life = draw_lot(1, seed, LotSpec(chain=chain, beyond_fraction=1.0 if beyond else 0.0))[0]
-    if hysteresis is not None:
-        gain, shape = hysteresis
-        life._plants = [Plant(PlantConfig(window_s=life.window_s, chain=chain, mismatch=True, hysteresis_gain=gain,
-                                          hysteresis_shape=shape), p.params) for p in life.parts]
-    return life
+    parts = ((0, *hysteresis),) if hysteresis is not None else ()
+    return draw_lot(1, seed, LotSpec(chain=chain, beyond_fraction=1.0 if beyond else 0.0, hysteresis=parts))[0]
 
 
 def _online(life: Life, config: SelfCalConfig) -> dict[str, Any]:
