@@ -11,6 +11,7 @@ import pytest
 import estimator.ident.learning.element as element
 from estimator.ident.learning.electrical import HYSTERESIS_THRESHOLDS_C, ElectricalCalibration
 from estimator.ident.learning.element import GRIDS_C, INTERLEAVED_THRESHOLDS_C, disagreement_of, widened
+from estimator.model.chain import MeasurementChain
 from estimator.model.parameters import load_nominal
 from tests.ident.test_hysteresis_learning import _batch
 
@@ -30,7 +31,7 @@ def fits(monkeypatch: pytest.MonkeyPatch) -> dict:
         canned.setdefault("calls", []).append(thresholds_c if hysteresis else None)
         return canned["grids"][GRIDS_C.index(thresholds_c)] if hysteresis else canned["plain"]
     monkeypatch.setattr(element, "calibrate_electrical", fake)
-    monkeypatch.setattr(element, "widened", lambda best, other, injs, window_s: replace(best, warnings=["widened"]))
+    monkeypatch.setattr(element, "widened", lambda best, other, injs, window_s, chain: replace(best, warnings=["widened"]))
     return canned
 
 
@@ -77,3 +78,19 @@ def test_the_widened_uncertainty_covers_the_grids_disagreement() -> None:
     assert cal.stroke_rel_sigma == pytest.approx(np.hypot(0.003, d.stroke_rel_sigma), rel=1e-9)
     assert cal.opening_sigma_s == pytest.approx(d.opening_sigma_s, rel=1e-9)
     assert "disagree on L_h by 0.200 µm" in res.warnings[-1]
+
+
+def test_the_disagreement_is_taken_over_the_injections_the_calibration_fitted(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A batch where one injection comes with the chain already undone: the calibration puts every
+    injection through the chain, and the grids' disagreement is judged on those same injections (the
+    per-injection N_u and L_h are indexed by them), not on the raw ones."""
+    injs, truth = _batch(3, 12)
+    chain = MeasurementChain(u_filter_tau_s=1e-6, i_filter_tau_s=0.5e-6, i_skew_s=0.2e-6)   # an amplifier's
+    mixed = [injs[0].through_chain(chain), *injs[1:]]
+    seen: list = []
+    monkeypatch.setattr(element, "disagreement_of", lambda a, b, batch: seen.extend(batch) or a.params.calibration)
+    cal = ElectricalCalibration(load_nominal(), (), np.ones(0), np.ones(0), np.array([t[0] for t in truth]),
+                                np.array([t[1] for t in truth]), 0.1, 0.1)
+    widened(cal, cal, mixed, 200e-6, chain)
+    assert len(seen) == 3 and all(inj.chain_corrected for inj in seen)
+    np.testing.assert_array_equal(seen[1].current_a, injs[1].through_chain(chain).window(200e-6).current_a)

@@ -223,16 +223,24 @@ def _batch(injections: list[Injection], base: InjectorParameters, names: tuple[s
     unknown = [n for n in names if n not in known]
     if unknown:
         raise ValueError(f"unknown structural parameter(s) {', '.join(unknown)}")
-    usable = [inj for inj in injections if not inj.problem()]
+    usable, corrected = usable_injections(injections, base.chain)
     if len(usable) < 2:
         raise ValueError(f"an electrical calibration needs at least two usable injections, got {len(usable)}")
     if len({round(inj.dt_s, 12) for inj in usable}) > 1:
         raise ValueError("the injections of one calibration must share their sample period")
     chain = base.chain
-    if any(inj.chain_corrected for inj in usable):   # the chain already undone: nothing left to model
-        usable = [inj.through_chain(base.chain) for inj in usable]
+    if corrected:   # the chain already undone: nothing left to model
         chain, fit_chain = MeasurementChain(), False
     return _Batch([inj.window(window_s) for inj in usable], usable[0].dt_s, chain, fit_chain)
+
+
+def usable_injections(injections: list[Injection], chain: MeasurementChain) -> tuple[list[Injection], bool]:
+    """The injections a calibration fits, in order: those without a problem, all put through ``chain``
+    (the base's measurement chain) when any of them comes with the chain already undone; and whether
+    that was so. A calibration's per-injection N_u and L_h are indexed by this list."""
+    usable = [inj for inj in injections if not inj.problem()]
+    corrected = any(inj.chain_corrected for inj in usable)
+    return ([inj.through_chain(chain) for inj in usable] if corrected else usable), corrected
 
 
 class _Problem:

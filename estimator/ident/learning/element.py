@@ -34,11 +34,12 @@ from estimator.ident.learning.electrical import (
     WINDOW_S,
     ElectricalCalibration,
     calibrate_electrical,
+    usable_injections,
 )
 from estimator.ident.measurement import Injection
 from estimator.model.chain import MeasurementChain
 from estimator.model.fast_sim import FastSimulator
-from estimator.model.parameters import CalibrationUncertainty, InjectorParameters
+from estimator.model.parameters import CalibrationUncertainty, InjectorParameters, load_nominal
 from estimator.units import M_PER_UM
 
 #: the second grid's play half-widths (C): each between two of the first grid's, the last beyond them
@@ -61,7 +62,7 @@ def calibrate_with_hysteresis_if_needed(injections: list[Injection], base: Injec
     fits = [calibrate_electrical(injections, base, hysteresis=True, thresholds_c=g, **kw) for g in GRIDS_C]
     if all(f.adequate for f in fits):
         best, other = sorted(fits, key=lambda f: f.chi2)
-        return widened(best, other, injections, kw.get("window_s", WINDOW_S))
+        return widened(best, other, injections, kw.get("window_s", WINDOW_S), (base or load_nominal()).chain)
     nearer = min(fits, key=lambda f: f.misfit_z)
     if nearer.misfit_z >= res.misfit_z:
         return res                      # the refusal names the nearer miss
@@ -75,13 +76,14 @@ def calibrate_with_hysteresis_if_needed(injections: list[Injection], base: Injec
 
 
 def widened(best: ElectricalCalibration, other: ElectricalCalibration, injections: list[Injection],
-            window_s: float = WINDOW_S) -> ElectricalCalibration:
+            window_s: float = WINDOW_S, chain: MeasurementChain | None = None) -> ElectricalCalibration:
     """``best`` whose stated uncertainty also covers its disagreement with ``other`` (the same batch
-    calibrated on the other grid): the RMS over the batch of the two fits' difference in each
-    injection's N_u (relative) and L_h, and in the valve's predicted plateau stroke (relative) and
-    opening instant, each added in quadrature to ``best``'s own. The full difference, not half: the
-    two grids' errors may share a sign."""
-    d = disagreement_of(best, other, [inj.window(window_s) for inj in injections if not inj.problem()])
+    calibrated on the other grid, from a base with measurement chain ``chain``, default the nominal
+    one's): the RMS over the batch of the two fits' difference in each injection's N_u (relative) and
+    L_h, and in the valve's predicted plateau stroke (relative) and opening instant, each added in
+    quadrature to ``best``'s own. The full difference, not half: the two grids' errors may share a sign."""
+    usable, _ = usable_injections(injections, chain if chain is not None else load_nominal().chain)
+    d = disagreement_of(best, other, [inj.window(window_s) for inj in usable])
     cal = best.params.calibration
     both = replace(cal, nu_rel_sigma=min(math.hypot(cal.nu_rel_sigma, d.nu_rel_sigma), 0.1),
                    lh_sigma_m=min(math.hypot(cal.lh_sigma_m, d.lh_sigma_m), 10e-6),
