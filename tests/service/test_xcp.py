@@ -362,11 +362,13 @@ def test_the_a2l_command_writes_the_configured_slaves_address(tmp_path):
     assert main(["a2l", "--config", str(cfg), "--out", str(out)]) != 0
 
 
-def test_pyxcps_own_daq_setup_numbers_the_masters_lists_after_the_predefined_ones(slave):
+def test_pyxcps_own_daq_setup_numbers_the_masters_lists_after_the_predefined_ones(slave, monkeypatch):
     """pyxcp's high-level DAQ (``DaqOnlinePolicy``: FREE_DAQ, ALLOC_DAQ and its lists numbered from the
     slave's MIN_DAQ) measures on the slave as a user's script would: every estimate of injector 0 on
-    the injection event, decoded by pyxcp, with its timestamp."""
+    the injection event, decoded by pyxcp, with its timestamp. The policy builds pyxcp's application
+    from the command line, as a user's script run bare would: not from pytest's options."""
     pytest.importorskip("pyxcp", reason="pyxcp is the test extra's XCP master")
+    monkeypatch.setattr(sys, "argv", [sys.argv[0]])
     import warnings
 
     from pyxcp.daq_stim import DaqList, DaqOnlinePolicy
