@@ -2,8 +2,9 @@
 
 The transition matrices ``exp(A_r(N_u) h)`` of the six regions are tabulated once on a uniform
 N_u grid (step 0.02 N/V) and interpolated with 4-point Lagrange polynomials; the interpolation
-error is below 1e-13 relative (``tests/test_fast_sim.py`` checks it against direct ``expm``).
-``exact=True`` computes the matrix exponential for each distinct N_u instead (cached).
+error is below 1e-13 relative (``tests/model/test_simulators.py`` checks it against the direct exponential).
+``exact=True`` computes the matrix exponential for each distinct N_u instead (cached). Both use
+:func:`~estimator.model.matrix_exponential.expm_batch`.
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
-from scipy.linalg import expm
 
 from estimator._compiled.direct_call import DirectCall
 from estimator.errors import ParameterError
@@ -21,6 +21,7 @@ from estimator.model import kernel
 from estimator.model.automaton import Automaton, build_automaton
 from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.model.dynamics import STATUS_TEXT
+from estimator.model.matrix_exponential import expm_batch
 from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters, check_nu_in, load_nominal
 from estimator.units import PER_MICRO
 
@@ -185,7 +186,7 @@ class FastSimulator:
 
     def _exact_uncached(self, nu: float) -> np.ndarray:
         a = self.scaled_matrices(np.array([nu]))[0]
-        result: np.ndarray = expm(a * (self.dt_s * dyn.TIME_SCALE))
+        result: np.ndarray = expm_batch(a * (self.dt_s * dyn.TIME_SCALE))
         return result
 
     def _exact_cache(self, nu: float) -> np.ndarray:
@@ -217,7 +218,7 @@ class FastSimulator:
     def _table(self) -> np.ndarray:
         if self._phi_table is None:
             grid = self._nu0 + self._dnu * np.arange(self._ngrid)
-            self._phi_table = np.ascontiguousarray(expm(self.scaled_matrices(grid) * (self.dt_s * dyn.TIME_SCALE)))
+            self._phi_table = expm_batch(self.scaled_matrices(grid) * (self.dt_s * dyn.TIME_SCALE))
         return self._phi_table
 
     def kernel_handle(self) -> KernelHandle:
