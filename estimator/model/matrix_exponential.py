@@ -2,9 +2,9 @@
 
 The fast simulator discretises each affine region exactly, ``exp(A_r(N_u) h)``, for every N_u of its
 table and, in exact mode, for every distinct N_u a calibration asks for: thousands of 14 × 14
-matrices per calibration. ``scipy.linalg.expm`` spends ≈ 80 µs of Python on each of them (measured
-on this project's machine: 20 of the 44 s of a hysteresis part's first calibration); the arithmetic
-is a few microseconds.
+matrices per calibration. ``scipy.linalg.expm`` took about half the time of a hysteresis part's
+first calibration (profiled), mostly its per-call and per-matrix Python; written out for small
+matrices in one compiled call, that window's calibration took a third of the time.
 
 :func:`expm_batch` is Higham's scaling and squaring with diagonal Padé approximants (N. J. Higham,
 "The scaling and squaring method for the matrix exponential revisited", SIAM J. Matrix Anal. Appl.

@@ -197,7 +197,8 @@ def test_the_readme_targets_are_the_benches_own():
 
 
 def test_publish_takes_the_median_and_range_of_runs_and_a_lots_range_of_one(tmp_path):
-    """``sim_bench publish``: five speed runs give the median and the range; one compensation run the
+    """``sim_bench publish``: five speed runs give the median and the range (one value where all five
+    measured alike); one compensation run the
     range over its lots; a tracking report's lot-life scenario counts as that bench; figures not
     measured again stay, one no bench publishes goes; a directory that is not one is refused with one
     line."""
@@ -210,7 +211,7 @@ def test_publish_takes_the_median_and_range_of_runs_and_a_lots_range_of_one(tmp_
         d.mkdir(parents=True)
         (d / "speed.json").write_text(json.dumps({"benchmark": "speed", "warm_median_ms": warm,
                                                   "warm_with_correction_median_ms": warm + 0.09,
-                                                  "cold_median_ms": 1.0}))
+                                                  "cold_median_ms": 1.0 + 1e-9 * i}))
     lots = [{"closed": {"stroke_spread_um": {"settled_median": v}, "opening_spread_us": {"settled_median": 0.2}}}
             for v in (0.1, 0.13, 0.12)]
     (tmp_path / "run0" / "bench-results" / "compensation.json").write_text(json.dumps(
@@ -227,6 +228,7 @@ def test_publish_takes_the_median_and_range_of_runs_and_a_lots_range_of_one(tmp_
     figs = json.loads(out.read_text())
     assert figs["speed: warm_median_ms"]["text"] == "0.211 (0.209–0.215)"
     assert figs["speed: warm_median_ms"]["runs"] == 5
+    assert figs["speed: cold_median_ms"]["text"] == "1.00"    # every run alike: stated once
     assert figs["compensation: stroke_spread_um"]["text"] == "0.100–0.130"
     assert figs["tracking --scenario lot-life: lh_max_within_um"]["text"] == "0.075"
     assert figs["daemon: daemon_p99_ms"]["text"] == "1.92"
