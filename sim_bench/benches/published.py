@@ -391,8 +391,10 @@ def text(values: list[float], digits: int, spread: bool = False) -> str:
     if len(values) == 1:
         return number(values[0], digits)
     lo, hi = number(min(values), digits), number(max(values), digits)
-    if spread or lo == hi:
-        return lo if lo == hi else f"{lo}–{hi}"
+    if lo == hi:
+        return lo
+    if spread:
+        return f"{lo}–{hi}"
     return f"{number(statistics.median(values), digits)} ({lo}–{hi})"
 
 
