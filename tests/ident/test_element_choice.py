@@ -31,7 +31,7 @@ def fits(monkeypatch: pytest.MonkeyPatch) -> dict:
         canned.setdefault("calls", []).append(thresholds_c if hysteresis else None)
         return canned["grids"][GRIDS_C.index(thresholds_c)] if hysteresis else canned["plain"]
     monkeypatch.setattr(element, "calibrate_electrical", fake)
-    monkeypatch.setattr(element, "widened", lambda best, other, injs, window_s, chain: replace(best, warnings=["widened"]))
+    monkeypatch.setattr(element, "widened", lambda best, other, injs, chain, window_s: replace(best, warnings=["widened"]))
     return canned
 
 
@@ -72,7 +72,7 @@ def test_the_widened_uncertainty_covers_the_grids_disagreement() -> None:
     assert d.lh_sigma_m == pytest.approx(0.2e-6, rel=1e-9) and d.nu_rel_sigma == 0.0
     assert 0.002 < d.stroke_rel_sigma < 0.1 and 0.0 < d.opening_sigma_s < 20e-6
     own = replace(a.params.calibration, lh_sigma_m=0.05e-6, stroke_rel_sigma=0.003)
-    res = widened(replace(a, params=replace(a.params, calibration=own)), b, injs, 200e-6)
+    res = widened(replace(a, params=replace(a.params, calibration=own)), b, injs, a.params.chain, 200e-6)
     cal = res.params.calibration
     assert cal.lh_sigma_m == pytest.approx(np.hypot(0.05e-6, 0.2e-6), rel=1e-9)
     assert cal.stroke_rel_sigma == pytest.approx(np.hypot(0.003, d.stroke_rel_sigma), rel=1e-9)
@@ -91,6 +91,6 @@ def test_the_disagreement_is_taken_over_the_injections_the_calibration_fitted(mo
     monkeypatch.setattr(element, "disagreement_of", lambda a, b, batch: seen.extend(batch) or a.params.calibration)
     cal = ElectricalCalibration(load_nominal(), (), np.ones(0), np.ones(0), np.array([t[0] for t in truth]),
                                 np.array([t[1] for t in truth]), 0.1, 0.1)
-    widened(cal, cal, mixed, 200e-6, chain)
+    widened(cal, cal, mixed, chain, 200e-6)
     assert len(seen) == 3 and all(inj.chain_corrected for inj in seen)
     np.testing.assert_array_equal(seen[1].current_a, injs[1].through_chain(chain).window(200e-6).current_a)

@@ -56,13 +56,14 @@ def calibrate_with_hysteresis_if_needed(injections: list[Injection], base: Injec
     explain the batch; it is the one that explains it better, its uncertainty widened by the two
     grids' disagreement (:func:`widened`). A refusal is the nearer miss, saying why. A part the
     paper's model explains never gets an element (``docs/design.md``)."""
+    base = base or load_nominal()
     res = calibrate_electrical(injections, base, **kw)
     if res.adequate or not hysteresis:
         return res
     fits = [calibrate_electrical(injections, base, hysteresis=True, thresholds_c=g, **kw) for g in GRIDS_C]
     if all(f.adequate for f in fits):
         best, other = sorted(fits, key=lambda f: f.chi2)
-        return widened(best, other, injections, kw.get("window_s", WINDOW_S), (base or load_nominal()).chain)
+        return widened(best, other, injections, base.chain, kw.get("window_s", WINDOW_S))
     nearer = min(fits, key=lambda f: f.misfit_z)
     if nearer.misfit_z >= res.misfit_z:
         return res                      # the refusal names the nearer miss
@@ -76,13 +77,13 @@ def calibrate_with_hysteresis_if_needed(injections: list[Injection], base: Injec
 
 
 def widened(best: ElectricalCalibration, other: ElectricalCalibration, injections: list[Injection],
-            window_s: float = WINDOW_S, chain: MeasurementChain | None = None) -> ElectricalCalibration:
+            chain: MeasurementChain, window_s: float = WINDOW_S) -> ElectricalCalibration:
     """``best`` whose stated uncertainty also covers its disagreement with ``other`` (the same batch
-    calibrated on the other grid, from a base with measurement chain ``chain``, default the nominal
-    one's): the RMS over the batch of the two fits' difference in each injection's N_u (relative) and
-    L_h, and in the valve's predicted plateau stroke (relative) and opening instant, each added in
-    quadrature to ``best``'s own. The full difference, not half: the two grids' errors may share a sign."""
-    usable, _ = usable_injections(injections, chain if chain is not None else load_nominal().chain)
+    calibrated on the other grid, from a base with measurement chain ``chain``): the RMS over the
+    batch of the two fits' difference in each injection's N_u (relative) and L_h, and in the valve's
+    predicted plateau stroke (relative) and opening instant, each added in quadrature to ``best``'s
+    own. The full difference, not half: the two grids' errors may share a sign."""
+    usable, _ = usable_injections(injections, chain)
     d = disagreement_of(best, other, [inj.window(window_s) for inj in usable])
     cal = best.params.calibration
     both = replace(cal, nu_rel_sigma=min(math.hypot(cal.nu_rel_sigma, d.nu_rel_sigma), 0.1),
