@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from typing import Any
 
 import pytest
 
@@ -81,7 +82,7 @@ def test_relearn_and_reset_commands_follow_the_policy_and_are_counted():
 class _Refusing:
     """A calibrator whose every calibration is refused (a part no parameter set explains)."""
 
-    prepare = None
+    prepare: Any = None
 
     def __init__(self) -> None:
         self.submitted: list[int] = []
@@ -175,7 +176,7 @@ def test_an_injectors_own_parameter_file_seeds_it_and_it_is_monitored(tmp_path):
 class _Held:
     """A calibrator whose outcomes come back only when the test releases them (adopting ``params``)."""
 
-    prepare = None
+    prepare: Any = None
 
     def __init__(self, params) -> None:
         self.params, self.queued, self.released = params, [], False
@@ -350,3 +351,62 @@ def test_an_injection_its_model_failed_at_an_unchecked_drive_joins_the_refinemen
     learner.observe(replace(inj, injector_id=2), 17.0, False, True, Status.REJECTED, Status.MODEL_MISMATCH,
                     failed_probe=True)
     assert len(learner._windows[2].items) == 1 and learner.status[2].state == Learning.RELEARNING
+
+
+class _Recording:
+    """A calibrator that records each window's size and refines nothing (the model in use stays)."""
+
+    prepare: Any = None
+
+    def __init__(self) -> None:
+        self.windows: list[int] = []
+        self._done: list[CalibrationOutcome] = []
+
+    def submit(self, injector_id, window, base, config, current=None) -> None:
+        self.windows.append(len(window.items))
+        self._done.append(CalibrationOutcome(injector_id, CalibrationStatus(Learning.REFUSED, held_out_chi2=-1.0,
+                                                                            message="no better"), None))
+
+    def poll(self) -> list[CalibrationOutcome]:
+        done, self._done = self._done, []
+        return done
+
+    def close(self) -> None:
+        pass
+
+
+def test_a_monitored_model_is_refined_twice_first_over_the_smaller_window_and_no_more():
+    """A learned model is refined over ``refine_window`` injections, then over ``refine_again`` (the
+    valve's motion is what the voltage tells least: 24 injections left one lot's opening instants
+    0.58 µs apart, 60 did not), and then never again; a status saved before refinements were counted
+    (refined, no count) has had its first; ``refine_again = 0`` stops after the first."""
+    import numpy as np
+
+    from estimator.ident.learning.learning import Learner
+    from estimator.ident.measurement import Injection
+    from estimator.model.parameters import load_nominal
+    from sim_bench.hardware.plant import Plant, PlantConfig
+
+    plant, rng = Plant(PlantConfig(window_s=150e-6)), np.random.default_rng(2)
+    base = load_nominal()
+
+    def run(config: SelfCalConfig, status: CalibrationStatus, n: int) -> tuple[list[int], CalibrationStatus]:
+        rec = _Recording()
+        learner = Learner(config, base, rec, lambda *a: None, lambda iid: base)
+        learner.status[0] = status
+        for k in range(n):
+            f = 30.0 + 270.0 * ((k * 7) % 11) / 10     # preload forces over the whole range
+            m = plant.measure(17.0, 3e-6, f, rng)
+            learner.observe(Injection(m.current_a, m.voltage_v, m.dt_s, f, 0, k % 256, time_s=0.1 * k),
+                            17.0, False, False, Status.OK, Status.OK)
+        return rec.windows, learner.status[0]
+
+    monitoring = CalibrationStatus(Learning.MONITORING, source="learned", served=8)
+    windows, st = run(SelfCalConfig(refine_window=6, refine_again=9), monitoring, 40)
+    assert windows == [6, 9] and st.refined and st.refinements == 2
+    assert CalibrationStatus.from_dict(json.loads(json.dumps(st.to_dict()))) == st
+    windows, st = run(SelfCalConfig(refine_window=6, refine_again=9), replace(monitoring, refined=True), 40)
+    assert windows == [9] and st.refinements == 2
+    windows, st = run(SelfCalConfig(refine_window=6, refine_again=0), monitoring, 40)
+    assert windows == [6] and st.refinements == 1
+    assert SelfCalConfig().refine_again >= 2 * SelfCalConfig().refine_window

@@ -105,7 +105,7 @@ class Learner:
         self._drop_work(iid)      # a refinement running for the model too: its outcome is dropped
         self._adopt(iid, None, None)
         self._set(iid, replace(st, state=Learning.LEARNING, source="tables", evidence=0.0, served=0, batch=0,
-                               preload_span=0.0, refined=False, learned_lo_n=0.0, learned_hi_n=0.0,
+                               preload_span=0.0, refined=False, refinements=0, learned_lo_n=0.0, learned_hi_n=0.0,
                                message=f"preload force {inj.f_open_n:.0f} N outside {st.learned_lo_n:.0f}-"
                                        f"{st.learned_hi_n:.0f} N, the span the model was learned over: back on "
                                        "the tables, learning again"))
@@ -157,7 +157,7 @@ class Learner:
             window.add(inj, nu)
         elif evidence == 0.0:
             self._windows.pop(iid, None)
-            if state == Learning.MONITORING and not st.refined and c.refine_window \
+            if state == Learning.MONITORING and _next_refinement(st, c) \
                     and self._refined(iid, st, inj, nu, served):
                 return
         if evidence >= c.monitor_limit:
@@ -175,7 +175,7 @@ class Learner:
         It joins the refinement window being collected, or a re-learning window."""
         if st.state == Learning.RELEARNING:
             self._add(iid, inj, nu, Learning.RELEARNING)
-        elif st.state == Learning.MONITORING and not st.refined and self.config.refine_window:
+        elif st.state == Learning.MONITORING and _next_refinement(st, self.config):
             self._refined(iid, st, inj, nu, st.served + 1)
 
     def _refined(self, iid: int, st: CalibrationStatus, inj: Injection, nu: float, served: int) -> bool:
@@ -184,7 +184,7 @@ class Learner:
         sharpens the model and its tolerance diagnostics, and is adopted if it explains held-out
         injections better than the model in use, or no worse while it moves their N_u beyond its
         uncertainty: twelve injections can leave a part's N_u scale several of its σ off."""
-        c = replace(self.config, window=self.config.refine_window)
+        c = replace(self.config, window=_next_refinement(st, self.config))
         window = self._refine.setdefault(iid, CalibrationWindow(c.window))
         window.add(inj, nu)
         if not window.ready(c):
@@ -239,7 +239,7 @@ class Learner:
             # an adequate calibration that explains the held-out injections no better than the model
             # in use: that model still serves (a passing disturbance, or a relearn of a good model)
             self._set(iid, replace(new, state=Learning.MONITORING if own else Learning.IDLE, evidence=0.0,
-                                   batch=0, preload_span=0.0, refined=before.refined))
+                                   batch=0, preload_span=0.0, refined=before.refined, refinements=before.refinements))
             return
         refusals = before.refusals + 1
         wait = self.config.retry_after * min(2 ** (refusals - 1), MAX_BACKOFF)
@@ -253,11 +253,12 @@ class Learner:
         if out.params is not None and self._current(iid) is not None:
             self._adopt(iid, out.params, out.prepared)
             self._set(iid, replace(new, state=Learning.ADOPTED, source="learned", evidence=0.0, served=0,
-                                   refusals=0, retry_in=0, batch=0, preload_span=0.0, refined=True))
+                                   refusals=0, retry_in=0, batch=0, preload_span=0.0, refined=True,
+                                   refinements=_refinements(before) + 1))
             return
         adequate = math.isfinite(out.status.held_out_chi2)
         self._set(iid, replace(before, state=Learning.MONITORING if self._current(iid) is not None else Learning.IDLE,
-                               calibrations=new.calibrations, refined=True, evidence=0.0,
+                               calibrations=new.calibrations, refined=True, refinements=_refinements(before) + 1, evidence=0.0,
                                out_of_tolerance=new.out_of_tolerance if adequate else before.out_of_tolerance,
                                message="refinement: " + out.status.message))
 
@@ -336,3 +337,19 @@ def _narrow_note(window: CalibrationWindow, config: SelfCalConfig, lead: str = "
     """What a window calibrated over a narrow range of preload forces says of itself ("" otherwise)."""
     narrow = window.narrow(config)
     return f"{lead}{narrow}: the model is checked as the rail pressure moves" if narrow else ""
+
+
+def _refinements(st: CalibrationStatus) -> int:
+    """The refinements the model in use has had (a status saved before they were counted: one if refined)."""
+    return max(st.refinements, int(st.refined))
+
+
+def _next_refinement(st: CalibrationStatus, config: SelfCalConfig) -> int:
+    """The window of the monitored model's next refinement, 0 when none is due: ``refine_window``
+    first, then ``refine_again``. The voltage tells least about the valve's motion: over 24 injections
+    one lot's parts still opened from 0.35 µs before to 0.22 µs after the instants their models
+    predicted, over 60 within 0.2 µs; the first, smaller window serves sooner."""
+    done = _refinements(st)
+    if done == 0:
+        return config.refine_window
+    return config.refine_again if done == 1 and config.refine_window else 0

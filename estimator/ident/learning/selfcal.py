@@ -63,6 +63,7 @@ class SelfCalConfig:
     confirm: int = 5               # injections an adopted model serves before it is monitoring
     retry_after: int = 12          # injections after a refused calibration before the next window (doubling, x8 at most)
     refine_window: int = 24        # once monitoring: one more calibration over this many injections (0: none)
+    refine_again: int = 60         # once refined: one more over this many (0: none); the valve's motion sharpens
     adopt_shift_sigmas: float = 3.0   # ... or adopted if it moves the held-out N_u by more than this many sd
     hysteresis: bool = True        # where the tables' R(N_u) I is refused, try a hysteresis element (adopted where
                                    # two grids of plays both explain the batch; element.py, docs/design.md)
@@ -72,10 +73,11 @@ class SelfCalConfig:
                 and self.window >= self.held_out + 3):
             raise ValueError(f"self-calibration window {self.window!r} must hold held_out {self.held_out!r} "
                              "injections and at least three more")
-        if not (isinstance(self.refine_window, int) and not isinstance(self.refine_window, bool)
-                and (self.refine_window == 0 or self.refine_window >= self.held_out + 3)):
-            raise ValueError(f"self-calibration refine_window {self.refine_window!r} must be 0 or hold held_out "
-                             f"{self.held_out!r} injections and at least three more")
+        for name in ("refine_window", "refine_again"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and not isinstance(v, bool) and (v == 0 or v >= self.held_out + 3)):
+                raise ValueError(f"self-calibration {name} {v!r} must be 0 or hold held_out "
+                                 f"{self.held_out!r} injections and at least three more")
         if not isinstance(self.hysteresis, bool):
             raise ValueError(f"self-calibration hysteresis = {self.hysteresis!r} must be true or false")
         for name in ("confirm", "retry_after", "narrow_after"):
@@ -100,7 +102,8 @@ class CalibrationStatus:
     ``served`` the injections the model in use has served since its adoption; ``refusals`` the
     calibrations refused in a row and ``retry_in`` the injections left before the next window;
     ``source`` where the model in use comes from (``tables``, ``learned`` or ``seeded``);
-    ``refined`` whether the model in use has had its refinement over a larger window; ``nu_shift_z``
+    ``refined`` whether the model in use has had its refinement over a larger window, ``refinements``
+    how many (the first over ``refine_window``, a second over ``refine_again``); ``nu_shift_z``
     how far the last calibration moved the held-out injections' N_u, in its standard deviations;
     ``learned_lo_n``..``learned_hi_n`` the preload forces (N) of a model learned over a narrow span
     (0: none), which serves them and those within ``min_preload_spread / 2`` of them.
@@ -121,6 +124,7 @@ class CalibrationStatus:
     retry_in: int = 0
     source: str = "tables"
     refined: bool = False
+    refinements: int = 0           # refinements the model in use has had (refine_window, then refine_again)
     nu_shift_z: float = float("nan")
     learned_lo_n: float = 0.0      # a model learned over a narrow span of preload forces: that span (N);
     learned_hi_n: float = 0.0      # 0: the model in use serves every preload force
@@ -142,7 +146,7 @@ class CalibrationStatus:
                 "held_out_chi2": num(self.held_out_chi2), "nu_shift_z": num(self.nu_shift_z), "message": self.message,
                 "calibrations": self.calibrations, "out_of_tolerance": list(self.out_of_tolerance),
                 "evidence": round(self.evidence, 3), "served": self.served, "refusals": self.refusals,
-                "retry_in": self.retry_in, "source": self.source, "refined": self.refined,
+                "retry_in": self.retry_in, "source": self.source, "refined": self.refined, "refinements": self.refinements,
                 "learned_lo_n": round(self.learned_lo_n, 2), "learned_hi_n": round(self.learned_hi_n, 2)}
 
     @classmethod
@@ -154,7 +158,7 @@ class CalibrationStatus:
         if d.get("state") not in CALIBRATION_STATES:
             raise ValueError(f"state = {d.get('state')!r} is not a learning state")
         st.state = Learning(d["state"])
-        for name in ("batch", "calibrations", "served", "refusals", "retry_in"):
+        for name in ("batch", "calibrations", "served", "refusals", "retry_in", "refinements"):
             v = d.get(name, 0)
             if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v < 2 ** 31:
                 raise ValueError(f"{name} = {v!r} must be a non-negative whole number")
