@@ -353,28 +353,6 @@ def test_an_injection_its_model_failed_at_an_unchecked_drive_joins_the_refinemen
     assert len(learner._windows[2].items) == 1 and learner.status[2].state == Learning.RELEARNING
 
 
-class _Recording:
-    """A calibrator that records each window's size and refines nothing (the model in use stays)."""
-
-    prepare: Any = None
-
-    def __init__(self) -> None:
-        self.windows: list[int] = []
-        self._done: list[CalibrationOutcome] = []
-
-    def submit(self, injector_id, window, base, config, current=None) -> None:
-        self.windows.append(len(window.items))
-        self._done.append(CalibrationOutcome(injector_id, CalibrationStatus(Learning.REFUSED, held_out_chi2=-1.0,
-                                                                            message="no better"), None))
-
-    def poll(self) -> list[CalibrationOutcome]:
-        done, self._done = self._done, []
-        return done
-
-    def close(self) -> None:
-        pass
-
-
 def test_a_monitored_model_is_refined_twice_first_over_the_smaller_window_and_no_more():
     """A learned model is refined over ``refine_window`` injections, then over ``refine_again`` (the
     valve's motion is what the voltage tells least: 24 injections left one lot's opening instants
@@ -391,7 +369,7 @@ def test_a_monitored_model_is_refined_twice_first_over_the_smaller_window_and_no
     base = load_nominal()
 
     def run(config: SelfCalConfig, status: CalibrationStatus, n: int) -> tuple[list[int], CalibrationStatus]:
-        rec = _Recording()
+        rec = _Refusing()      # the model in use stays: refused refinements count as refinements
         learner = Learner(config, base, rec, lambda *a: None, lambda iid: base)
         learner.status[0] = status
         for k in range(n):
@@ -399,7 +377,7 @@ def test_a_monitored_model_is_refined_twice_first_over_the_smaller_window_and_no
             m = plant.measure(17.0, 3e-6, f, rng)
             learner.observe(Injection(m.current_a, m.voltage_v, m.dt_s, f, 0, k % 256, time_s=0.1 * k),
                             17.0, False, False, Status.OK, Status.OK)
-        return rec.windows, learner.status[0]
+        return rec.submitted, learner.status[0]
 
     monitoring = CalibrationStatus(Learning.MONITORING, source="learned", served=8)
     windows, st = run(SelfCalConfig(refine_window=6, refine_again=9), monitoring, 40)
