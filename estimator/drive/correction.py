@@ -792,15 +792,16 @@ def correction_after(compensator: DriveCompensator, tracker: Tracker, inj: Injec
     ok = res.status == Status.OK
     sim = tracker.model_simulator(iid, inj.dt_s)
     cov = None
-    if st is not None and ok:
-        p = np.asarray(st.p, dtype=float)[:2, :2]
-        var = np.array([res.sigma_nu ** 2, (res.sigma_lh_m * UM_PER_M) ** 2])
+    if st is not None and ok:   # in scalars: every injection
+        p00, p01, p11 = float(st.p[0][0]), float(st.p[0][1]), float(st.p[1][1])
+        v_nu, v_lh = res.sigma_nu ** 2, (res.sigma_lh_m * UM_PER_M) ** 2
         cal = sim.params.calibration if sim is not None else None
         if cal is not None and cal.has_response and _validated(tracker, iid):
-            var = np.maximum(var - np.diag(cal.cov(res.nu_n_per_v)), np.diag(p))
-        rho = float(p[0, 1] / math.sqrt(p[0, 0] * p[1, 1])) if p[0, 0] > 0 and p[1, 1] > 0 else 0.0
-        c = rho * math.sqrt(var[0] * var[1])
-        cov = np.array([[var[0], c], [c, var[1]]])
+            own = cal.cov(res.nu_n_per_v)
+            v_nu, v_lh = max(v_nu - float(own[0, 0]), p00), max(v_lh - float(own[1, 1]), p11)
+        rho = p01 / math.sqrt(p00 * p11) if p00 > 0 and p11 > 0 else 0.0
+        c = rho * math.sqrt(v_nu * v_lh)
+        cov = np.array(((v_nu, c), (c, v_lh)))
     return compensator.update(iid, ok, sim, res.nu_n_per_v, res.lh_m * UM_PER_M,
                               cov, inj.f_open_n if preload_n is None else preload_n,
                               tracker.nominal_simulator(inj.dt_s), res.rate_n_per_v_s, inj.time_s,

@@ -74,6 +74,7 @@ class AmplifierDrive:
         self.source = source
         self.measured = measured
         self._grids: dict[tuple[float, int], np.ndarray] = {}
+        self._references: dict[tuple[float, int], tuple[np.ndarray, float]] = {}
         self._actuator: dict[tuple[float, int, MeasurementChain], np.ndarray] = {}
 
     def to_dict(self) -> dict[str, Any]:
@@ -154,14 +155,27 @@ class AmplifierDrive:
         """The measured current of one injection (A, sampled every ``dt_s`` s from the start of
         charging) against this drive over the measured window (:class:`DriveCheck`)."""
         cur = np.asarray(current_a, dtype=float)
-        ref = self.samples(dt_s, (cur.size - 1) * dt_s)
-        den, cross, norm2 = float(ref @ ref), float(ref @ cur), float(cur @ cur)
+        ref, den = self._reference(dt_s, cur.size)
+        cross, norm2 = float(np.dot(ref, cur)), float(np.dot(cur, cur))
         if den <= 0 or not (math.isfinite(cross) and math.isfinite(norm2)):
             return DriveCheck(math.nan, math.inf, False)
         scale = cross / den
         # |cur - scale ref|² = |cur|² - scale (ref·cur), without the residual's array (every injection)
         rel = math.sqrt(max(norm2 - scale * cross, 0.0) / norm2) if norm2 > 0 else math.inf
         return DriveCheck(scale, rel, bool(rel <= tolerance and scale > 0))
+
+    def _reference(self, dt_s: float, size: int) -> tuple[np.ndarray, float]:
+        """:meth:`samples` for ``size`` samples every ``dt_s`` s and its squared norm (A²), cached per grid
+        (every injection is checked: the norm is not taken again)."""
+        key = (float(dt_s), size)
+        got = self._references.get(key)
+        if got is None:
+            ref = self.samples(dt_s, (size - 1) * dt_s)
+            got = (ref, float(np.dot(ref, ref)))
+            if len(self._references) >= MAX_GRIDS:
+                self._references.clear()
+            self._references[key] = got
+        return got
 
 
 class DriveLearner:
