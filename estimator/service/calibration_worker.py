@@ -71,6 +71,26 @@ def _lower_priority(increment: int) -> None:
     FastSimulator().simulate(cur, np.array([17.0, 18.0]), np.array([2e-6, 3e-6]))
 
 
+def _wake_to_end(pid: int) -> None:
+    """Take the worker process ``pid`` out of ``SCHED_IDLE`` so that it can end promptly (best effort).
+
+    A process ends on the CPU: under ``SCHED_IDLE``, on cores other work keeps busy, it got one so
+    rarely that its end took 5-8 s, and the daemon, which waits for its children, exited that much
+    later. It goes back to the normal policy where it may (root, ``CAP_SYS_NICE``, or an
+    ``RLIMIT_NICE`` that allows its nice value, else nice 19); a plain user's daemon on a saturated
+    machine still waits for it. (The systemd unit's system call filter keeps the worker at the normal
+    policy from the start.)"""
+    idle = getattr(os, "SCHED_IDLE", None)
+    try:
+        if idle is None or os.sched_getscheduler(pid) != idle:
+            return
+        os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
+    except OSError:
+        with contextlib.suppress(OSError):
+            os.setpriority(os.PRIO_PROCESS, pid, 19)
+            os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))
+
+
 class BackgroundCalibrator:
     """Self-calibrations in a low-priority worker process (see the module docstring).
 
@@ -160,4 +180,5 @@ class BackgroundCalibrator:
             ex.shutdown(wait=False, cancel_futures=True)
             for p in processes:   # do not wait seconds for a running calibration to finish
                 if p.is_alive():
+                    _wake_to_end(p.pid)
                     p.terminate()

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import os
+import resource
 import threading
 import time
 import uuid
@@ -127,6 +129,31 @@ def test_the_background_calibrator_runs_in_another_process_and_reports_a_failed_
         assert cal.running == 0
     finally:
         cal.close()
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="no SCHED_IDLE on this platform")
+def test_a_closing_calibrator_takes_its_worker_out_of_sched_idle_so_that_it_ends_promptly(monkeypatch):
+    """Under SCHED_IDLE, on cores other work kept busy, the worker process took 5-8 s to end and the
+    daemon exited that much after SIGTERM: close() puts it back under the normal policy first."""
+    from estimator.service import calibration_worker
+
+    if os.geteuid() != 0 and resource.getrlimit(resource.RLIMIT_NICE)[0] < 1:
+        pytest.skip("this user may not take a process out of SCHED_IDLE (RLIMIT_NICE 0)")
+    seen: list[tuple[int, int]] = []
+    wake = calibration_worker._wake_to_end
+
+    def spy(pid: int) -> None:
+        wake(pid)
+        seen.append((pid, os.sched_getscheduler(pid)))
+    monkeypatch.setattr(calibration_worker, "_wake_to_end", spy)
+    cal = BackgroundCalibrator()
+    try:
+        pid = cal._pool().submit(os.getpid).result(timeout=120)   # after the worker's initializer
+        if os.sched_getscheduler(pid) != os.SCHED_IDLE:
+            pytest.skip("the platform refused SCHED_IDLE to the worker")
+    finally:
+        cal.close()
+    assert seen == [(pid, os.SCHED_OTHER)]
 
 
 def test_the_state_file_keeps_an_adopted_parameter_set_and_refuses_a_foreign_one(tmp_path):
