@@ -16,7 +16,7 @@ def test_estimator_unit_directives():
     text = (UNITS / "injector-estimator@.service").read_text()
     for d in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "DynamicUser=yes", "StateDirectory=",
               "ProtectSystem=strict", "RestrictAddressFamilies=AF_CAN AF_UNIX", "CapabilityBoundingSet=\n",
-              "--bus socketcan:%i"):
+              "--bus socketcan:%i", "SystemCallFilter=sched_setscheduler\n"):
         assert d in text, d
     assert "MTUBytes=72" in (UNITS / "vcan0.netdev").read_text()
 
