@@ -21,12 +21,12 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	@$(PY) -m estimator compile --quiet
-	$(PY) -m pytest -m "not slow"
+	$(PY) -m pytest -n 2 -m "not slow"
 
-# End-to-end runs as a user types them: the README's quick starts, the CLI calibrations (≈ 1 min; CI runs them).
+# End-to-end runs as a user types them: the README's quick starts, the CLI calibrations (≈ 2.5 min; CI runs them).
 test-slow: $(STAMP)
 	@$(PY) -m estimator compile --quiet
-	$(PY) -m pytest -m slow
+	$(PY) -m pytest -n 2 -m slow
 
 # The vcan0 + candump suite: natively where vcan0 exists, otherwise inside the QEMU VM of ../shared/vcan-vm.
 test-vcan: $(STAMP)
