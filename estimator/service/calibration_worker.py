@@ -77,9 +77,8 @@ def _wake_to_end(pid: int) -> None:
     A process ends on the CPU: under ``SCHED_IDLE``, on cores other work keeps busy, it got one so
     rarely that its end took 5-8 s, and the daemon, which waits for its children, exited that much
     later. It goes back to the normal policy where it may (root, ``CAP_SYS_NICE``, or an
-    ``RLIMIT_NICE`` that allows its nice value, else nice 19); a plain user's daemon on a saturated
-    machine still waits for it. (The systemd unit's system call filter keeps the worker at the normal
-    policy from the start.)"""
+    ``RLIMIT_NICE`` that allows its nice value, else nice 19); a plain user's daemon, the systemd
+    unit's among them, on a saturated machine still waits for it (hence the unit's stop timeout)."""
     idle = getattr(os, "SCHED_IDLE", None)
     try:
         if idle is None or os.sched_getscheduler(pid) != idle:
