@@ -106,6 +106,7 @@ class BackgroundCalibrator:
         self._done: list[CalibrationOutcome] = []
         self._running: set[int] = set()
         self._executor: ProcessPoolExecutor | None = None
+        self._closes = 0   # close() calls so far: a calibration submitted before the last one was abandoned
         self._pool().submit(int)   # start the worker process now (at the daemon's start, not in an update)
 
     def _pool(self) -> ProcessPoolExecutor:
@@ -125,9 +126,18 @@ class BackgroundCalibrator:
             return
         with self._lock:
             self._running.add(injector_id)
-        fut.add_done_callback(lambda f: self._finish(injector_id, f))
+        closes = self._closes
+        fut.add_done_callback(lambda f: self._finish(injector_id, f, closes))
 
-    def _finish(self, injector_id: int, fut: Future[Any]) -> None:
+    def _finish(self, injector_id: int, fut: Future[Any], closes: int | None = None) -> None:
+        """One calibration back (on an executor thread); ``closes``: :meth:`close` calls when it was
+        submitted (one since: abandoned by the stop, not a failure to warn of)."""
+        if closes is not None and closes != self._closes:
+            with self._lock:
+                self._running.discard(injector_id)
+                self._finished.notify_all()
+            log.debug("injector %d: the calibration was abandoned when the calibrator closed", injector_id)
+            return
         try:
             status, params, tables = fut.result()
         except Exception as exc:
@@ -174,6 +184,7 @@ class BackgroundCalibrator:
     def close(self) -> None:
         """Stop the worker process (a running calibration is abandoned)."""
         ex, self._executor = self._executor, None
+        self._closes += 1
         if ex is not None:
             processes = list((getattr(ex, "_processes", None) or {}).values())
             ex.shutdown(wait=False, cancel_futures=True)

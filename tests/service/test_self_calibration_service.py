@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import resource
 import threading
@@ -129,6 +130,23 @@ def test_the_background_calibrator_runs_in_another_process_and_reports_a_failed_
         assert cal.running == 0
     finally:
         cal.close()
+
+
+def test_calibrations_abandoned_by_close_are_neither_warnings_nor_outcomes(caplog):
+    """A daemon stopping abandons its calibrations: that is no failure to warn of (it logged
+    "self-calibration failed" for each, and from a thread that could outlive the log's stream)."""
+    _, injections = _series_injections(5, 12)
+    window = CalibrationWindow(12)
+    for inj in injections:
+        window.add(inj, 17.0)
+    cal = BackgroundCalibrator()
+    caplog.set_level(logging.WARNING, logger="estimator.service.calibration_worker")
+    cal.submit(0, window, load_nominal(), SelfCalConfig())   # running when closed
+    cal.submit(1, window, load_nominal(), SelfCalConfig())   # queued behind it
+    cal.close()
+    assert cal.wait(timeout=120), "an abandoned calibration still counts as running"
+    assert cal.poll() == []
+    assert not caplog.records, [r.getMessage() for r in caplog.records]
 
 
 @pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="no SCHED_IDLE on this platform")
