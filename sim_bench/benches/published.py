@@ -270,6 +270,8 @@ FIGURES: tuple[Figure, ...] = (
            "| the same injectors once adopted", headline=True),
     Figure("daemon --self-calibration", "overload_p99_ms", lambda r: r["overload"]["daemon_latency_p99_ms"], 1,
            "| the same, then 400/s"),
+    Figure("daemon --self-calibration", "yardstick_us_per_candidate", lambda r: r["yardstick_us_per_candidate"], 1,
+           LEARNING_ROW),
     Figure("bench --scenario nominal", "max_abs_lh_um", lambda r: r["max_abs_lh_um"], 3,
            "| end-to-end bench, nominal", headline=True),
     Figure("bench --scenario nominal", "rms_lh_um", lambda r: r["rms_lh_um"], 3, "| end-to-end bench, nominal"),
