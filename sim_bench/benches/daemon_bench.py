@@ -260,13 +260,13 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
     """Latency at ``rate`` injections/s, then ``overload_factor`` x that; returns the report.
     ``self_calibration``: series injectors and the daemon's self-calibration on, so that its
     background calibrations run while the latency is measured (the report counts them)."""
-    from sim_bench.benches.speed import yardstick_us_per_candidate
+    from sim_bench.benches.speed import yardstick_fields, yardstick_us_per_candidate
 
     out_dir = out_dir.resolve()   # the daemon runs in another working directory
     out_dir.mkdir(parents=True, exist_ok=True)
     codec = Codec()
     pool = injection_pool(codec, series=self_calibration)
-    yardstick = [yardstick_us_per_candidate(0.5)]   # the machine's speed of the hour, before and after
+    before = yardstick_us_per_candidate(0.5)   # the machine's speed of the hour, before and after
     bus, hub = resolve_bus(bus, out_dir)
     report: dict = {"bus": bus, "rate_per_s": rate, "seconds": seconds, "self_calibration": self_calibration}
     # the daemon's default configuration: learning on (the nominal injectors never start it)
@@ -285,9 +285,7 @@ def run_latency_and_overload(out_dir: Path, rate: float = 200.0, seconds: float 
     finally:
         if hub is not None:
             hub.stop()
-    yardstick.append(yardstick_us_per_candidate(0.5))
-    report["yardstick_us_per_candidate"] = float(np.mean(yardstick))
-    report["yardstick_before_after"] = yardstick
+    report.update(yardstick_fields(before, yardstick_us_per_candidate(0.5)))
     return report
 
 
@@ -340,6 +338,8 @@ def latency_histogram(rep: dict, path: Path) -> str | None:
 
 def format_report(ing: dict, rep: dict) -> str:
     """The daemon benchmark as a table."""
+    from sim_bench.benches.speed import yardstick_text
+
     lines = [f"ingest (decode + reassembly, one core): {ing['frames_per_s']:,.0f} frames/s (target >= 100,000)",
              f"daemon on {rep['bus']}:",
              f"{'phase':<9} {'offered/s':>9} {'estimated':>9} {'ext p50':>8} {'ext p99':>8} {'daemon p99':>10} "
@@ -369,10 +369,8 @@ def format_report(ing: dict, rep: dict) -> str:
                          f"model by the end: {rep[phase]['adopted_injectors']}")
     lines.append("latencies in ms; ext = trailer sent -> EstimateState received (includes the bus), "
                  "daemon = last frame arrived -> EstimateState sent (heartbeat LatencyP99, last 10 s)")
-    if "yardstick_us_per_candidate" in rep:
-        before, after = rep["yardstick_before_after"]
-        lines.append(f"machine yardstick: {rep['yardstick_us_per_candidate']:.1f} µs a candidate simulation at batch 256 "
-                     f"(before and after: {before:.1f}, {after:.1f})")
+    if "yardstick_before_after" in rep:
+        lines.append(yardstick_text(rep))
     if rep.get("histogram_png"):
         lines.append(f"histogram: {rep['histogram_png']}")
     return "\n".join(lines)

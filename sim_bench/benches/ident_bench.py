@@ -254,9 +254,9 @@ def speed(seed: int = 4, injections: int = 300, drive: Drive | None = None) -> d
     and the warm update in units of it: the time of how many candidate simulations it takes, a figure
     that carries over to another hour or a slower bench computer (its warm update ≈ that many times
     its own yardstick)."""
-    from sim_bench.benches.speed import yardstick_us_per_candidate
+    from sim_bench.benches.speed import yardstick_fields, yardstick_us_per_candidate
 
-    yardstick = [yardstick_us_per_candidate(0.5)]
+    before = yardstick_us_per_candidate(0.5)
     plant = Plant(PlantConfig() if drive is None else PlantConfig(drive=drive))
     sim = FastSimulator()
     rng = np.random.default_rng(seed)
@@ -306,10 +306,9 @@ def speed(seed: int = 4, injections: int = 300, drive: Drive | None = None) -> d
         background.append(time.perf_counter() - t0)
     total = busy
     w = np.array(warm) * 1e3
-    yardstick.append(yardstick_us_per_candidate(0.5))
-    us = float(np.mean(yardstick))
-    return {"benchmark": "speed", "seed": seed, "injections": injections,
-            "yardstick_us_per_candidate": us, "yardstick_before_after": yardstick,
+    yardstick = yardstick_fields(before, yardstick_us_per_candidate(0.5))
+    us = yardstick["yardstick_us_per_candidate"]
+    return {"benchmark": "speed", "seed": seed, "injections": injections, **yardstick,
             "warm_median_candidates": 1e3 * float(np.median(w)) / us,
             "warm_with_correction_median_candidates": 1e6 * float(np.median(with_correction)) / us,
             "warm_median_ms": float(np.median(w)), "warm_p99_ms": float(np.percentile(w, 99)),
@@ -335,6 +334,8 @@ def speed_failures(rep: dict) -> list[str]:
 
 def format_speed(rep: dict) -> str:
     """The speed report as a table."""
+    from sim_bench.benches.speed import yardstick_text
+
     return "\n".join([
         "recursive estimator, one core, 100 µs window",
         f"{'warm median':>12} {'(CPU time)':>11} {'warm p99':>9} {'cold median':>12} {'cold max':>9} {'injections/s':>13}",
@@ -348,7 +349,5 @@ def format_speed(rep: dict) -> str:
         f"bare update timed beside it (median of the pairs' differences); its deferred work (tables, "
         f"derivatives), run while the worker is idle: {rep.get('correction_background_ms', float('nan')):.3f} ms "
         f"an injection on average",
-        f"machine yardstick: {rep['yardstick_us_per_candidate']:.1f} µs a candidate simulation at batch 256 "
-        f"(before and after: {rep['yardstick_before_after'][0]:.1f}, {rep['yardstick_before_after'][1]:.1f}); "
-        f"the warm update takes the time of {rep['warm_median_candidates']:.0f} candidates, "
+        f"{yardstick_text(rep)}; the warm update takes the time of {rep['warm_median_candidates']:.0f} candidates, "
         f"{rep['warm_with_correction_median_candidates']:.0f} with the drive correction"])

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import platform
 import time
+from typing import Any
 
 import numpy as np
 
@@ -56,3 +57,16 @@ def yardstick_us_per_candidate(seconds: float = 1.0) -> float:
     """The machine's speed of the hour: µs per candidate at batch 256 (the figure benches print beside
     their timings, so that runs from different hours compare)."""
     return float(measure((256,), seconds=seconds)["results"][0]["us_per_candidate"])
+
+
+def yardstick_fields(before: float, after: float) -> dict[str, Any]:
+    """A report's yardstick from measurements before and after its timings (µs per candidate): their
+    mean and both."""
+    return {"yardstick_us_per_candidate": (before + after) / 2, "yardstick_before_after": [before, after]}
+
+
+def yardstick_text(rep: dict) -> str:
+    """The line that states a report's yardstick (:func:`yardstick_fields`)."""
+    before, after = rep["yardstick_before_after"]
+    return (f"machine yardstick: {rep['yardstick_us_per_candidate']:.1f} µs a candidate simulation at batch 256 "
+            f"(before and after: {before:.1f}, {after:.1f})")
