@@ -129,10 +129,10 @@ class BackgroundCalibrator:
         closes = self._closes
         fut.add_done_callback(lambda f: self._finish(injector_id, f, closes))
 
-    def _finish(self, injector_id: int, fut: Future[Any], closes: int | None = None) -> None:
+    def _finish(self, injector_id: int, fut: Future[Any], closes: int) -> None:
         """One calibration back (on an executor thread); ``closes``: :meth:`close` calls when it was
         submitted (one since: abandoned by the stop, not a failure to warn of)."""
-        if closes is not None and closes != self._closes:
+        if closes != self._closes:
             with self._lock:
                 self._running.discard(injector_id)
                 self._finished.notify_all()
