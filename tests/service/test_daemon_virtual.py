@@ -78,6 +78,7 @@ def test_injections_in_estimates_out_match_the_core(running):
     codec = Codec()
     reference = Tracker()
     expected = []
+    got = []
     for k in range(6):
         inj, _ = measured(17.4, 3.6, 2000 + k, window_s=100e-6)
         for fr in injection_frames(codec, 1, k, inj.dt_s, inj.current_a, inj.voltage_v, 28.0, 40.0):
@@ -89,7 +90,10 @@ def test_injections_in_estimates_out_match_the_core(running):
         from estimator.ident.measurement import Injection
         expected.append(reference.update(Injection(c_raw * q.current_scale, v_raw * q.voltage_scale, inj.dt_s,
                                                    28.0, 1, k, 40.0, t_trailer)))
-    got = collect(bus, codec, lambda g: sum(isinstance(r, ValvePrediction) for r in g) >= 6)
+        # one injection at a time: a burst of a new injector's injections behind its cold start would
+        # exceed what may wait per injector and be shed (fair_queue's own tests), not what this checks
+        got += collect(bus, codec, lambda g, k=k: any(isinstance(r, ValvePrediction) and r.counter == k for r in g),
+                       timeout=60.0)
     states = [r for r in got if isinstance(r, EstimateState)]
     quality = [r for r in got if isinstance(r, EstimateQuality)]
     assert [s.counter for s in states] == list(range(6))
