@@ -85,6 +85,11 @@ class SimulatorPool:
         """Whether a simulator for ``dt_s`` (s) is built."""
         return math.isfinite(dt_s) and self._key(dt_s) in self._sims
 
+    def built_for(self, dt_s: float) -> FastSimulator | None:
+        """The simulator for ``dt_s`` (s) if one is built, else None; never builds one, nor counts as a
+        use (a lookup on every injection, beside the estimate that used it)."""
+        return self._sims.get(self._key(dt_s)) if math.isfinite(dt_s) else None
+
     def add(self, sim: FastSimulator) -> None:
         """Put an existing simulator in (it counts against ``max_size``)."""
         self._store(self._key(sim.dt_s), sim)

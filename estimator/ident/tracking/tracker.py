@@ -110,12 +110,11 @@ class Tracker:
     def model_simulator(self, injector_id: int, dt_s: float) -> FastSimulator | None:
         """The simulator ``injector_id`` is estimated with at the sample period ``dt_s`` (s): its own
         model's once learned or seeded, else the configured one's; None if none is built for it."""
-        pool = self.own_pools.get(injector_id, self.pool)
-        return pool.get(dt_s) if pool.has(dt_s) else None
+        return self.own_pools.get(injector_id, self.pool).built_for(dt_s)
 
     def nominal_simulator(self, dt_s: float) -> FastSimulator | None:
         """The configured parameters' simulator at ``dt_s`` (s), None if none is built for it."""
-        return self.pool.get(dt_s) if self.pool.has(dt_s) else None
+        return self.pool.built_for(dt_s)
 
     def _model_of(self, injector_id: int) -> InjectorParameters | None:
         """The injector's own parameter set, None while it is estimated with the configured one."""
