@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -38,7 +39,11 @@ from estimator.ident.status import Learning, Status
 from estimator.pipeline.config import EstimatorConfig
 from sim_bench.benches.targets import TARGETS, limit
 from sim_bench.hardware.amplifiers import PROFILES, amplifier
-from sim_bench.hardware.series_life import LotSpec, draw_lot
+from sim_bench.hardware.plant import Measurement
+from sim_bench.hardware.series_life import Life, LotSpec, draw_lot
+
+if TYPE_CHECKING:
+    from estimator.pipeline.processor import Processor, Published
 
 INJECTORS = 8              # a lot: an engine's injectors
 LOTS = 1                   # lots per amplifier profile (seeds seed, seed + 1, ...): whether σ covers a part's bias is
@@ -108,16 +113,7 @@ def run_loop(closed: bool, seed: int, injectors: int = INJECTORS, injections: in
         for i, life in enumerate(lives):
             corr = last.get(i, Correction())
             use = closed and corr.valid
-            applied: dict[str, float] = {}
-
-            def scale_for(f: float, corr: Correction = corr, applied: dict[str, float] = applied) -> float:
-                scale, offset = corr.at(f)
-                applied.update(scale=scale, offset=offset)
-                return scale
-            m, _truth = life.measure(k, injections, rngs[i], scale_for if use else None, walks[i][k])
-            inj = Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n, i, k % 256, float("nan"), float(k))
-            pub = processor.estimate(inj, walks[i][k + 1] if ecu else None)
-            offset = applied.get("offset", 0.0)
+            m, pub, offset = drive_once(processor, life, i, k, injections, rngs[i], walks[i], corr if use else None, ecu)
             out.stroke_um[i, k] = m.stroke_m * 1e6
             out.opening_us[i, k] = offset + m.t_open_s * 1e6
             out.applied[i, k] = use
@@ -134,7 +130,7 @@ def run_loop(closed: bool, seed: int, injectors: int = INJECTORS, injections: in
             if last[i].state == "valid" and pub.result.status != Status.OK:
                 out.valid_not_ok += 1
             st = processor.tracker.calibration.get(i)
-            model = processor.tracker.model_simulator(i, inj.dt_s)
+            model = processor.tracker.model_simulator(i, m.dt_s)
             if life.swap_at is not None and k == life.swap_at:   # a new part: its settling counts from its own model
                 out.adopted_at[i], swapped_model[i] = None, model
             if out.adopted_at[i] is None and st is not None and st.state in (Learning.ADOPTED, Learning.MONITORING) \
@@ -147,6 +143,25 @@ def run_loop(closed: bool, seed: int, injectors: int = INJECTORS, injections: in
             adopted = out.adopted_at[i]
             out.mismatch[i, k] = adopted is not None and k > adopted and pub.result.status == Status.MODEL_MISMATCH
     return out
+
+
+def drive_once(processor: Processor, life: Life, injector: int, k: int, injections: int,
+               rng: np.random.Generator, walk: np.ndarray, corr: Correction | None,
+               ecu: bool = True) -> tuple[Measurement, Published, float]:
+    """Injection ``k`` of ``injections`` of ``life`` (at the preload force ``walk[k]``, N) driven by
+    ``corr`` taken at that force as an amplifier applies it (None: the standard drive), estimated as
+    ``injector`` with its correction for ``walk[k + 1]`` (``ecu``: the next preload force is known,
+    else this one's). Returns the measurement, what the processor published and the offset applied
+    (µs; its opening instant counts from the standard drive's start of charging)."""
+    applied = {"offset": 0.0}
+
+    def scale_for(f: float) -> float:
+        assert corr is not None
+        scale, applied["offset"] = corr.at(f)
+        return scale
+    m, _truth = life.measure(k, injections, rng, scale_for if corr is not None else None, walk[k])
+    inj = Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n, injector, k % 256, float("nan"), float(k))
+    return m, processor.estimate(inj, walk[k + 1] if ecu else None), applied["offset"]
 
 
 def spread(values: np.ndarray) -> np.ndarray:

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from estimator.drive.correction import Correction
-from estimator.ident.measurement import Injection
 from estimator.ident.status import Learning
 from estimator.pipeline import build_pipeline
 from estimator.pipeline.config import EstimatorConfig
@@ -31,17 +30,9 @@ def test_a_model_refined_twice_predicts_its_parts_opening_instant_within_a_fifth
     walk = life.preload_walk(LIFE + 1, np.random.default_rng(life.seed + 1))
     corr, errors = Correction(), []
     for k in range(RUN):
-        use = corr.valid
-        applied = {"offset": 0.0}
-
-        def scale_for(f: float, corr: Correction = corr, applied: dict[str, float] = applied) -> float:
-            scale, applied["offset"] = corr.at(f)
-            return scale
-        m, _ = life.measure(k, LIFE, rng, scale_for if use else None, walk[k])
-        pub = processor.estimate(Injection(m.current_a, m.voltage_v, m.dt_s, m.f_open_n, 4, k % 256,
-                                           float("nan"), float(k)), walk[k + 1])
-        if use and k >= RUN - JUDGED:
-            errors.append(applied["offset"] + m.t_open_s * 1e6 - corr.opening_us)
+        m, pub, offset = compensation.drive_once(processor, life, 4, k, LIFE, rng, walk, corr if corr.valid else None)
+        if corr.valid and k >= RUN - JUDGED:
+            errors.append(offset + m.t_open_s * 1e6 - corr.opening_us)
         corr = pub.correction or Correction()
     assert len(errors) >= JUDGED - 2
     assert abs(float(np.mean(errors))) <= 0.2, f"opening instants {np.mean(errors):+.2f} µs off the predicted"
