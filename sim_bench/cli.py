@@ -18,6 +18,7 @@ from estimator.model.parameters import NOMINAL_PRELOAD_N
 from sim_bench.benches import tracking_bench
 from sim_bench.benches.targets import TARGETS, missed
 from sim_bench.hardware import scenarios
+from sim_bench.hardware.amplifiers import EXTRA_PROFILES as EXTRA_AMPLIFIERS
 from sim_bench.hardware.amplifiers import PROFILES as AMPLIFIER_PROFILES
 
 log = logging.getLogger("sim_bench")
@@ -535,8 +536,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=1, help="seed of the first lot (default 1)")
     s.add_argument("--injectors", type=int, default=8, help="injectors in a lot (default 8)")
     s.add_argument("--lots", type=int, default=1, help="lots per amplifier profile, seeds SEED, SEED+1, ... (default 1)")
-    s.add_argument("--amplifier", default="all", choices=(*AMPLIFIER_PROFILES, "all"),
-                   help="the simulated amplifier's standard drive (sim_bench.hardware.amplifiers; default all of them)")
+    s.add_argument("--amplifier", default="all", choices=(*AMPLIFIER_PROFILES, *EXTRA_AMPLIFIERS, "all"),
+                   help="the simulated amplifier's standard drive (sim_bench.hardware.amplifiers; default all: "
+                   f"{', '.join(AMPLIFIER_PROFILES)})")
     s.add_argument("--injections", type=int, default=150, help="injections per injector (default 150)")
     s.add_argument("--hysteresis", action="store_true",
                    help="two of the lot's parts with a hysteresis R(N_u) I cannot explain (learned with the element)")

@@ -12,6 +12,14 @@ the ones every compensation figure is measured on:
   under-damped loop (40 kHz, damping 0.45: ≈ 20 % overshoot at each corner, the current lagging by a
   few µs) and a ±0.3 A hysteresis-band ripple of 5 µs.
 
+Two more are selectable by name and not in ``compensation``'s default run (:data:`EXTRA_PROFILES`):
+shapes the estimator was never tuned on, for checking that a result does not depend on the three:
+
+- ``boost-hold``: a boost to 1.8 × the plateau current for 25 µs (8 µs ramps), then a lower hold
+  current to 140 µs, the trapezoid's charge; a ±0.2 A ripple of 7 µs;
+- ``slow-ramp``: a linear rise over 60 µs, flat to 130 µs, down at 150 µs, the trapezoid's charge (the
+  valve opens while the current still rises); a ±0.1 A ripple of 10 µs.
+
 Each scales linearly with the correction's scale (its ripple does not: a switching amplifier's band is
 its own). ``python -m sim_bench compensation --amplifier NAME`` runs a lot on one of them.
 """
@@ -73,6 +81,31 @@ def current_controlled(natural_hz: float = 40e3, damping: float = 0.45) -> Drive
     return TableDrive.sampled(np.asarray(y).ravel(), FINE_DT_S)
 
 
+def boost_hold() -> Drive:
+    """A boost to 1.8 × the plateau current for 25 µs, then a hold current to 140 µs (8 µs ramps; the
+    boost ramps down while the hold ramps up), scaled to the trapezoid's charge; the discharge a
+    trapezoid at 500 µs."""
+    t = np.arange(0.0, HORIZON_S, FINE_DT_S)
+    charge = STANDARD_AMPLITUDE_A * CHARGE_DURATION_S
+    cur = trapezoid(t, 1.8, 0.0, 8e-6, 25e-6, 33e-6) + trapezoid(t, 1.0, 25e-6, 8e-6, 140e-6, 148e-6)
+    cur *= charge / (float(np.sum(cur)) * FINE_DT_S)
+    return TableDrive.sampled(cur + _discharge(t), FINE_DT_S)
+
+
+def slow_ramp() -> Drive:
+    """A linear rise over 60 µs, flat to 130 µs, down at 150 µs, scaled to the trapezoid's charge; the
+    discharge a trapezoid at 500 µs."""
+    t = np.arange(0.0, HORIZON_S, FINE_DT_S)
+    cur = trapezoid(t, 1.0, 0.0, 60e-6, 130e-6, 150e-6)
+    cur *= STANDARD_AMPLITUDE_A * CHARGE_DURATION_S / (float(np.sum(cur)) * FINE_DT_S)
+    return TableDrive.sampled(cur + _discharge(t), FINE_DT_S)
+
+
+def _discharge(t_s: np.ndarray) -> np.ndarray:
+    """The standard trapezoid's discharge moved to 500 µs (A)."""
+    return trapezoid(t_s, -STANDARD_AMPLITUDE_A, 500e-6, 20e-6, 640e-6, 660e-6)
+
+
 @dataclass(frozen=True)
 class Amplifier:
     """An amplifier: its standard drive at scale 1 (no ripple) and its ripple (peak A, period s)."""
@@ -95,13 +128,20 @@ def amplifier(name: str) -> Amplifier:
         return Amplifier("short-high", short_high(), 0.15, 6e-6)
     if name == "current-controlled":
         return Amplifier("current-controlled", current_controlled(), 0.3, 5e-6)
-    raise ValueError(f"unknown amplifier {name!r}; one of {', '.join(PROFILES)}")
+    if name == "boost-hold":
+        return Amplifier("boost-hold", boost_hold(), 0.2, 7e-6)
+    if name == "slow-ramp":
+        return Amplifier("slow-ramp", slow_ramp(), 0.1, 10e-6)
+    raise ValueError(f"unknown amplifier {name!r}; one of {', '.join(PROFILES + EXTRA_PROFILES)}")
 
 
-PROFILES = ("standard", "short-high", "current-controlled")
+PROFILES = ("standard", "short-high", "current-controlled")   # compensation's default run: every figure
+EXTRA_PROFILES = ("boost-hold", "slow-ramp")                   # by name only
 STANDARD = Amplifier("standard")
 
 
 # selectable by name in every command that simulates (``sim_bench simulate --drive short-high``)
 register_drive("short-high", short_high)
 register_drive("current-controlled", current_controlled)
+register_drive("boost-hold", boost_hold)
+register_drive("slow-ramp", slow_ramp)

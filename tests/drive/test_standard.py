@@ -14,8 +14,8 @@ from estimator.drive.correction import DriveCompensator, DriveTarget, respond
 from estimator.drive.standard import AmplifierDrive, DriveLearner, from_recordings
 from estimator.ident.simulators import SimulatorPool
 from estimator.model.chain import MeasurementChain
-from estimator.model.drive import SAMPLE_PERIOD_S
-from sim_bench.hardware.amplifiers import amplifier
+from estimator.model.drive import SAMPLE_PERIOD_S, StandardDrive, named_drive
+from sim_bench.hardware.amplifiers import EXTRA_PROFILES, PROFILES, amplifier
 from sim_bench.hardware.plant import Plant, PlantConfig
 
 COV = np.diag([0.01 ** 2, 0.05 ** 2])
@@ -52,6 +52,19 @@ def test_the_correction_is_computed_with_the_drive_the_amplifier_delivers(sim):
     _, trapezoid_opening = respond(sim, c.scale, 18.0, 4.0, 120.0)
     assert abs(c.offset_us + trapezoid_opening - c.opening_us) > 1.0
     assert comp.drive_of(0) is not None and comp.drive_of(0).source == "learned"
+
+
+@pytest.mark.parametrize("name", PROFILES + EXTRA_PROFILES)
+def test_every_amplifier_profile_puts_the_trapezoids_charge_in_another_shape(name):
+    """Each profile charges the actuator as the trapezoid does (the comparison between amplifiers is one
+    of shape, not of charge), is a drive by name, and only the trapezoid itself has the trapezoid's shape."""
+    t = np.arange(0.0, 400e-6, SAMPLE_PERIOD_S)
+    std = StandardDrive().current(t)
+    cur = amplifier(name).standard.current(t)
+    assert np.sum(cur) == pytest.approx(np.sum(std), rel=0.01)
+    assert np.array_equal(named_drive(name).current(t), cur)
+    shape = AmplifierDrive(std, SAMPLE_PERIOD_S, "trapezoid").check(cur, SAMPLE_PERIOD_S)
+    assert shape.agrees == (name == "standard"), shape
 
 
 def test_a_current_the_standard_drive_does_not_explain_holds_the_correction(sim):
