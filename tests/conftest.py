@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 from estimator.runtime import prepare_process
@@ -21,6 +22,22 @@ REPO = Path(__file__).resolve().parents[1]
 # every DirectCall checks its argument types against its overload in the tests (a caller that passes
 # another dtype or layout fails instead of being read as the first call's types)
 verify_types(True)
+
+
+@pytest.fixture(autouse=True)
+def _process_logging_left_behind():
+    """A command run in-process configures logging for its process (``estimator.logfmt.configure``: a
+    root handler on the stderr of the moment, which under ``capsys`` is a stream pytest closes after the
+    test). That handler goes with the test: left behind, every later record of the worker, such as a
+    daemon thread's, fails on the closed stream with a "Logging error" traceback."""
+    root = logging.getLogger()
+    level = root.level
+    yield
+    left = [h for h in root.handlers if type(h) is logging.StreamHandler]
+    for h in left:
+        root.removeHandler(h)
+    if left:
+        root.setLevel(level)
 
 
 @pytest.fixture(scope="session")
