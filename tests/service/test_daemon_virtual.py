@@ -142,7 +142,10 @@ def test_an_estimate_published_late_is_stale_never_ok(tmp_path):
     three times after that injection's trailer went out (stale_after_ms = 100): that injection's
     estimate goes out as stale, is counted, and the next one, on time, is ok again."""
     channel = f"test-{uuid.uuid4().hex[:8]}"
-    d = Daemon(DaemonConfig(bus=f"virtual:{channel}", stale_after_ms=100.0, status_period_s=0.1))
+    # the test sends from the daemon's interpreter: on a loaded machine a header and its trailer went out
+    # more than the default 50 ms apart, and counter 5 was rejected by the assembly timeout (its own tests)
+    d = Daemon(DaemonConfig(bus=f"virtual:{channel}", stale_after_ms=100.0, status_period_s=0.1,
+                            assembly_timeout_ms=2000.0))
     tracker = d.processor.tracker
     real_update = tracker.update
     release = threading.Event()
