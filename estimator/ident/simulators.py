@@ -83,7 +83,7 @@ class SimulatorPool:
 
     def has(self, dt_s: float) -> bool:
         """Whether a simulator for ``dt_s`` (s) is built."""
-        return math.isfinite(dt_s) and self._key(dt_s) in self._sims
+        return self.built_for(dt_s) is not None
 
     def built_for(self, dt_s: float) -> FastSimulator | None:
         """The simulator for ``dt_s`` (s) if one is built, else None; never builds one, nor counts as a

@@ -133,9 +133,7 @@ class BackgroundCalibrator:
         """One calibration back (on an executor thread); ``closes``: :meth:`close` calls when it was
         submitted (one since: abandoned by the stop, not a failure to warn of)."""
         if closes != self._closes:
-            with self._lock:
-                self._running.discard(injector_id)
-                self._finished.notify_all()
+            self._settle(injector_id, None)
             log.debug("injector %d: the calibration was abandoned when the calibrator closed", injector_id)
             return
         try:
@@ -152,15 +150,19 @@ class BackgroundCalibrator:
                 prepared = self.prepare(params, tables)
             except Exception as exc:
                 log.warning("injector %d: preparing the calibrated model failed: %s", injector_id, exc)
-        with self._lock:
-            self._running.discard(injector_id)
-            self._done.append(CalibrationOutcome(injector_id, status, params, prepared))
-            self._finished.notify_all()
+        self._settle(injector_id, CalibrationOutcome(injector_id, status, params, prepared))
 
     def _finish_failed(self, injector_id: int, message: str) -> None:
+        self._settle(injector_id, CalibrationOutcome(injector_id, CalibrationStatus(Learning.REFUSED, message=message),
+                                                     None))
+
+    def _settle(self, injector_id: int, outcome: CalibrationOutcome | None) -> None:
+        """The injector's calibration is no longer running; its ``outcome`` for :meth:`poll` (None: none,
+        abandoned); anyone in :meth:`wait` is woken."""
         with self._lock:
             self._running.discard(injector_id)
-            self._done.append(CalibrationOutcome(injector_id, CalibrationStatus(Learning.REFUSED, message=message), None))
+            if outcome is not None:
+                self._done.append(outcome)
             self._finished.notify_all()
 
     def poll(self) -> list[CalibrationOutcome]:
