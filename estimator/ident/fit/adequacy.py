@@ -26,8 +26,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from estimator._compiled import njit
-from estimator._compiled.direct_call import DirectCall
+from estimator._compiled.direct_call import DirectCall, c_float
 from estimator.ident.fit.cost import MAD_PER_SIGMA, NOISE_FLOOR_V
+from estimator.ident.fit.sensitivity_kernel import current_noise
 
 SMOOTH_COLUMNS = 24          # cosines 0..23: up to ~115 kHz in a 100 µs window
 LOW_COLUMNS = 8              # cosines 0..7 (up to ~35 kHz): where most structural errors leave their residual
@@ -80,8 +81,7 @@ def current_noise_a(current_a: np.ndarray) -> float:
     few µs), which first differences would count as noise; second differences see only its corners
     (on the bench's 8 µs ripple: 0.0118 A measured for 0.0104 A of noise and quantisation; a
     quarter too high where a corner falls every 8 samples)."""
-    d2 = np.diff(np.asarray(current_a, dtype=float), 2)
-    return float(np.median(np.abs(d2)) / (0.6745 * math.sqrt(6.0))) if d2.size else 0.0
+    return float(current_noise(c_float(current_a).ravel()))
 
 
 @njit(cache=True, nogil=True)

@@ -39,12 +39,11 @@ from estimator.ident.fit.cost import CostModel
 from estimator.ident.fit.local_fit import LocalFit
 from estimator.ident.fit.mismatch import (
     PreloadCheck,
-    current_noise_cov,
     model_error_cov,
     plain_adequacy,
     preload_check,
     preload_cov,
-    preload_sensitivity,
+    sensitivities,
 )
 from estimator.ident.fit.model_selection import likelihood_ratio, prefers_robust
 from estimator.ident.fit.search import Box
@@ -298,7 +297,7 @@ def finish(f: Fitted, ev: Evidence | None = None, predict: bool = True) -> Estim
     includes the model error; so is a plain fit whose samples point to another preload force, its
     covariance widened by the move that force implies (also where the force is only suspect, without
     the status). Where the preload force's sensitivity is simulated, the measured current's noise is
-    sized too (:func:`~estimator.ident.fit.mismatch.current_noise_cov`) and enters the covariance; elsewhere
+    sized too (:func:`~estimator.ident.fit.mismatch.sensitivities`) and enters the covariance; elsewhere
     ``ev.current_cov`` does. Contact and opening times are those of the fitted window; the stroke needs
     one more, longer simulation (see :func:`predict_valve`)."""
     if not f.fit.success:
@@ -338,9 +337,8 @@ def _judge(f: Fitted, ev: Evidence) -> _Judged:
     checking = ev.check_preload and not mismatch and model is not None and config.preload_check_chi2 > 0
     sens = None
     if model is not None and (checking or config.preload_rel_sigma > 0):
-        sens = preload_sensitivity(model, f.fit)
+        sens, fresh = sensitivities(model, f.fit)
         evaluations += 4
-        fresh = current_noise_cov(model, f.fit, sens)
         if fresh is not None:
             current_cov, evaluations = fresh, evaluations + 1
     if checking and model is not None:

@@ -38,16 +38,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimator._compiled.direct_call import DirectCall, c_float
 from estimator.ident.config import IdentConfig
-from estimator.ident.coords import UM_PER_M
-from estimator.ident.fit.adequacy import SMOOTH_COLUMNS, Adequacy, assess, current_noise_a
+from estimator.ident.fit import sensitivity_kernel
+from estimator.ident.fit.adequacy import SMOOTH_COLUMNS, Adequacy, assess
 from estimator.ident.fit.cost import CostModel
 from estimator.ident.fit.local_fit import LocalFit
+from estimator.ident.fit.sensitivity_kernel import NOISE_NONE, SENS_FAILED, SENS_OK
 
 PRELOAD_STEP = 0.01          # relative step of F_open for its sensitivity
 PRELOAD_SUSPECT_CHI2 = 4.0   # the samples' own preload force two standard deviations off the header's
 FD_NU, FD_LH_UM = 2e-3, 2e-3  # finite-difference steps of the Jacobian (N/V, µm)
-CURRENT_PROBE = 1e-3         # current step of current_noise_cov's probe simulation, relative to the current's peak
+CURRENT_PROBE = 1e-3         # current step of the current-noise probe simulation, relative to the current's peak
+_NO_BASIS = np.empty((0, 0))
+_SENSITIVITIES = DirectCall(sensitivity_kernel.sensitivities)
 
 
 def plain_adequacy(model: CostModel, fit: LocalFit, config: IdentConfig) -> Adequacy:
@@ -78,7 +82,7 @@ def model_error_cov(x: np.ndarray, other: np.ndarray | None, config: IdentConfig
 
 @dataclass(frozen=True)
 class PreloadSensitivity:
-    """How a fit's samples and point depend on F_open (:func:`preload_sensitivity`): the fit's Jacobian
+    """How a fit's samples and point depend on F_open (:func:`sensitivities`): the fit's Jacobian
     ``jac`` (2, N) in V per (N/V, µm), the voltage's derivative ``du`` (N,) in V/N, ``s``, how far
     the fit's point moves per N of F_open (N/V, µm per N: ``(J'J)^-1 J' dU/dF``), and ``u0`` (N,), the
     simulated voltage at the fit's point (V)."""
@@ -89,36 +93,14 @@ class PreloadSensitivity:
     u0: np.ndarray
 
 
-def preload_sensitivity(model: CostModel, fit: LocalFit) -> PreloadSensitivity | None:
-    """The :class:`PreloadSensitivity` of a fit over its model's window, from one batch of four
-    simulations; None where a simulation fails or the problem is degenerate (projected off the
-    nuisance span in robust mode)."""
-    x = fit.x
-    fo = model.injection.f_open_n
-    if not fit.success or fo <= 0:
-        return None
-    box_nu = model.sim.nu_range
-    h_nu = FD_NU if x[0] + FD_NU <= box_nu[1] else -FD_NU
-    nu = np.array([x[0], x[0] + h_nu, x[0], x[0]])
-    lh = np.array([x[1], x[1], x[1] + FD_LH_UM, x[1]]) / UM_PER_M
-    res = model.sim.simulate(model.current, nu, lh, np.array([fo, fo, fo, fo * (1 + PRELOAD_STEP)]))
-    if not res.success.all():
-        return None
-    u = res.voltage_v[:, : model.n]
-    jac = np.stack([(u[1] - u[0]) / h_nu, (u[2] - u[0]) / FD_LH_UM])   # (2, N): dU/dx
-    du = (u[3] - u[0]) / (PRELOAD_STEP * fo)                            # dU/dF_open
-    if model.robust:
-        jac = np.stack([model.without_nuisance(j) for j in jac])
-        du = model.without_nuisance(du)
-    jtj = jac @ jac.T
-    if not np.all(np.isfinite(jtj)) or abs(np.linalg.det(jtj)) <= 1e-14 * jtj[0, 0] * jtj[1, 1]:
-        return None
-    return PreloadSensitivity(jac, du, np.linalg.solve(jtj, jac @ du), u[0].copy())
+def sensitivities(model: CostModel, fit: LocalFit) -> tuple[PreloadSensitivity | None, np.ndarray | None]:
+    """How a fit's samples and point depend on F_open (:class:`PreloadSensitivity`), and the
+    covariance (N/V, µm) the measured current's noise adds to the fit, from five simulations at its
+    point in one compiled call (:func:`~estimator.ident.fit.sensitivity_kernel.sensitivities`).
 
-
-def current_noise_cov(model: CostModel, fit: LocalFit, sens: PreloadSensitivity | None) -> np.ndarray | None:
-    """The covariance (N/V, µm) the measured current's noise adds to a fit; None where it cannot be
-    simulated.
+    The sensitivity is None where a simulation fails or the problem is degenerate (projected off the
+    nuisance span in robust mode); the covariance is None where the sensitivity is, or its probe
+    cannot be simulated, and zero for a current without noise.
 
     The simulation is driven by the *measured* current, so its noise (``sigma_I``, from the current's
     own second differences, :func:`~estimator.ident.fit.adequacy.current_noise_a`) passes through the
@@ -129,26 +111,20 @@ def current_noise_cov(model: CostModel, fit: LocalFit, sens: PreloadSensitivity 
     step (one simulation with the current offset by :data:`CURRENT_PROBE` of its peak) gives that
     dynamic part's impulse response ``h``; with ``G = J' H`` (H the lower-triangular Toeplitz matrix of
     ``h``) the covariance is ``sigma_I^2 (J'J)^-1 G G' (J'J)^-1``."""
-    if sens is None or not fit.success:
-        return None
-    cur = model.current
-    sigma_i = current_noise_a(cur)
-    peak = float(np.max(np.abs(cur))) if cur.size else 0.0
-    if not (sigma_i > 0 and peak > 0):
-        return np.zeros((2, 2))
-    delta = CURRENT_PROBE * peak
     x = fit.x
-    res = model.sim.simulate(cur + delta, np.array([x[0]]), np.array([x[1] / UM_PER_M]), model.injection.f_open_n)
-    if not res.success.all():
-        return None
+    fo = model.injection.f_open_n
+    if not fit.success or fo <= 0:
+        return None, None
+    h_nu = FD_NU if x[0] + FD_NU <= model.sim.nu_range[1] else -FD_NU
     n = model.n
-    step = (res.voltage_v[0, :n] - sens.u0) / delta           # V per A: the response to a current step
-    h = np.diff(step, prepend=0.0)
-    h[0] = 0.0                                                 # the direct, white part: in the noise level
-    g = np.stack([np.convolve(j[::-1], h)[:n][::-1] for j in sens.jac])   # (2, N): J' H
-    a = np.linalg.inv(sens.jac @ sens.jac.T)
-    cov: np.ndarray = sigma_i ** 2 * (a @ (g @ g.T) @ a)
-    return cov if np.all(np.isfinite(cov)) else None
+    jac, du, s, u0, cov = np.empty((2, n)), np.empty(n), np.empty(2), np.empty(n), np.empty((2, 2))
+    h = model.sim.kernel_handle()
+    code = _SENSITIVITIES(h.model, h.automaton, h.table, h.h_us, model.current, float(x[0]), float(x[1]), float(fo),
+                          h_nu, FD_LH_UM, PRELOAD_STEP, CURRENT_PROBE, c_float(model.basis) if model.robust else _NO_BASIS,
+                          bool(model.robust), jac, du, s, u0, cov)
+    if code == SENS_FAILED:
+        return None, None
+    return PreloadSensitivity(jac, du, s, u0), (cov if code in (SENS_OK, NOISE_NONE) else None)
 
 
 def preload_cov(sens: PreloadSensitivity | None, f_open_n: float, rel_sigma: float) -> np.ndarray:
