@@ -15,6 +15,7 @@ kept. Time in the pipeline is the bus's (see :mod:`estimator.codec.bus_clock`).
 from __future__ import annotations
 
 import collections
+import gc
 import logging
 import os
 import signal
@@ -458,16 +459,22 @@ class Daemon:
             if sim is not None:
                 self.processor.compensator.warm_up(sim)
 
-    def run(self) -> int:
+    def run(self, freeze_heap: bool = False) -> int:
         """Run until stopped; returns the exit code. One estimator per state directory: a second one
         raises :class:`~estimator.service.state_store.StateDirectoryBusy` before touching anything.
-        A stop requested while starting is honoured before the bus is opened."""
+        A stop requested while starting is honoured before the bus is opened. ``freeze_heap`` (the
+        daemon's own process): after the warm-up, the objects built so far leave the garbage
+        collector's generations (:func:`gc.freeze`): they live as long as the process, and a full
+        collection walked all of them on the worker's time (14 ms, measured, where 1 ms remains)."""
         try:
             if self.cfg.state_dir is not None and self._lock_fd is None:
                 self._lock_fd = lock_state_dir(self.cfg.state_dir)
             self.restore()
             if not self.stop.is_set():
                 self.warm_up()
+            if freeze_heap:
+                gc.collect()
+                gc.freeze()
             if self.stop.is_set():
                 self._release()
                 return 0

@@ -16,4 +16,4 @@ def run_daemon(cfg: DaemonConfig, loader: Callable[[], DaemonConfig] | None = No
     sys.setswitchinterval(0.0005)
     d = Daemon(cfg, loader)
     d.install_signal_handlers()
-    return d.run()
+    return d.run(freeze_heap=True)

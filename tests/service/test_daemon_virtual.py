@@ -208,3 +208,26 @@ def test_the_drive_corrections_deferred_work_runs_while_the_worker_is_idle(runni
     assert len(valid) == 4, f"{len(valid)} valid corrections in 20 injections"
     assert wait_for(bus, lambda: not d.processor.has_background)
     assert d.processor.compensator.last(3).table    # the last pass, done only by the idle worker
+
+
+def test_the_daemons_own_process_takes_its_startup_heap_out_of_the_collector(tmp_path):
+    """``run(freeze_heap=True)`` (what ``estimator run`` does): the objects built up to the warm-up leave
+    the collector's generations, so a full collection no longer walks them on the worker's time."""
+    import gc
+
+    gc.unfreeze()
+    channel = f"test-{uuid.uuid4().hex[:8]}"
+    d = Daemon(DaemonConfig(bus=f"virtual:{channel}", state_dir=tmp_path, self_calibration=None))
+    t = threading.Thread(target=d.run, kwargs={"freeze_heap": True}, daemon=True)
+    t.start()
+    bus = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+    try:
+        ready = collect(bus, Codec(), lambda g: any(isinstance(r, EstimatorStatus) for r in g), timeout=60.0)
+        assert any(isinstance(r, EstimatorStatus) for r in ready), "daemon never sent a heartbeat"
+        assert gc.get_freeze_count() > 10_000     # the modules, the compiled kernels, the tracker
+    finally:
+        d.stop.set()
+        t.join(timeout=3)
+        bus.shutdown()
+        gc.unfreeze()
+    assert not t.is_alive()
