@@ -390,7 +390,7 @@ class DriveCompensator:
         interval = time_s - st.time_s if math.isfinite(time_s) and math.isfinite(st.time_s) else 0.0
         st.time_s = time_s
         if math.isfinite(rate_n_per_v_s) and 0.0 < interval < MAX_INTERVAL_S:
-            nu = nu + rate_n_per_v_s * interval
+            nu = _carried_within(sim, nu, rate_n_per_v_s * interval)
         nominal = self.nominal or nominal
         drive, reason, measured = self._measured(st, injector_id, sim, current_a, dt_s)
         if current_a is not None and not reason:
@@ -484,7 +484,7 @@ class DriveCompensator:
         dt = time_s - ok.time_s if math.isfinite(time_s) and math.isfinite(ok.time_s) else 0.0
         carried = ok.rate_n_per_v_s * dt if 0.0 < dt < MAX_INTERVAL_S else 0.0
         cov = ok.cov + np.diag([(CARRY_NU_SHARE * carried) ** 2, 0.0])
-        return self._correct(st.main, ok.sim, nominal, ok.nu + carried, ok.lh_um, cov, f_open_n, drive,
+        return self._correct(st.main, ok.sim, nominal, _carried_within(ok.sim, ok.nu, carried), ok.lh_um, cov, f_open_n, drive,
                              jitter=_jitter_var(st), checked=_checked(st, ok.sim), steps=st.steps,
                              defer=self.deferred)
 
@@ -693,6 +693,18 @@ def _simulated(pt: _Point, sim: FastSimulator, scale: float, nu: float, lh_um: f
     stroke, opening = respond(sim, scale, nu, lh_um, f_open_n, drive)
     pt.anchor = (scale, nu, lh_um, f_open_n, stroke, opening)
     return stroke, opening
+
+
+def _carried_within(sim: FastSimulator | None, nu: float, carry: float) -> float:
+    """N_u (N/V) carried on by ``carry`` (N/V, a drift rate times the time since), within the N_u range
+    ``sim`` simulates. A warm-up's rate carried over many held injections overshoots the part (a part
+    near the top of the range was carried to 21.2 N/V: no correction could be computed, and the last one,
+    beyond its trust region since a failed probe, was repeated for 60 injections)."""
+    carried = nu + carry
+    if sim is None or not math.isfinite(carried):
+        return carried
+    lo, hi = sim.nu_range
+    return min(max(carried, lo), hi)
 
 
 def _checked(st: _Injector, sim: FastSimulator) -> tuple[float, float] | None:

@@ -456,6 +456,27 @@ def test_a_level_the_model_failed_at_halves_the_trust_region_and_levels_that_pas
     assert held.held and held.scale == pytest.approx(c.scale, abs=1e-3)
 
 
+def test_a_held_correction_near_the_top_of_the_n_u_range_steps_back_after_a_failed_probe(sim):
+    """A warming part near the top of the model's N_u range: held after a failed probe, its correction
+    is computed again with N_u carried by the drift rate, which overshoots the range. The carried N_u
+    stays within it, so the held correction is recomputed inside the narrowed trust region; it used to
+    fail ("N_u outside the range") and repeat the failed level for as long as the part was held."""
+    from estimator.drive.correction import TRUST_STEP
+    from estimator.drive.standard import AmplifierDrive
+
+    current = AmplifierDrive.trapezoid().samples(0.5e-6, 200e-6)
+    comp = compensator()
+    top = sim.nu_range[1]
+    c = comp.update(0, True, sim, top - 0.02, 8.0, COV, 200.0, sim, rate_n_per_v_s=0.05, time_s=0.0,
+                    current_a=current, dt_s=0.5e-6)
+    assert c.trust_limited and c.scale == pytest.approx(1.0 + TRUST_STEP, abs=1e-3)
+    for k in range(1, 6):    # the probe failed, then every held injection: N_u carried 0.05-0.25 beyond
+        c = comp.update(0, False, sim, math.nan, math.nan, None, 200.0, sim, time_s=float(k),
+                        current_a=c.scale * current, dt_s=0.5e-6, failed_probe=True)
+        assert c.held and "computed again" in c.reason, c.reason
+        assert c.scale <= 1.0 + TRUST_STEP / 2 ** k + 1e-3
+
+
 def test_a_steady_operating_point_is_carried_and_carries_no_error(sim, monkeypatch):
     """At a steady preload force with a slowly drifting estimate the correction is carried from its last
     simulation by its derivatives (far fewer simulations than corrections) and stays within 0.02 µm and
