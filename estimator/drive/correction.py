@@ -730,14 +730,18 @@ def _check_level(st: _Injector, sim: FastSimulator, measured_scale: float) -> No
 
 def _narrow(st: _Injector, sim: FastSimulator | None, measured_scale: float) -> None:
     """The model failed at ``measured_scale``, beyond its checked scales: the trust region on that side
-    ends halfway to it (a trust-region method's step after a failed one)."""
+    ends halfway to it (a trust-region method's step after a failed one), or at the checked scales
+    themselves once that is within ``CHECKED_SLACK`` of them: a level so close counts as checked, and a
+    failure there would be taken for a changed part (the model is refined over the failed levels,
+    :mod:`estimator.ident.learning.learning`, and a new model starts a new trust region)."""
     checked = _checked(st, sim) if sim is not None else None
     if checked is None or not math.isfinite(measured_scale):
         return
-    if measured_scale > checked[1]:
-        st.steps[1] = min(st.steps[1], 0.5 * (measured_scale - checked[1]))
-    elif measured_scale < checked[0]:
-        st.steps[0] = min(st.steps[0], 0.5 * (checked[0] - measured_scale))
+    side = 1 if measured_scale > checked[1] else 0 if measured_scale < checked[0] else -1
+    if side < 0:
+        return
+    step = min(st.steps[side], 0.5 * abs(measured_scale - checked[side]))
+    st.steps[side] = step if step >= CHECKED_SLACK else 0.0
 
 
 def _trust(limits: tuple[float, float], checked: tuple[float, float] | None,

@@ -456,6 +456,33 @@ def test_a_level_the_model_failed_at_halves_the_trust_region_and_levels_that_pas
     assert held.held and held.scale == pytest.approx(c.scale, abs=1e-3)
 
 
+def test_a_failed_level_within_the_slack_of_the_checked_ones_ends_the_trust_region_there(sim):
+    """Halved down to within ``CHECKED_SLACK`` of the checked levels, the trust region ends at them: a
+    level that close counts as checked, and the model failing there would read as a changed part. The
+    correction stays at the checked level until a new model (a refinement) starts a new region."""
+    from estimator.drive.correction import CHECKED_SLACK, TRUST_STEP
+    from estimator.drive.standard import AmplifierDrive
+
+    current = AmplifierDrive.trapezoid().samples(0.5e-6, 200e-6)
+    comp = compensator()
+
+    def step(ok: bool, scale: float, failed: bool = False, model=sim) -> Correction:
+        return comp.update(0, ok, model, 20.5, 8.0, COV, 100.0, sim, current_a=scale * current, dt_s=0.5e-6,
+                           time_s=0.0, failed_probe=failed)
+
+    c = step(True, 1.0)
+    while c.scale > 1.0 + 2 * CHECKED_SLACK:
+        c = step(False, c.scale, failed=True)
+    assert c.held and c.scale == pytest.approx(1.0 + TRUST_STEP / 8, abs=1e-3)
+    c = step(False, c.scale, failed=True)                 # 0.0125 beyond: half of it is within the slack
+    assert c.held and c.scale == pytest.approx(1.0, abs=1e-3) and c.trust_limited
+    assert step(True, 1.0).scale == pytest.approx(1.0, abs=1e-3)          # no further while this model serves
+    from estimator.model.fast_sim import FastSimulator
+
+    other = FastSimulator(sim.params, 0.5e-6)            # another model of the injector
+    assert step(True, 1.0, model=other).scale == pytest.approx(1.0 + TRUST_STEP, abs=1e-3)
+
+
 def test_a_held_correction_near_the_top_of_the_n_u_range_steps_back_after_a_failed_probe(sim):
     """A warming part near the top of the model's N_u range: held after a failed probe, its correction
     is computed again with N_u carried by the drift rate, which overshoots the range. The carried N_u

@@ -353,6 +353,48 @@ def test_an_injection_its_model_failed_at_an_unchecked_drive_joins_the_refinemen
     assert len(learner._windows[2].items) == 1 and learner.status[2].state == Learning.RELEARNING
 
 
+def test_a_model_that_fails_where_its_correction_leads_is_refined_over_those_levels_soon():
+    """From its adoption on, a model's failed probes join its refinement window, due or not; once the
+    window holds three of them and a learning window's worth of injections it is calibrated (not
+    after the 24 of a regular refinement), and its ok injections fill it meanwhile."""
+    import numpy as np
+
+    from estimator.ident.learning.learning import PROBES_TO_REFINE, Learner
+    from estimator.ident.measurement import Injection
+    from estimator.model.parameters import load_nominal
+    from sim_bench.hardware.plant import Plant, PlantConfig
+
+    config = SelfCalConfig()
+    plant, rng = Plant(PlantConfig(window_s=150e-6)), np.random.default_rng(2)
+    base = load_nominal()
+    submitted = []
+
+    class Recording:
+        def submit(self, iid, window, base, config, current):
+            submitted.append(len(window.items))
+
+        def poll(self):
+            return []
+
+    learner = Learner(config, base, Recording(), lambda *a: None, lambda iid: base)
+    learner.status[0] = CalibrationStatus(Learning.ADOPTED, source="learned", refinements=2)   # none due
+    for k in range(config.window):
+        f = (60.0, 150.0, 240.0)[k % 3]
+        m = plant.measure(17.0, 3e-6, f, rng)
+        inj = Injection(m.current_a, m.voltage_v, m.dt_s, f, 0, k, time_s=0.1 * k)
+        probe = k < PROBES_TO_REFINE
+        learner.observe(inj, 17.0, False, probe, Status.REJECTED if probe else Status.OK,
+                        Status.MODEL_MISMATCH if probe else Status.OK, failed_probe=probe)
+        assert bool(submitted) == (k == config.window - 1), (k, submitted)
+    assert submitted == [config.window] and learner.status[0].state == Learning.CALIBRATING
+    assert "drive levels it failed at" in learner.status[0].message
+    learner.status[1] = CalibrationStatus(Learning.MONITORING, source="learned", refinements=2)
+    m = plant.measure(17.0, 3e-6, 100.0, rng)
+    learner.observe(Injection(m.current_a, m.voltage_v, m.dt_s, 100.0, 1, 0), 17.0, False, False, Status.OK,
+                    Status.OK)
+    assert 1 not in learner._refine     # no probe and no refinement due: nothing collected
+
+
 def test_a_monitored_model_is_refined_twice_first_over_the_smaller_window_and_no_more():
     """A learned model is refined over ``refine_window`` injections, then over ``refine_again`` (the
     valve's motion is what the voltage tells least: 24 injections left one lot's opening instants

@@ -22,7 +22,10 @@ estimator, per injector id (states: :class:`~estimator.ident.status.Learning`):
     keep the calibrator busy.
 ``adopted`` -> ``monitoring``
     The injector's own model serves; after ``confirm`` injections it is ``monitoring``. A model
-    seeded from the injector's own end-of-line parameter file starts here too.
+    seeded from the injector's own end-of-line parameter file starts here too. A monitored model is
+    refined over ``refine_window`` and then ``refine_again`` injections; one that fails at drive levels
+    its correction leads to (failed probes) is refined over them as soon as its window holds
+    :data:`PROBES_TO_REFINE` of them and ``window`` injections.
 ``relearning``
     The monitor is a one-sided cumulative sum over the injections' adequacy verdicts (each
     injection's own model-error test, not the tracker's smoothed flag): ``S <- max(0, S + m - k)``
@@ -62,6 +65,8 @@ from estimator.ident.status import ESTIMATED, Learning, Status
 from estimator.model.parameters import InjectorParameters
 
 MAX_BACKOFF = 8      # a refused injector waits at most this many times retry_after
+PROBES_TO_REFINE = 2  # failed probes in a model's refinement window that have it calibrated once it holds a
+                      # learning window's worth of injections (the model has yet to learn those drive levels)
 
 
 class Learner:
@@ -83,6 +88,7 @@ class Learner:
         self.status: dict[int, CalibrationStatus] = {}
         self._windows: dict[int, CalibrationWindow] = {}
         self._refine: dict[int, CalibrationWindow] = {}   # a monitored model's refinement window
+        self._probes: dict[int, int] = {}   # the failed probes in it (:meth:`_probe`)
         self._running: dict[int, Learning] = {}    # what a running calibration is for: LEARNING, RELEARNING or
                                                    # MONITORING (a refinement); an outcome without one is dropped
         self._changed: set[int] = set()
@@ -157,11 +163,12 @@ class Learner:
             window.add(inj, nu)
         elif evidence == 0.0:
             self._windows.pop(iid, None)
-            if state == Learning.MONITORING and _next_refinement(st, c) \
+            if ((state == Learning.MONITORING and _next_refinement(st, c)) or self._probes.get(iid)) \
                     and self._refined(iid, st, inj, nu, served):
                 return
         if evidence >= c.monitor_limit:
             self._refine.pop(iid, None)
+            self._probes.pop(iid, None)
             self._set(iid, replace(st, state=Learning.RELEARNING, evidence=evidence, served=served,
                                    message=f"the model in use stopped explaining this injector (monitor "
                                            f"{evidence:.1f} >= {c.monitor_limit:g})"))
@@ -172,10 +179,16 @@ class Learner:
     def _probe(self, iid: int, st: CalibrationStatus, inj: Injection, nu: float) -> None:
         """An injection at a drive level the model in use failed at, never checked there: it is what
         the model has to learn, not evidence that the part changed (the monitor does not count it).
-        It joins the refinement window being collected, or a re-learning window."""
+        It joins a re-learning window, or the model's refinement window, from its adoption on and
+        whether or not a refinement is due. Once that window holds :data:`PROBES_TO_REFINE` of them
+        and a learning window's worth of injections it is calibrated (:meth:`_refined`): a model
+        learned at the standard drive that fails where its correction leads learns those levels
+        then, not after its estimates have gone wrong there (a Prandtl–Ishlinskii part's first model
+        failed at 1.05-1.15 times the standard drive)."""
         if st.state == Learning.RELEARNING:
             self._add(iid, inj, nu, Learning.RELEARNING)
-        elif st.state == Learning.MONITORING and _next_refinement(st, self.config):
+        elif st.state in (Learning.ADOPTED, Learning.MONITORING):
+            self._probes[iid] = self._probes.get(iid, 0) + 1
             self._refined(iid, st, inj, nu, st.served + 1)
 
     def _refined(self, iid: int, st: CalibrationStatus, inj: Injection, nu: float, served: int) -> bool:
@@ -184,14 +197,19 @@ class Learner:
         sharpens the model and its tolerance diagnostics, and is adopted if it explains held-out
         injections better than the model in use, or no worse while it moves their N_u beyond its
         uncertainty: twelve injections can leave a part's N_u scale several of its σ off."""
-        c = replace(self.config, window=_next_refinement(st, self.config))
+        size = _next_refinement(st, self.config) or self.config.refine_window or self.config.window
+        c = replace(self.config, window=size)
         window = self._refine.setdefault(iid, CalibrationWindow(c.window))
         window.add(inj, nu)
-        if not window.ready(c):
+        probed = self._probes.get(iid, 0) >= PROBES_TO_REFINE and window.ready(self.config)
+        if not (window.ready(c) or probed):
             return False
         del self._refine[iid]
+        self._probes.pop(iid, None)
+        why = ("refining the model over the drive levels it failed at" if not window.ready(c)
+               else "refining the model over a larger window")
         self._set(iid, replace(st, state=Learning.CALIBRATING, served=served, evidence=0.0,
-                               message="refining the model over a larger window" + _narrow_note(window, c, "; ")))
+                               message=why + _narrow_note(window, c, "; ")))
         self._running[iid] = Learning.MONITORING
         self.calibrator.submit(iid, window, self.base, c, self._current(iid))
         self.collect()
@@ -273,6 +291,7 @@ class Learner:
         """Drop the injector's windows and the calibration running for it (its outcome is ignored)."""
         self._windows.pop(iid, None)
         self._refine.pop(iid, None)
+        self._probes.pop(iid, None)
         self._running.pop(iid, None)
 
     def relearn(self, iid: int) -> None:
