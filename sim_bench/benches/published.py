@@ -242,6 +242,7 @@ FIGURES: tuple[Figure, ...] = (
     # speed
     Figure("speed", "warm_median_ms", lambda r: r["warm_median_ms"], 3, "| warm per-injection update, median",
            headline=True),
+    Figure("speed", "warm_p99_ms", lambda r: r["warm_p99_ms"], 2, "| warm per-injection update, p99"),
     Figure("speed", "warm_with_correction_median_ms", lambda r: r["warm_with_correction_median_ms"], 3,
            "| the same through the daemon's processor", headline=True),
     Figure("speed", "correction_added_ms", lambda r: r["correction_added_ms"], 3,
