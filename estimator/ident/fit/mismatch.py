@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimator._compiled.direct_call import DirectCall, c_float
+from estimator._compiled.direct_call import DirectCall
 from estimator.ident.config import IdentConfig
 from estimator.ident.fit import sensitivity_kernel
 from estimator.ident.fit.adequacy import SMOOTH_COLUMNS, Adequacy, assess
@@ -50,7 +50,6 @@ PRELOAD_STEP = 0.01          # relative step of F_open for its sensitivity
 PRELOAD_SUSPECT_CHI2 = 4.0   # the samples' own preload force two standard deviations off the header's
 FD_NU, FD_LH_UM = 2e-3, 2e-3  # finite-difference steps of the Jacobian (N/V, µm)
 CURRENT_PROBE = 1e-3         # current step of the current-noise probe simulation, relative to the current's peak
-_NO_BASIS = np.empty((0, 0))
 _SENSITIVITIES = DirectCall(sensitivity_kernel.sensitivities)
 
 
@@ -115,13 +114,12 @@ def sensitivities(model: CostModel, fit: LocalFit) -> tuple[PreloadSensitivity |
     fo = model.injection.f_open_n
     if not fit.success or fo <= 0:
         return None, None
-    h_nu = FD_NU if x[0] + FD_NU <= model.sim.nu_range[1] else -FD_NU
+    p = model.problem     # the window as the compiled fit reads it: kernel, current, preload force, basis
+    h_nu = FD_NU if x[0] + FD_NU <= p.nu_hi else -FD_NU
     n = model.n
     jac, du, s, u0, cov = np.empty((2, n)), np.empty(n), np.empty(2), np.empty(n), np.empty((2, 2))
-    h = model.sim.kernel_handle()
-    code = _SENSITIVITIES(h.model, h.automaton, h.table, h.h_us, model.current, float(x[0]), float(x[1]), float(fo),
-                          h_nu, FD_LH_UM, PRELOAD_STEP, CURRENT_PROBE, c_float(model.basis) if model.robust else _NO_BASIS,
-                          bool(model.robust), jac, du, s, u0, cov)
+    code = _SENSITIVITIES(p.model, p.automaton, p.table, p.h_us, p.current, float(x[0]), float(x[1]), p.f_open_n,
+                          h_nu, FD_LH_UM, PRELOAD_STEP, CURRENT_PROBE, p.basis, p.robust, jac, du, s, u0, cov)
     if code == SENS_FAILED:
         return None, None
     return PreloadSensitivity(jac, du, s, u0), (cov if code in (SENS_OK, NOISE_NONE) else None)
