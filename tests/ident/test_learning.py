@@ -395,6 +395,64 @@ def test_a_model_that_fails_where_its_correction_leads_is_refined_over_those_lev
     assert 1 not in learner._refine     # no probe and no refinement due: nothing collected
 
 
+def test_a_model_that_fails_where_its_correction_leads_is_refined_at_once_beside_its_own_window():
+    """Two failed probes have a learned model calibrated at once, over the injections it was learned
+    from and those since (the newest, a probe, held out), not after a learning window's worth of new
+    injections: a hysteresis part's first model, learned at the standard drive, otherwise held its
+    correction short of the target for twenty injections. It does not count as one of the regular
+    refinements, which learn the levels the correction then settles at."""
+    import numpy as np
+
+    from estimator.ident.learning.learning import PROBES_TO_REFINE, Learner
+    from estimator.ident.measurement import Injection
+    from estimator.model.parameters import load_nominal
+    from sim_bench.hardware.plant import Plant, PlantConfig
+
+    config = SelfCalConfig()
+    plant, rng = Plant(PlantConfig(window_s=150e-6)), np.random.default_rng(3)
+    base = load_nominal()
+    submitted: list[list[Any]] = []
+    own: dict[int, Any] = {}
+
+    class Adopting:
+        def __init__(self) -> None:
+            self.done: list[CalibrationOutcome] = []
+
+        def submit(self, iid, window, base, config, current):
+            submitted.append(list(window.items))
+            self.done.append(CalibrationOutcome(iid, CalibrationStatus(Learning.ADOPTED, len(window.items)), base))
+
+        def poll(self):
+            done, self.done = self.done, []
+            return done
+
+    learner = Learner(config, base, Adopting(), lambda iid, params, prepared: own.__setitem__(iid, params),
+                      lambda iid: own.get(iid))
+
+    def observe(k: int, probe: bool = False, mismatch: bool = False) -> None:
+        f = (60.0, 150.0, 240.0)[k % 3]
+        m = plant.measure(17.0, 3e-6, f, rng)
+        inj = Injection(m.current_a, m.voltage_v, m.dt_s, f, 0, k, time_s=0.1 * k)
+        bad = probe or mismatch
+        learner.observe(inj, 17.0, mismatch, bad, Status.REJECTED if probe else
+                        Status.MODEL_MISMATCH if mismatch else Status.OK,
+                        Status.MODEL_MISMATCH if bad else Status.OK, failed_probe=probe)
+
+    for k in range(config.window):
+        observe(k, mismatch=True)
+    assert len(submitted) == 1 and learner.status[0].state == Learning.ADOPTED
+    observe(config.window)
+    for j in range(PROBES_TO_REFINE):
+        assert len(submitted) == 1
+        observe(config.window + 1 + j, probe=True)
+    assert len(submitted) == 2 and learner.status[0].state == Learning.ADOPTED
+    assert learner.status[0].refinements == 0    # the regular refinements stay due (refine_window first)
+    joined = submitted[1]
+    assert len(joined) == config.window + PROBES_TO_REFINE     # (an ok injection before the first probe: none due)
+    assert all(a is b for a, b in zip(joined, submitted[0]))      # the model's own window first
+    assert joined[-1][0].counter == config.window + PROBES_TO_REFINE   # the newest probe is held out
+
+
 def test_a_monitored_model_is_refined_twice_first_over_the_smaller_window_and_no_more():
     """A learned model is refined over ``refine_window`` injections, then over ``refine_again`` (the
     valve's motion is what the voltage tells least: 24 injections left one lot's opening instants
