@@ -15,6 +15,7 @@ import numpy as np
 
 from estimator._compiled import njit
 from estimator.ident.coords import UM_PER_M
+from estimator.ident.fit.cost import MAD_PER_SIGMA
 from estimator.model import kernel
 from estimator.model.automaton import Automaton
 
@@ -23,13 +24,13 @@ SENS_FAILED = 1      # a simulation failed or the fit's directions are degenerat
 NOISE_FAILED = 2     # the sensitivity only: the probe simulation failed or its covariance is not finite
 NOISE_NONE = 3       # the sensitivity, and a current without noise or without current: covariance zero
 
-MAD_SCALE = 0.6745 * math.sqrt(6.0)   # median |second difference| of white noise, in its sigma
+MAD_SCALE = MAD_PER_SIGMA * math.sqrt(6.0)   # median |second difference| of white noise, in its sigma
 
 
 @njit(cache=True, nogil=True)
 def current_noise(cur: np.ndarray) -> float:
     """White-noise level (A, 1 sigma) of a sampled current: the median absolute second difference
-    over 0.6745 sqrt(6) (0 for fewer than three samples)."""
+    over ``MAD_PER_SIGMA`` sqrt(6) (0 for fewer than three samples)."""
     n = cur.shape[0] - 2
     if n <= 0:
         return 0.0
