@@ -50,7 +50,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import replace
-from typing import Any
+from typing import Any, NamedTuple
 
 from estimator.ident.learning.selfcal import (
     CalibrationOutcome,
@@ -89,11 +89,8 @@ class Learner:
         self._windows: dict[int, CalibrationWindow] = {}
         self._refine: dict[int, CalibrationWindow] = {}   # a monitored model's refinement window
         self._probes: dict[int, int] = {}   # the failed probes in it (:meth:`_probe`)
-        self._running: dict[int, Learning] = {}    # what a running calibration is for: LEARNING, RELEARNING or
-                                                   # MONITORING (a refinement); an outcome without one is dropped
-        self._submitted: dict[int, CalibrationWindow] = {}   # the window of the running calibration
+        self._running: dict[int, _Running] = {}   # each running calibration; an outcome without one is dropped
         self._basis: dict[int, CalibrationWindow] = {}   # the window the own model in use was calibrated on
-        self._probing: set[int] = set()   # running refinements over failed probes (not counted as refinements)
         self._changed: set[int] = set()
 
     # ---- what the tracker calls -----------------------------------------------------------
@@ -218,15 +215,13 @@ class Learner:
         self._probes.pop(iid, None)
         self._set(iid, replace(st, state=Learning.CALIBRATING, served=served, evidence=0.0,
                                message=why + _narrow_note(window, c, "; ")))
-        if probed:
-            self._probing.add(iid)
-        self._submit(iid, window, c, Learning.MONITORING)
+        self._submit(iid, window, c, Learning.MONITORING, probed)
         return True
 
-    def _submit(self, iid: int, window: CalibrationWindow, config: SelfCalConfig, purpose: Learning) -> None:
-        """Hand ``window`` to the calibrator for ``purpose`` (see :attr:`_running`)."""
-        self._running[iid] = purpose
-        self._submitted[iid] = window
+    def _submit(self, iid: int, window: CalibrationWindow, config: SelfCalConfig, purpose: Learning,
+                probed: bool = False) -> None:
+        """Hand ``window`` to the calibrator for ``purpose`` (:class:`_Running`)."""
+        self._running[iid] = _Running(purpose, window, probed)
         self.calibrator.submit(iid, window, self.base, config, self._current(iid))
         self.collect()
 
@@ -248,10 +243,10 @@ class Learner:
 
     def _finish(self, out: CalibrationOutcome) -> None:
         iid = out.injector_id
-        purpose = self._running.pop(iid, None)
-        window = self._submitted.pop(iid, None)
-        if purpose is None:   # the injector was reset while it ran: its outcome is not this injector's now
+        run = self._running.pop(iid, None)
+        if run is None:   # the injector was reset while it ran: its outcome is not this injector's now
             return
+        purpose = run.purpose
         before = self.status.get(iid, CalibrationStatus())
         relearning = purpose == Learning.RELEARNING
         own = self._current(iid) is not None
@@ -260,11 +255,11 @@ class Learner:
         if out.params is None:     # the model in use, if any, goes on serving where it was learned
             new = replace(new, learned_lo_n=before.learned_lo_n, learned_hi_n=before.learned_hi_n)
         if purpose == Learning.MONITORING:
-            self._finish_refinement(out, before, new, window)
+            self._finish_refinement(out, before, new, run)
             return
         if out.params is not None:
             self._adopt(iid, out.params, out.prepared)
-            self._based_on(iid, window)
+            self._basis[iid] = run.window
             self._set(iid, replace(new, state=Learning.ADOPTED, source="learned", evidence=0.0, served=0,
                                    refusals=0, retry_in=0, batch=0, preload_span=0.0))
             return
@@ -280,21 +275,20 @@ class Learner:
                                preload_span=0.0, evidence=0.0))
 
     def _finish_refinement(self, out: CalibrationOutcome, before: CalibrationStatus, new: CalibrationStatus,
-                           window: CalibrationWindow | None) -> None:
+                           run: _Running) -> None:
         """A refinement never takes a working model away: adopted if better, else the model in use
         stays; its tolerance diagnostics replace the first calibration's where it explained its batch.
         One over failed probes leaves the regular refinements due as they were: it learned the levels
         the model failed at from a few injections there, and the levels the correction then settles
-        at are learned by those (refined over the probes alone, a Prandtl–Ishlinskii part opened
-        0.4 µs late at 1.3 times the standard drive, beyond its σ)."""
+        at are learned by those (refined over the probes, a Prandtl–Ishlinskii part opened 0.3-0.45 µs
+        late at 1.2-1.36 times the standard drive, beyond its σ, until its refinement over 60 there)."""
         iid = out.injector_id
-        counted = int(iid not in self._probing)
-        self._probing.discard(iid)
+        counted = int(not run.probed)
         refinements = _refinements(before) + counted
         refined = before.refined or bool(counted)
         if out.params is not None and self._current(iid) is not None:
             self._adopt(iid, out.params, out.prepared)
-            self._based_on(iid, window)
+            self._basis[iid] = run.window
             self._set(iid, replace(new, state=Learning.ADOPTED, source="learned", evidence=0.0, served=0,
                                    refusals=0, retry_in=0, batch=0, preload_span=0.0, refined=refined,
                                    refinements=refinements))
@@ -304,13 +298,6 @@ class Learner:
                                calibrations=new.calibrations, refined=refined, refinements=refinements, evidence=0.0,
                                out_of_tolerance=new.out_of_tolerance if adequate else before.out_of_tolerance,
                                message="refinement: " + out.status.message))
-
-    def _based_on(self, iid: int, window: CalibrationWindow | None) -> None:
-        """The own model just adopted was calibrated on ``window`` (None: not known here)."""
-        if window is None:
-            self._basis.pop(iid, None)
-        else:
-            self._basis[iid] = window
 
     # ---- commands, seeds and persistence -----------------------------------------------------
     def forget(self, iid: int) -> None:
@@ -325,9 +312,7 @@ class Learner:
         self._refine.pop(iid, None)
         self._probes.pop(iid, None)
         self._running.pop(iid, None)
-        self._submitted.pop(iid, None)
         self._basis.pop(iid, None)
-        self._probing.discard(iid)
 
     def relearn(self, iid: int) -> None:
         """Start a new learning cycle now; the model in use serves until a new one is adopted."""
@@ -367,7 +352,7 @@ class Learner:
     def carry(self, old: Learner) -> None:
         """Go on where ``old`` stands (a reloaded configuration): statuses, windows, running calibrations."""
         self.status, self._windows, self._refine, self._running = old.status, old._windows, old._refine, old._running
-        self._probes, self._submitted, self._basis, self._probing = old._probes, old._submitted, old._basis, old._probing
+        self._probes, self._basis = old._probes, old._basis
         self._changed |= old._changed
 
     def take_changes(self) -> list[tuple[int, CalibrationStatus]]:
@@ -387,6 +372,16 @@ class Learner:
     def close(self) -> None:
         """Stop the calibrator."""
         self.calibrator.close()
+
+
+class _Running(NamedTuple):
+    """A calibration handed to the calibrator: what it is for (``LEARNING``, ``RELEARNING`` or
+    ``MONITORING``: a refinement), its window (the adopted model's basis) and whether it is a
+    refinement over failed probes (not counted among the regular ones)."""
+
+    purpose: Learning
+    window: CalibrationWindow
+    probed: bool
 
 
 def _joined(basis: CalibrationWindow, new: CalibrationWindow, capacity: int) -> CalibrationWindow:
