@@ -14,10 +14,10 @@ import pytest
 
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, EstimateQuality, EstimateState, ValvePrediction
-from estimator.ident.measurement import Injection
 from estimator.ident.tracking.tracker import Tracker
 from estimator.io.captures import to_frame, to_message
 from estimator.service.bus import open_bus
+from estimator.units import UM_PER_M
 from sim_bench.hardware.procs import DaemonProcess, wait_until
 
 from ..conftest import REPO
@@ -76,9 +76,8 @@ def test_restart_after_sigkill_resumes_from_persisted_state(hub, monitor, tmp_pa
     # surer than a fresh tracker's first of the same injection (0.022 against 0.060 µm). Not its count of
     # simulations: the daemon times injections by their arrival, so a restart slowed by a busy machine
     # widens the filter's prediction across the gap, and the warm search took 40 where a cold start takes 37
-    inj = injs[8]
-    fresh = Tracker().update(Injection(inj.current_a, inj.voltage_v, inj.dt_s, inj.f_open_n, 0, 8))
-    assert nxt["EstimateQuality"].sigma_lh_um < 0.6 * fresh.sigma_lh_m * 1e6, (nxt["EstimateQuality"], fresh)
+    fresh = Tracker().update(injs[8])
+    assert nxt["EstimateQuality"].sigma_lh_um < 0.6 * fresh.sigma_lh_m * UM_PER_M, (nxt["EstimateQuality"], fresh)
     assert abs(nxt["EstimateState"].lh_um - last.lh_um) < 0.1
     assert nxt["EstimateQuality"].sigma_lh_um < 0.05
     assert "restored the state of 1 injector" in (tmp_path / "daemon2.log").read_text()
