@@ -86,10 +86,14 @@ class _Refusing:
 
     def __init__(self) -> None:
         self.submitted: list[int] = []
+        self.refining: list[bool] = []          # each window's flag: a refinement of the model in service
+        self.times: list[list[float]] = []      # each window's injections (their time stamps, s)
         self._done: list[CalibrationOutcome] = []
 
     def submit(self, injector_id, window, base, config, current=None) -> None:
         self.submitted.append(len(window.items))
+        self.refining.append(window.refining)
+        self.times.append([inj.time_s for inj, _ in window.items])
         self._done.append(CalibrationOutcome(injector_id, CalibrationStatus(Learning.REFUSED, message="no"), None))
 
     def poll(self):
@@ -111,7 +115,7 @@ def test_refused_calibrations_back_off():
         tracker.update(inj)
         states.append(tracker.calibration[0].state)
     refusals = tracker.calibration[0].refusals
-    assert 2 <= refusals <= 3 and len(cal.submitted) == refusals
+    assert 2 <= refusals <= 3 and len(cal.submitted) == refusals and not any(cal.refining)
     gaps = [i for i in range(1, len(states)) if states[i] == Learning.LEARNING and states[i - 1] == Learning.REFUSED]
     assert len(gaps) >= 2 and 0 not in tracker.own_pools
 
@@ -224,6 +228,38 @@ def test_a_calibration_that_moves_n_u_beyond_its_uncertainty_is_adopted_unless_i
     assert _adoptable(-10.0, -4.0, c) and _adoptable(0.0, 3.5, c)       # no worse, N_u moved
     assert not _adoptable(-c.adopt_chi2 - 1.0, 6.0, c)                  # worse, however far N_u moved
     assert not _adoptable(0.0, 3.5, SelfCalConfig(adopt_shift_sigmas=4.0))
+    # a refinement of the model in service: adopted unless it explains them worse, N_u moved or not
+    assert _adoptable(10.0, 0.0, c, refining=True) and _adoptable(-c.adopt_chi2 + 1.0, 0.0, c, refining=True)
+    assert not _adoptable(-c.adopt_chi2 - 1.0, 6.0, c, refining=True)
+
+
+def test_a_refinement_that_explains_the_held_out_alike_is_adopted_and_a_first_calibration_is_not():
+    """A window of a part that is the tables' own, calibrated against the tables in use: the held-out
+    voltage is explained alike and N_u stays where it was. Learning keeps the model in use; a
+    refinement of it (the window's ``refining`` flag) is adopted, and says how it compared."""
+    import numpy as np
+
+    from estimator.ident.learning.selfcal import CalibrationWindow, self_calibrate
+    from estimator.ident.measurement import Injection
+    from estimator.model.parameters import load_nominal
+    from sim_bench.hardware.plant import Plant, PlantConfig
+
+    base = load_nominal()
+    plant = Plant(PlantConfig(window_s=150e-6), base)
+    c = SelfCalConfig()
+    results = {}
+    for refining in (False, True):
+        window = CalibrationWindow(c.window, refining=refining)
+        for k in range(c.window):
+            f = 30.0 + 270.0 * ((k * 7) % 11) / 10
+            m = plant.measure(17.0, 3e-6, f, np.random.default_rng(100 + k))
+            window.add(Injection(m.current_a, m.voltage_v, m.dt_s, f, 0, k, time_s=0.1 * k), 17.0)
+        results[refining] = self_calibrate(window, base, c, current=base)
+    (first, first_params), (refinement, refined_params) = results[False], results[True]
+    assert abs(first.held_out_chi2) <= c.adopt_chi2 and abs(first.nu_shift_z) <= c.adopt_shift_sigmas, first
+    assert first_params is None and "no better" in first.message
+    assert refined_params is not None and refinement.state == Learning.ADOPTED, refinement.message
+    assert refinement.held_out_chi2 == first.held_out_chi2
 
 
 def test_a_status_of_a_calibration_that_explained_the_held_out_worse_round_trips(tmp_path):
@@ -456,7 +492,9 @@ def test_a_model_that_fails_where_its_correction_leads_is_refined_at_once_beside
 def test_a_monitored_model_is_refined_twice_first_over_the_smaller_window_and_no_more():
     """A learned model is refined over ``refine_window`` injections, then over ``refine_again`` (the
     valve's motion is what the voltage tells least: 24 injections left one lot's opening instants
-    0.58 µs apart, 60 did not), and then never again; a status saved before refinements were counted
+    0.58 µs apart, 60 did not), and then never again; the second window grows on from the first's
+    injections (it comes ``refine_again - refine_window`` injections later, not ``refine_again``),
+    and both are refinements (adopted unless they explain the held-out injections worse); a status saved before refinements were counted
     (refined, no count) has had its first; ``refine_again = 0`` stops after the first."""
     import numpy as np
 
@@ -467,8 +505,10 @@ def test_a_monitored_model_is_refined_twice_first_over_the_smaller_window_and_no
 
     plant, rng = Plant(PlantConfig(window_s=150e-6)), np.random.default_rng(2)
     base = load_nominal()
+    rec = _Refusing()
 
     def run(config: SelfCalConfig, status: CalibrationStatus, n: int) -> tuple[list[int], CalibrationStatus]:
+        nonlocal rec
         rec = _Refusing()      # the model in use stays: refused refinements count as refinements
         learner = Learner(config, base, rec, lambda *a: None, lambda iid: base)
         learner.status[0] = status
@@ -482,6 +522,9 @@ def test_a_monitored_model_is_refined_twice_first_over_the_smaller_window_and_no
     monitoring = CalibrationStatus(Learning.MONITORING, source="learned", served=8)
     windows, st = run(SelfCalConfig(refine_window=6, refine_again=9), monitoring, 40)
     assert windows == [6, 9] and st.refined and st.refinements == 2
+    first, second = rec.times
+    assert set(first) <= set(second) and max(second) - max(first) == pytest.approx(0.3)   # 3 injections on
+    assert rec.refining == [True, True]
     assert CalibrationStatus.from_dict(json.loads(json.dumps(st.to_dict()))) == st
     windows, st = run(SelfCalConfig(refine_window=6, refine_again=9), replace(monitoring, refined=True), 40)
     assert windows == [9] and st.refinements == 2
