@@ -241,7 +241,9 @@ def test_the_daemon_calibrates_a_mismatched_injector_in_the_background_and_keeps
     d, t, bus = start()
     try:
         states, estimates, k, during = [], [], 0, 0
-        t_end = time.monotonic() + 240
+        # the calibration runs at idle priority: where other work keeps both cores busy it waits for them
+        # (three benches beside the suite held it past 180 s), so the deadlines only catch a hang
+        t_end = time.monotonic() + 900
         while "adopted" not in states or len(estimates) < 30:
             assert time.monotonic() < t_end and k < len(injections), f"states {states}"
             _send(bus, codec, injections[k], k)
@@ -255,7 +257,7 @@ def test_the_daemon_calibrates_a_mismatched_injector_in_the_background_and_keeps
             if "calibrating" in states and "adopted" not in states:
                 during += 1              # answered while the calibration runs in its process
                 if during >= 2:          # then until it comes back: the next injection adopts it
-                    assert d.calibrator is not None and d.calibrator.wait(timeout=180), "calibration never came back"
+                    assert d.calibrator is not None and d.calibrator.wait(timeout=600), "calibration never came back"
         assert states[0] == "learning" and "calibrating" in states
         assert states.index("calibrating") < states.index("adopted")
         after = [e for s, e in estimates if s == "adopted"][3:]
