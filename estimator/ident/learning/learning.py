@@ -39,7 +39,7 @@ estimator, per injector id (states: :class:`~estimator.ident.status.Learning`):
     starts from the configured tables (a new part is a new draw of the lot) and from the model in use,
     the fit with the lower cost kept (a refinement too), and is adopted if it
     explains the held-out injections better than the model in use, or no worse while it moves their
-    N_u beyond its uncertainty. A ``relearn`` command starts
+    N_u beyond its uncertainty (a refinement: unless it explains them worse). A ``relearn`` command starts
     this state at once.
 
 Every calibration compares each structural parameter with the part's tolerance
