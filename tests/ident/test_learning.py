@@ -505,10 +505,8 @@ def test_a_monitored_model_is_refined_twice_first_over_the_smaller_window_and_no
 
     plant, rng = Plant(PlantConfig(window_s=150e-6)), np.random.default_rng(2)
     base = load_nominal()
-    rec = _Refusing()
 
-    def run(config: SelfCalConfig, status: CalibrationStatus, n: int) -> tuple[list[int], CalibrationStatus]:
-        nonlocal rec
+    def run(config: SelfCalConfig, status: CalibrationStatus, n: int) -> tuple[_Refusing, CalibrationStatus]:
         rec = _Refusing()      # the model in use stays: refused refinements count as refinements
         learner = Learner(config, base, rec, lambda *a: None, lambda iid: base)
         learner.status[0] = status
@@ -517,17 +515,17 @@ def test_a_monitored_model_is_refined_twice_first_over_the_smaller_window_and_no
             m = plant.measure(17.0, 3e-6, f, rng)
             learner.observe(Injection(m.current_a, m.voltage_v, m.dt_s, f, 0, k % 256, time_s=0.1 * k),
                             17.0, False, False, Status.OK, Status.OK)
-        return rec.submitted, learner.status[0]
+        return rec, learner.status[0]
 
     monitoring = CalibrationStatus(Learning.MONITORING, source="learned", served=8)
-    windows, st = run(SelfCalConfig(refine_window=6, refine_again=9), monitoring, 40)
-    assert windows == [6, 9] and st.refined and st.refinements == 2
+    rec, st = run(SelfCalConfig(refine_window=6, refine_again=9), monitoring, 40)
+    assert rec.submitted == [6, 9] and st.refined and st.refinements == 2
     first, second = rec.times
     assert set(first) <= set(second) and max(second) - max(first) == pytest.approx(0.3)   # 3 injections on
     assert rec.refining == [True, True]
     assert CalibrationStatus.from_dict(json.loads(json.dumps(st.to_dict()))) == st
-    windows, st = run(SelfCalConfig(refine_window=6, refine_again=9), replace(monitoring, refined=True), 40)
-    assert windows == [9] and st.refinements == 2
-    windows, st = run(SelfCalConfig(refine_window=6, refine_again=0), monitoring, 40)
-    assert windows == [6] and st.refinements == 1
+    rec, st = run(SelfCalConfig(refine_window=6, refine_again=9), replace(monitoring, refined=True), 40)
+    assert rec.submitted == [9] and st.refinements == 2
+    rec, st = run(SelfCalConfig(refine_window=6, refine_again=0), monitoring, 40)
+    assert rec.submitted == [6] and st.refinements == 1
     assert SelfCalConfig().refine_again >= 2 * SelfCalConfig().refine_window

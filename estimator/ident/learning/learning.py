@@ -206,7 +206,7 @@ class Learner:
         60 new ones, it opened within 0.15 µs of its predicted instant."""
         size = _next_refinement(st, self.config) or self.config.refine_window or self.config.window
         c = replace(self.config, window=size)
-        window = self._refine.setdefault(iid, CalibrationWindow(c.window, refining=True))
+        window = self._refine.setdefault(iid, CalibrationWindow(c.window))
         window.add(inj, nu)
         probed = self._probes.get(iid, 0) >= PROBES_TO_REFINE
         basis = self._basis.get(iid) if probed else None
@@ -218,7 +218,7 @@ class Learner:
         after = 0 if probed else _next_refinement(replace(st, refinements=_refinements(st) + 1, refined=True),
                                                   self.config)
         if after > len(window.items):   # the next refinement's window grows on from this one's injections
-            self._refine[iid] = CalibrationWindow(after, list(window.items), refining=True)
+            self._refine[iid] = CalibrationWindow(after, list(window.items))
         why = ("refining the model over the drive levels it failed at" if probed
                else "refining the model over a larger window")
         self._probes.pop(iid, None)
@@ -229,7 +229,9 @@ class Learner:
 
     def _submit(self, iid: int, window: CalibrationWindow, config: SelfCalConfig, purpose: Learning,
                 probed: bool = False) -> None:
-        """Hand ``window`` to the calibrator for ``purpose`` (:class:`_Running`)."""
+        """Hand ``window`` to the calibrator for ``purpose`` (:class:`_Running`); for ``monitoring``, as the
+        refinement of the model in service it is (its adoption rule: ``CalibrationWindow.refining``)."""
+        window = replace(window, refining=purpose == Learning.MONITORING)
         self._running[iid] = _Running(purpose, window, probed)
         self.calibrator.submit(iid, window, self.base, config, self._current(iid))
         self.collect()
@@ -397,7 +399,7 @@ def _joined(basis: CalibrationWindow, new: CalibrationWindow, capacity: int) -> 
     """A window of ``new``'s injections after as many of ``basis``'s newest as ``capacity`` leaves room
     for (``new``'s newest stay the held-out ones)."""
     keep = max(0, capacity - len(new.items))
-    return CalibrationWindow(capacity, basis.items[max(0, len(basis.items) - keep):] + new.items, refining=True)
+    return CalibrationWindow(capacity, basis.items[max(0, len(basis.items) - keep):] + new.items)
 
 
 def _narrow_note(window: CalibrationWindow, config: SelfCalConfig, lead: str = "") -> str:

@@ -194,7 +194,7 @@ class CalibrationWindow:
     capacity: int
     items: list[tuple[Injection, float]] = field(default_factory=list)   # (injection, its N_u estimate)
     waited: int = 0       # injections added while full (each made room for itself)
-    refining: bool = False   # a model in service refined on it (:func:`_adoptable`)
+    refining: bool = False   # a model in service refined on it (set by the learner; :func:`_adoptable`)
 
     def add(self, inj: Injection, nu_n_per_v: float) -> None:
         """Keep ``inj`` (its first :data:`~estimator.ident.learning.electrical.WINDOW_S`); when full, drop the
