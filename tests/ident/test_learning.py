@@ -360,6 +360,37 @@ def test_a_refinement_adopted_on_its_n_u_shift_states_the_disagreement_in_its_st
     assert disagreement(params, float("nan")) is params
 
 
+def test_a_model_adopted_while_the_voltage_cannot_tell_states_what_the_two_predict_differently_for_the_valve():
+    """Two models that explain the held-out voltage alike but predict a different opening instant (a
+    slow-ramp part's refinement stated 0.21 µs where the two were 1.2 µs apart, and its stroke was then
+    off by 2.3σ): the one adopted states at least the RMS difference of the two models' predicted
+    stroke and opening over the held-out injections, each at its own fit; a statement that covers
+    them already stays."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from estimator.ident.learning.selfcal import _valve_spread, disagreement
+    from estimator.ident.measurement import Injection
+    from estimator.model.fast_sim import FastSimulator
+    from estimator.model.parameters import CalibrationUncertainty, load_nominal
+    from sim_bench.hardware.plant import Plant
+
+    params = replace(load_nominal(), calibration=CalibrationUncertainty(stroke_rel_sigma=0.003, opening_sigma_s=0.2e-6))
+    wide = disagreement(params, 0.001, 0.01, 1.2e-6)
+    assert wide.calibration.stroke_rel_sigma == 0.01 and wide.calibration.opening_sigma_s == 1.2e-6
+    assert disagreement(params, 0.001, 0.002, -0.1e-6) is params
+    assert disagreement(params, 0.02, 0.01, float("nan")).calibration.stroke_rel_sigma == 0.02
+
+    m = Plant().measure(17.0, 4e-6, 100.0, np.random.default_rng(3))
+    inj = Injection(m.current_a, m.voltage_v, m.dt_s, 100.0, 0, 1, time_s=0.1)
+    sim = FastSimulator(load_nominal(), inj.dt_s)
+    same = _valve_spread(sim, sim, [(inj, (17.0, 4e-6), (17.0, 4e-6))])
+    assert same == (0.0, 0.0)
+    stroke_rel, opening_s = _valve_spread(sim, sim, [(inj, (17.0, 4e-6), (17.0, 4.3e-6))])
+    assert 0.005 < stroke_rel < 0.5 and 0.05e-6 < opening_s < 20e-6    # a longer idle stroke: less stroke, later
+
+
 def test_an_injection_its_model_failed_at_an_unchecked_drive_joins_the_refinement_not_the_monitor():
     """A drive correction's probe the model failed at (rejected, ``failed_probe``) is what a monitored
     model has yet to learn: it joins the refinement window and adds no evidence that the part changed;

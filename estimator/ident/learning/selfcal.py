@@ -31,9 +31,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from estimator.errors import EstimatorError
 from estimator.ident.config import IdentConfig
 from estimator.ident.fit.adequacy import noise_level_v
-from estimator.ident.fit.idle_stroke import identify
+from estimator.ident.fit.idle_stroke import identify, predict_valve
 from estimator.ident.learning.electrical import WINDOW_S, confirmed_out_of_tolerance, measured_voltage
 from estimator.ident.learning.element import calibrate_with_hysteresis_if_needed
 from estimator.ident.measurement import Injection
@@ -41,6 +42,8 @@ from estimator.ident.status import CALIBRATION_STATES, Learning
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import InjectorParameters
 from estimator.units import UM_PER_M
+
+Fit = tuple[float, float]   # one injection's (N_u N/V, L_h m) as a model identifies it
 
 STATES = CALIBRATION_STATES
 NU_SCALE_N_PER_V = 1.0       # operating-point distance: 1 N/V of N_u ...
@@ -265,13 +268,14 @@ def _calibrate(window: CalibrationWindow, base: InjectorParameters, config: Self
     old, new = FastSimulator(current if current is not None else base, dt), FastSimulator(res.params, dt)
     chi2 = 0.0
     samples = 0
-    shifts, nus = [], []
+    shifts, nus, fits = [], [], []
     for inj in held:
-        (r_old, nu_old), (r_new, nu_new) = _held_out_residual(old, inj), _held_out_residual(new, inj)
+        (r_old, fit_old), (r_new, fit_new) = _held_out_residual(old, inj), _held_out_residual(new, inj)
         sigma = noise_level_v(r_new)
         chi2 += float((r_old @ r_old - r_new @ r_new) / sigma ** 2)
-        shifts.append(nu_new - nu_old)
-        nus.append(nu_new)
+        shifts.append(fit_new[0] - fit_old[0])
+        nus.append(fit_new[0])
+        fits.append((inj, fit_old, fit_new))
         samples += r_new.size
     status.held_out_chi2 = chi2
     sd = float(np.median(res.sigma_nu_n_per_v)) if res.sigma_nu_n_per_v.size else 0.0
@@ -285,8 +289,9 @@ def _calibrate(window: CalibrationWindow, base: InjectorParameters, config: Self
     if current is not None and chi2 <= ALIKE_EXCESS * samples:
         # two learned models that both explain the held-out voltage within the noise (a swapped part's
         # old model leaves thousands of times the noise) yet disagree on N_u: the voltage does not
-        # decide between them, and the valve's stroke follows N_u
-        params = disagreement(res.params, float(np.mean(shifts)) / float(np.mean(nus)))
+        # decide between them, and the valve's stroke follows N_u; nor do they predict the same valve
+        params = disagreement(res.params, float(np.mean(shifts)) / float(np.mean(nus)),
+                              *_valve_spread(old, new, fits))
         if params is not res.params:
             new = FastSimulator(params, dt)
     narrow = window.narrow(config)
@@ -302,16 +307,41 @@ def _calibrate(window: CalibrationWindow, base: InjectorParameters, config: Self
 ALIKE_EXCESS = 0.5   # held-out chi-square gain per sample below which two models explain the voltage alike
 
 
-def disagreement(params: InjectorParameters, shift_rel: float) -> InjectorParameters:
-    """``params`` whose statement of the predicted stroke's uncertainty covers ``shift_rel``, the
-    relative N_u by which it and the model it replaces disagree on the same injections when the voltage
-    cannot tell them apart (each is as likely; a refinement's own covariance can state 0.3 % where the
-    two are 2 % apart). ``params`` itself when its statement covers it already."""
+def disagreement(params: InjectorParameters, shift_rel: float, stroke_rel: float = 0.0,
+                 opening_s: float = 0.0) -> InjectorParameters:
+    """``params`` whose statement of the valve's predicted uncertainty covers what it and the model it
+    replaces say differently on the same injections when the voltage cannot tell them apart (each is
+    as likely): ``shift_rel``, the relative N_u by which they disagree, and ``stroke_rel`` (relative)
+    and ``opening_s`` (s), by which their predicted plateau stroke and opening instant do. A
+    refinement's own covariance can state 0.3 % where the two are 2 % apart, or an opening instant to
+    0.21 µs where the two predictions are 1.2 µs apart. ``params`` itself when its statement covers
+    them already."""
     cal = params.calibration
-    spread = min(abs(shift_rel), 1.0) if math.isfinite(shift_rel) else 0.0
-    if spread <= cal.stroke_rel_sigma:
+    stroke = max((min(abs(v), 1.0) for v in (shift_rel, stroke_rel) if math.isfinite(v)), default=0.0)
+    opening = min(abs(opening_s), 100e-6) if math.isfinite(opening_s) else 0.0
+    if stroke <= cal.stroke_rel_sigma and opening <= cal.opening_sigma_s:
         return params
-    return replace(params, calibration=replace(cal, stroke_rel_sigma=spread))
+    return replace(params, calibration=replace(cal, stroke_rel_sigma=max(stroke, cal.stroke_rel_sigma),
+                                               opening_sigma_s=max(opening, cal.opening_sigma_s)))
+
+
+def _valve_spread(old: FastSimulator, new: FastSimulator,
+                  fits: list[tuple[Injection, Fit, Fit]]) -> tuple[float, float]:
+    """The RMS over the held-out injections, each at its own fit on either model, of the two models'
+    difference in the predicted plateau stroke (relative) and opening instant (s). An injection the
+    valve does not open on under either is left out."""
+    stroke, opening = [], []
+    for inj, (nu_old, lh_old), (nu_new, lh_new) in fits:
+        try:
+            yo, yn = predict_valve(old, inj, nu_old, lh_old), predict_valve(new, inj, nu_new, lh_new)
+        except EstimatorError:     # e.g. an N_u at the edge of a simulator's range
+            continue
+        if all(np.isfinite(yo[1:])) and all(np.isfinite(yn[1:])) and yo[2] > 0:
+            stroke.append(yn[2] / yo[2] - 1.0)
+            opening.append(yn[1] - yo[1])
+    def rms(v: list[float]) -> float:
+        return float(np.sqrt(np.mean(np.square(v)))) if v else 0.0
+    return rms(stroke), rms(opening)
 
 
 def _adoptable(chi2: float, shift_z: float, config: SelfCalConfig, refining: bool = False) -> bool:
@@ -329,14 +359,15 @@ def _adoptable(chi2: float, shift_z: float, config: SelfCalConfig, refining: boo
     return chi2 > -config.adopt_chi2 and (refining or abs(shift_z) > config.adopt_shift_sigmas)
 
 
-def _held_out_residual(sim: FastSimulator, inj: Injection) -> tuple[np.ndarray, float]:
+def _held_out_residual(sim: FastSimulator, inj: Injection) -> tuple[np.ndarray, Fit]:
     """The residual (V) of ``inj`` over its kept samples at its own cold-start estimate on ``sim``, the
-    measurement chain of ``sim``'s parameters included (a calibrated set carries its own)."""
+    measurement chain of ``sim``'s parameters included (a calibrated set carries its own), and that
+    estimate (N_u N/V, L_h m)."""
     est = identify(inj, sim, IdentConfig())
     if not (math.isfinite(est.nu_n_per_v) and math.isfinite(est.lh_m)):
-        return np.full(inj.voltage_v.size, 1e3), float("nan")
+        return np.full(inj.voltage_v.size, 1e3), (float("nan"), float("nan"))
     result: np.ndarray = measured_voltage(sim, inj, est.nu_n_per_v, est.lh_m * UM_PER_M)[0] - inj.voltage_v
-    return result, est.nu_n_per_v
+    return result, (est.nu_n_per_v, est.lh_m)
 
 
 @dataclass
