@@ -389,6 +389,8 @@ def test_a_model_adopted_while_the_voltage_cannot_tell_states_what_the_two_predi
     assert same == (0.0, 0.0)
     stroke_rel, opening_s = _valve_spread(sim, sim, [(inj, (17.0, 4e-6), (17.0, 4.3e-6))])
     assert 0.005 < stroke_rel < 0.5 and 0.05e-6 < opening_s < 20e-6    # a longer idle stroke: less stroke, later
+    nan = float("nan")
+    assert _valve_spread(sim, sim, [(inj, (17.0, 4e-6), (nan, nan))]) == (0.0, 0.0)   # a fit that failed
 
 
 def test_an_injection_its_model_failed_at_an_unchecked_drive_joins_the_refinement_not_the_monitor():

@@ -329,9 +329,11 @@ def _valve_spread(old: FastSimulator, new: FastSimulator,
                   fits: list[tuple[Injection, Fit, Fit]]) -> tuple[float, float]:
     """The RMS over the held-out injections, each at its own fit on either model, of the two models'
     difference in the predicted plateau stroke (relative) and opening instant (s). An injection the
-    valve does not open on under either is left out."""
+    valve does not open on under either, or that either could not identify, is left out."""
     stroke, opening = [], []
     for inj, (nu_old, lh_old), (nu_new, lh_new) in fits:
+        if not all(math.isfinite(v) for v in (nu_old, lh_old, nu_new, lh_new)):
+            continue
         try:
             yo, yn = predict_valve(old, inj, nu_old, lh_old), predict_valve(new, inj, nu_new, lh_new)
         except EstimatorError:     # e.g. an N_u at the edge of a simulator's range
@@ -339,6 +341,7 @@ def _valve_spread(old: FastSimulator, new: FastSimulator,
         if all(np.isfinite(yo[1:])) and all(np.isfinite(yn[1:])) and yo[2] > 0:
             stroke.append(yn[2] / yo[2] - 1.0)
             opening.append(yn[1] - yo[1])
+
     def rms(v: list[float]) -> float:
         return float(np.sqrt(np.mean(np.square(v)))) if v else 0.0
     return rms(stroke), rms(opening)
