@@ -105,16 +105,30 @@ def disagreement_of(a: ElectricalCalibration, b: ElectricalCalibration, batch: l
     sims = [FastSimulator(replace(c.params, chain=MeasurementChain()), batch[0].dt_s) for c in (a, b)]
     stroke, opening = [], []
     for j, inj in enumerate(batch[:a.lh_um.size]):
-        try:
-            ya = predict_valve(sims[0], inj, float(a.nu_n_per_v[j]), float(a.lh_um[j]) * M_PER_UM)
-            yb = predict_valve(sims[1], inj, float(b.nu_n_per_v[j]), float(b.lh_um[j]) * M_PER_UM)
-        except EstimatorError:     # e.g. an N_u at the edge of a simulator's range
-            continue
-        if all(np.isfinite(ya[1:])) and all(np.isfinite(yb[1:])) and ya[2] > 0:
-            opening.append(ya[1] - yb[1])
-            stroke.append(ya[2] / yb[2] - 1.0)
+        d = valve_difference(inj, sims[0], (float(a.nu_n_per_v[j]), float(a.lh_um[j]) * M_PER_UM),
+                             sims[1], (float(b.nu_n_per_v[j]), float(b.lh_um[j]) * M_PER_UM))
+        if d is not None:
+            stroke.append(d[0])
+            opening.append(d[1])
 
     def rms(v: Any) -> float:
         return float(np.sqrt(np.mean(np.square(v)))) if len(v) else 0.0
     return CalibrationUncertainty(min(rms(nu_rel), 0.1), min(rms(lh_m), 10e-6), min(rms(stroke), 1.0),
                                   min(rms(opening), 100e-6))
+
+
+def valve_difference(inj: Injection, sim_a: FastSimulator, fit_a: tuple[float, float], sim_b: FastSimulator,
+                     fit_b: tuple[float, float]) -> tuple[float, float] | None:
+    """What model ``a`` at its fit ``fit_a`` (N_u N/V, L_h m) predicts differently from model ``b`` at
+    ``fit_b`` for the valve on ``inj``: the plateau stroke (``a``'s over ``b``'s, less 1) and the
+    opening instant (s). None where either fit failed (NaN), a simulator refuses it, or the valve
+    does not open under either."""
+    if not all(math.isfinite(v) for v in (*fit_a, *fit_b)):
+        return None
+    try:
+        ya, yb = predict_valve(sim_a, inj, *fit_a), predict_valve(sim_b, inj, *fit_b)
+    except EstimatorError:     # e.g. an N_u at the edge of a simulator's range
+        return None
+    if all(np.isfinite(ya[1:])) and all(np.isfinite(yb[1:])) and yb[2] > 0:
+        return ya[2] / yb[2] - 1.0, ya[1] - yb[1]
+    return None

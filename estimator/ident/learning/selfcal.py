@@ -31,12 +31,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from estimator.errors import EstimatorError
 from estimator.ident.config import IdentConfig
 from estimator.ident.fit.adequacy import noise_level_v
-from estimator.ident.fit.idle_stroke import identify, predict_valve
+from estimator.ident.fit.idle_stroke import identify
 from estimator.ident.learning.electrical import WINDOW_S, confirmed_out_of_tolerance, measured_voltage
-from estimator.ident.learning.element import calibrate_with_hysteresis_if_needed
+from estimator.ident.learning.element import calibrate_with_hysteresis_if_needed, valve_difference
 from estimator.ident.measurement import Injection
 from estimator.ident.status import CALIBRATION_STATES, Learning
 from estimator.model.fast_sim import FastSimulator
@@ -331,16 +330,11 @@ def _valve_spread(old: FastSimulator, new: FastSimulator,
     difference in the predicted plateau stroke (relative) and opening instant (s). An injection the
     valve does not open on under either, or that either could not identify, is left out."""
     stroke, opening = [], []
-    for inj, (nu_old, lh_old), (nu_new, lh_new) in fits:
-        if not all(math.isfinite(v) for v in (nu_old, lh_old, nu_new, lh_new)):
-            continue
-        try:
-            yo, yn = predict_valve(old, inj, nu_old, lh_old), predict_valve(new, inj, nu_new, lh_new)
-        except EstimatorError:     # e.g. an N_u at the edge of a simulator's range
-            continue
-        if all(np.isfinite(yo[1:])) and all(np.isfinite(yn[1:])) and yo[2] > 0:
-            stroke.append(yn[2] / yo[2] - 1.0)
-            opening.append(yn[1] - yo[1])
+    for inj, fit_old, fit_new in fits:
+        d = valve_difference(inj, new, fit_new, old, fit_old)
+        if d is not None:
+            stroke.append(d[0])
+            opening.append(d[1])
 
     def rms(v: list[float]) -> float:
         return float(np.sqrt(np.mean(np.square(v)))) if v else 0.0
