@@ -209,8 +209,9 @@ class DriveCorrection(Record):
 
 @dataclass(frozen=True)
 class DriveCorrectionRow(Record):
-    """One row of an injector's drive-correction table: ``scale`` and ``offset_us`` at ``preload_n``
-    (row ``row`` of ``rows``; see :meth:`estimator.drive.correction.Correction.at`)."""
+    """One row of an injector's drive-correction table: ``scale`` and ``offset_us`` at ``preload_n``,
+    and the σ of the stroke (µm) and the opening instant (µs) they give there (row ``row`` of ``rows``;
+    see :meth:`estimator.drive.correction.Correction.at` and ``sigma_at``)."""
 
     injector_id: int
     counter: int
@@ -219,11 +220,14 @@ class DriveCorrectionRow(Record):
     preload_n: float
     scale: float
     offset_us: float
+    sigma_stroke_um: float = 0.0
+    sigma_opening_us: float = 0.0
     MESSAGE: ClassVar[str] = "DriveCorrectionTable"
     OUTPUT: ClassVar[bool] = True
     SIGNALS: ClassVar[dict[str, str]] = {
         "injector_id": "InjectorId", "counter": "InjectionCounter", "row": "Row", "rows": "Rows",
-        "preload_n": "Preload", "scale": "Scale", "offset_us": "Offset"}
+        "preload_n": "Preload", "scale": "Scale", "offset_us": "Offset", "sigma_stroke_um": "SigmaStroke",
+        "sigma_opening_us": "SigmaOpening"}
 
 
 @dataclass(frozen=True)

@@ -10,9 +10,11 @@ from estimator._compiled import njit
 
 # columns of an injector's table grid (one line per preload row): its last correction's stroke (µm),
 # scale and opening instant before the offset (µs), the estimate it was computed for (N/V, µm), and
-# the derivatives of stroke and opening in N_u, L_h and the scale
-STROKE, SCALE, OPENING, NU, LH_UM, DS_DNU, DS_DLH, DS_DSCALE, DO_DNU, DO_DLH, DO_DSCALE = range(11)
-COLUMNS = 11
+# the derivatives of stroke and opening in N_u, L_h and the scale, and the σ of stroke and opening it
+# stated (µm, µs: carried as they are until the row is computed again)
+STROKE, SCALE, OPENING, NU, LH_UM, DS_DNU, DS_DLH, DS_DSCALE, DO_DNU, DO_DLH, DO_DSCALE, SIGMA_STROKE, SIGMA_OPENING \
+    = range(13)
+COLUMNS = 13
 
 
 @njit(cache=True, nogil=True)

@@ -121,11 +121,10 @@ def run_loop(closed: bool, seed: int, injectors: int = INJECTORS, injections: in
             out.at_limit[i, k] = use and corr.at_limit
             assert out.trust_limited is not None and out.mismatch is not None
             out.trust_limited[i, k] = use and corr.trust_limited
-            if use:
+            if use:   # σ where the amplifier took the correction, as the table's rows state it there
                 out.predicted_stroke_um[i, k] = corr.stroke_um
-                out.sigma_stroke_um[i, k] = corr.sigma_stroke_um
                 out.predicted_opening_us[i, k] = corr.opening_us
-                out.sigma_opening_us[i, k] = corr.sigma_opening_us
+                out.sigma_stroke_um[i, k], out.sigma_opening_us[i, k] = corr.sigma_at(walks[i][k])
             last[i] = pub.correction or Correction()
             if last[i].state == "valid" and pub.result.status != Status.OK:
                 out.valid_not_ok += 1

@@ -21,7 +21,7 @@ import numpy as np
 from estimator.codec.frame import Frame
 from estimator.codec.injection_frames import injection_frames
 from estimator.codec.records import Codec, DriveCorrection, DriveCorrectionRow, SimTruth
-from estimator.drive.correction import Correction
+from estimator.drive.correction import Correction, Table
 from sim_bench.hardware.amplifiers import Amplifier, Scaled
 from sim_bench.hardware.plant import Measurement, Plant, PlantConfig
 from sim_bench.hardware.scenarios import Scenario
@@ -58,7 +58,8 @@ class InjectionSource:
         # would: the standard drive's plateau current scaled, its start of charging offset
         self.corrections: dict[int, Correction] = {}
         self.offset_us: dict[int, float] = {}     # the offset applied to each injector's last injection
-        self.table_rows: dict[int, dict[int, tuple[int, float, float, float]]] = {}   # DriveCorrectionTable rows
+        # DriveCorrectionTable rows: (rows, preload N, scale, offset µs, σ stroke µm, σ opening µs) by row
+        self.table_rows: dict[int, dict[int, tuple[int, float, float, float, float, float]]] = {}
         self.applied = 0                          # injections driven with a correction
         self.lives = []
         if scenario.series_lot:
@@ -103,14 +104,14 @@ class InjectionSource:
         return self.plant.measure(tr.nu_n_per_v, tr.lh_um * 1e-6, tr.f_open_n, self.rng, drive), tr.temperature_c
 
 
-def _table(rows: dict[int, tuple[int, float, float, float]]) -> tuple[tuple[float, float, float], ...]:
+def _table(rows: dict[int, tuple[int, float, float, float, float, float]]) -> Table:
     """The drive-correction table once every row of it has arrived (else none: the sensitivities)."""
     if not rows:
         return ()
     n = next(iter(rows.values()))[0]
     if n < 2 or any(i not in rows for i in range(n)):
         return ()
-    return tuple((rows[i][1], rows[i][2], rows[i][3]) for i in range(n))
+    return tuple(rows[i][1:] for i in range(n))
 
 
 def apply_faults(frames: list[Frame], sc: Scenario, rng: np.random.Generator, stats: NodeStats) -> list[Frame]:
@@ -170,7 +171,8 @@ class InjectorNode:
         if isinstance(rec, DriveCorrectionRow):
             if rows and next(iter(rows.values()))[0] != rec.rows:
                 rows.clear()      # a table of another length: start again
-            rows[rec.row] = (rec.rows, rec.preload_n, rec.scale, rec.offset_us)
+            rows[rec.row] = (rec.rows, rec.preload_n, rec.scale, rec.offset_us, rec.sigma_stroke_um,
+                             rec.sigma_opening_us)
             rec_c = self.source.corrections.get(iid)
             if rec_c is not None:
                 self.source.corrections[iid] = replace(rec_c, table=_table(rows))

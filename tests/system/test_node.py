@@ -127,7 +127,8 @@ def test_the_node_drives_an_injector_with_its_published_correction(codec):
 def test_the_correction_table_reaches_the_node_row_by_row(codec):
     """The processor sends two DriveCorrectionTable rows with each injection's correction, in turn; the
     node, once it has every row, applies the correction at any preload force as the estimator's own
-    ``Correction.at`` does (to the wire's resolution)."""
+    ``Correction.at`` does, and states its σ there as ``Correction.sigma_at`` does (to the wire's
+    resolution)."""
     import math
 
     from estimator.codec.records import DriveCorrection, DriveCorrectionRow
@@ -160,3 +161,6 @@ def test_the_correction_table_reaches_the_node_row_by_row(codec):
     for f in (28.0, 33.0, 47.0, 150.0, 300.0):
         mine, theirs = c.at(f), on_node.at(f)
         assert abs(mine[0] - theirs[0]) < 3e-4 and abs(mine[1] - theirs[1]) < 0.05, (f, mine, theirs)
+        mine, theirs = c.sigma_at(f), on_node.sigma_at(f)       # the σ each row states, on the wire too
+        assert theirs[0] == pytest.approx(mine[0], rel=0.1, abs=2e-3) and theirs[1] == pytest.approx(
+            mine[1], rel=0.1, abs=0.02), (f, mine, theirs)
