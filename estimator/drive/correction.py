@@ -141,7 +141,7 @@ class Correction:
         if not self.valid:
             return 1.0, 0.0
         if self.table:
-            f, s, o = (np.array(col) for col in list(zip(*self.table))[:3])
+            f, s, o = np.array(self.table).T[:3]
             here = math.isfinite(self.preload_n)
             scale = float(np.interp(preload_n, f, s)) + (self.scale - float(np.interp(self.preload_n, f, s)) if here else 0.0)
             offset = float(np.interp(preload_n, f, o)) + (self.offset_us - float(np.interp(self.preload_n, f, o))
@@ -163,10 +163,10 @@ class Correction:
         own = (self.sigma_stroke_um, self.sigma_opening_us)
         if not (self.valid and self.table) or preload_n == self.preload_n:
             return own
-        f = np.array([row[0] for row in self.table])
+        columns = np.array(self.table).T
+        f = columns[0]
         out = []
-        for col, mine in zip((3, 4), own):
-            rows = np.array([row[col] for row in self.table])
+        for rows, mine in zip(columns[3:5], own):
             there = float(np.interp(preload_n, f, rows))
             here = float(np.interp(self.preload_n, f, rows)) if math.isfinite(self.preload_n) else there
             extra = mine * mine - here * here if math.isfinite(mine) else 0.0

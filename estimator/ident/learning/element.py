@@ -22,6 +22,7 @@ element's own form) they agreed within 0.03 µm.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import replace
 from typing import Any
 
@@ -103,22 +104,35 @@ def disagreement_of(a: ElectricalCalibration, b: ElectricalCalibration, batch: l
     nu_rel = a.nu_n_per_v / b.nu_n_per_v - 1.0
     lh_m = (a.lh_um - b.lh_um) * M_PER_UM
     sims = [FastSimulator(replace(c.params, chain=MeasurementChain()), batch[0].dt_s) for c in (a, b)]
+    fits = [(inj, (float(a.nu_n_per_v[j]), float(a.lh_um[j]) * M_PER_UM),
+             (float(b.nu_n_per_v[j]), float(b.lh_um[j]) * M_PER_UM)) for j, inj in enumerate(batch[:a.lh_um.size])]
+    stroke, opening = valve_spread(sims[0], sims[1], fits)
+    return CalibrationUncertainty(min(_rms(nu_rel), 0.1), min(_rms(lh_m), 10e-6), min(stroke, 1.0),
+                                  min(opening, 100e-6))
+
+
+def valve_spread(sim_a: FastSimulator, sim_b: FastSimulator,
+                 fits: Iterable[tuple[Injection, tuple[float, float], tuple[float, float]]]) -> tuple[float, float]:
+    """The RMS over injections, each with its fit (N_u N/V, L_h m) on model ``a`` and on model ``b``,
+    of what ``a`` predicts differently from ``b`` for the valve: the plateau stroke (relative) and the
+    opening instant (s). An injection either fit failed on (NaN), a simulator refuses, or the valve
+    does not open on under either is left out (0 when none is left)."""
     stroke, opening = [], []
-    for j, inj in enumerate(batch[:a.lh_um.size]):
-        d = valve_difference(inj, sims[0], (float(a.nu_n_per_v[j]), float(a.lh_um[j]) * M_PER_UM),
-                             sims[1], (float(b.nu_n_per_v[j]), float(b.lh_um[j]) * M_PER_UM))
+    for inj, fit_a, fit_b in fits:
+        d = _valve_difference(inj, sim_a, fit_a, sim_b, fit_b)
         if d is not None:
             stroke.append(d[0])
             opening.append(d[1])
-
-    def rms(v: Any) -> float:
-        return float(np.sqrt(np.mean(np.square(v)))) if len(v) else 0.0
-    return CalibrationUncertainty(min(rms(nu_rel), 0.1), min(rms(lh_m), 10e-6), min(rms(stroke), 1.0),
-                                  min(rms(opening), 100e-6))
+    return _rms(stroke), _rms(opening)
 
 
-def valve_difference(inj: Injection, sim_a: FastSimulator, fit_a: tuple[float, float], sim_b: FastSimulator,
-                     fit_b: tuple[float, float]) -> tuple[float, float] | None:
+def _rms(v: Any) -> float:
+    """Root mean square (0 for none)."""
+    return float(np.sqrt(np.mean(np.square(v)))) if len(v) else 0.0
+
+
+def _valve_difference(inj: Injection, sim_a: FastSimulator, fit_a: tuple[float, float], sim_b: FastSimulator,
+                      fit_b: tuple[float, float]) -> tuple[float, float] | None:
     """What model ``a`` at its fit ``fit_a`` (N_u N/V, L_h m) predicts differently from model ``b`` at
     ``fit_b`` for the valve on ``inj``: the plateau stroke (``a``'s over ``b``'s, less 1) and the
     opening instant (s). None where either fit failed (NaN), a simulator refuses it, or the valve

@@ -35,7 +35,7 @@ from estimator.ident.config import IdentConfig
 from estimator.ident.fit.adequacy import noise_level_v
 from estimator.ident.fit.idle_stroke import identify
 from estimator.ident.learning.electrical import WINDOW_S, confirmed_out_of_tolerance, measured_voltage
-from estimator.ident.learning.element import calibrate_with_hysteresis_if_needed, valve_difference
+from estimator.ident.learning.element import calibrate_with_hysteresis_if_needed, valve_spread
 from estimator.ident.measurement import Injection
 from estimator.ident.status import CALIBRATION_STATES, Learning
 from estimator.model.fast_sim import FastSimulator
@@ -329,16 +329,7 @@ def _valve_spread(old: FastSimulator, new: FastSimulator,
     """The RMS over the held-out injections, each at its own fit on either model, of the two models'
     difference in the predicted plateau stroke (relative) and opening instant (s). An injection the
     valve does not open on under either, or that either could not identify, is left out."""
-    stroke, opening = [], []
-    for inj, fit_old, fit_new in fits:
-        d = valve_difference(inj, new, fit_new, old, fit_old)
-        if d is not None:
-            stroke.append(d[0])
-            opening.append(d[1])
-
-    def rms(v: list[float]) -> float:
-        return float(np.sqrt(np.mean(np.square(v)))) if v else 0.0
-    return rms(stroke), rms(opening)
+    return valve_spread(new, old, [(inj, fit_new, fit_old) for inj, fit_old, fit_new in fits])
 
 
 def _adoptable(chi2: float, shift_z: float, config: SelfCalConfig, refining: bool = False) -> bool:
