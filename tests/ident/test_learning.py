@@ -42,13 +42,13 @@ def test_a_part_swapped_under_the_same_id_is_learned_again_without_a_command():
         r = tracker.update(inj)
         states.append(tracker.calibration[inj.injector_id].state)
         rows.append((truth["k"], r.lh_m * 1e6 - truth["lh_true_um"], r.status))
-    assert states[29] == Learning.MONITORING
+    assert states[29] in (Learning.ADOPTED, Learning.MONITORING)   # the first part's model (or its refinement)
     relearn = states.index(Learning.RELEARNING)
     assert 30 < relearn < 45
     assert states.index(Learning.ADOPTED, relearn) < 60
     assert all(abs(e) <= 0.15 for k, e, _ in rows if k >= 60), [(k, round(e, 3)) for k, e, _ in rows if k >= 55]
     assert not [k for k, e, s in rows if s == Status.OK and abs(e) > 0.3]
-    assert tracker.calibration[0].calibrations == 2
+    assert tracker.calibration[0].calibrations == 4   # learned and refined, the new part learned and refined
 
 
 def test_reset_forgets_the_learned_model_and_relearn_keeps_the_estimates():
@@ -470,56 +470,94 @@ def test_a_model_that_fails_where_its_correction_leads_is_refined_at_once_beside
     injections: a hysteresis part's first model, learned at the standard drive, otherwise held its
     correction short of the target for twenty injections. It does not count as one of the regular
     refinements, which learn the levels the correction then settles at."""
-    import numpy as np
-
-    from estimator.ident.learning.learning import PROBES_TO_REFINE, Learner
-    from estimator.ident.measurement import Injection
-    from estimator.model.parameters import load_nominal
-    from sim_bench.hardware.plant import Plant, PlantConfig
+    from estimator.ident.learning.learning import PROBES_TO_REFINE
 
     config = SelfCalConfig()
-    plant, rng = Plant(PlantConfig(window_s=150e-6)), np.random.default_rng(3)
-    base = load_nominal()
-    submitted: list[list[Any]] = []
-    own: dict[int, Any] = {}
+    life = _AdoptingLife(config)
+    for k in range(config.window):
+        life.observe(k, mismatch=True)
+    assert len(life.submitted) == 1 and life.learner.status[0].state == Learning.ADOPTED
+    life.observe(config.window)
+    for j in range(PROBES_TO_REFINE):
+        assert len(life.submitted) == 1
+        life.observe(config.window + 1 + j, probe=True)
+    assert len(life.submitted) == 2 and life.learner.status[0].state == Learning.ADOPTED
+    assert life.learner.status[0].refinements == 0    # the regular refinements stay due (refine_window first)
+    joined = life.submitted[1]
+    assert len(joined) == config.window + PROBES_TO_REFINE     # (an ok injection before the first probe: none due)
+    assert all(a is b for a, b in zip(joined, life.submitted[0]))      # the model's own window first
+    assert joined[-1][0].counter == config.window + PROBES_TO_REFINE   # the newest probe is held out
 
-    class Adopting:
-        def __init__(self) -> None:
-            self.done: list[CalibrationOutcome] = []
 
-        def submit(self, iid, window, base, config, current):
-            submitted.append(list(window.items))
-            self.done.append(CalibrationOutcome(iid, CalibrationStatus(Learning.ADOPTED, len(window.items)), base))
+def test_a_models_first_refinement_grows_on_from_the_injections_it_was_learned_on():
+    """A learned model's first refinement is calibrated over the newest injections its own window
+    holds (half ``refine_window`` at most) and those since, the newest held out: it spans the drive
+    levels the model was learned at and those its correction leads to, and comes as many injections
+    sooner. (A swapped part's model learned at its predecessor's correction and refined over 24 new
+    injections opened 0.5 µs early with σ 0.11 µs; over 12 of each, 0.23 µs early with σ 0.13 µs.)"""
+    config = SelfCalConfig()
+    assert config.refine_window // 2 >= config.window      # the whole first window is kept
+    life = _AdoptingLife(config)
+    for k in range(config.window):
+        life.observe(k, mismatch=True)
+    assert len(life.submitted) == 1
+    k = config.window
+    while len(life.submitted) == 1:
+        life.observe(k)
+        k += 1
+        assert k < 4 * config.refine_window
+    own, refinement = life.submitted
+    assert len(refinement) == config.refine_window and life.learner.status[0].refinements == 1
+    assert all(a is b for a, b in zip(refinement, own))       # the model's own window first, ...
+    new = refinement[config.window:]
+    assert [inj.counter for inj, _ in new] == list(range(k - len(new), k))   # ... then the newest, held out
+    monitored_from = config.window + config.confirm - 1       # the injection that confirms the model
+    assert k - monitored_from == config.refine_window - config.window
 
-        def poll(self):
-            done, self.done = self.done, []
-            return done
 
-    learner = Learner(config, base, Adopting(), lambda iid, params, prepared: own.__setitem__(iid, params),
-                      lambda iid: own.get(iid))
+class _AdoptingLife:
+    """One injector (id 0) at 60/150/240 N on the simulated plant, under a learner whose calibrator adopts
+    every window it is given; ``submitted``: each window's items, in order."""
 
-    def observe(k: int, probe: bool = False, mismatch: bool = False) -> None:
+    def __init__(self, config: SelfCalConfig) -> None:
+        import numpy as np
+
+        from estimator.ident.learning.learning import Learner
+        from estimator.model.parameters import load_nominal
+        from sim_bench.hardware.plant import Plant, PlantConfig
+
+        self.plant, self.rng = Plant(PlantConfig(window_s=150e-6)), np.random.default_rng(3)
+        self.submitted: list[list[Any]] = []
+        own: dict[int, Any] = {}
+        life = self
+
+        class Adopting:
+            def __init__(self) -> None:
+                self.done: list[CalibrationOutcome] = []
+
+            def submit(self, iid, window, base, config, current):
+                life.submitted.append(list(window.items))
+                self.done.append(CalibrationOutcome(iid, CalibrationStatus(Learning.ADOPTED, len(window.items)),
+                                                    base))
+
+            def poll(self):
+                done, self.done = self.done, []
+                return done
+
+        self.learner = Learner(config, load_nominal(), Adopting(),
+                               lambda iid, params, prepared: own.__setitem__(iid, params), lambda iid: own.get(iid))
+
+    def observe(self, k: int, probe: bool = False, mismatch: bool = False) -> None:
+        """Injection ``k``: ok, a failed probe, or one the model in use does not explain."""
+        from estimator.ident.measurement import Injection
+
         f = (60.0, 150.0, 240.0)[k % 3]
-        m = plant.measure(17.0, 3e-6, f, rng)
+        m = self.plant.measure(17.0, 3e-6, f, self.rng)
         inj = Injection(m.current_a, m.voltage_v, m.dt_s, f, 0, k, time_s=0.1 * k)
         bad = probe or mismatch
-        learner.observe(inj, 17.0, mismatch, bad, Status.REJECTED if probe else
-                        Status.MODEL_MISMATCH if mismatch else Status.OK,
-                        Status.MODEL_MISMATCH if bad else Status.OK, failed_probe=probe)
-
-    for k in range(config.window):
-        observe(k, mismatch=True)
-    assert len(submitted) == 1 and learner.status[0].state == Learning.ADOPTED
-    observe(config.window)
-    for j in range(PROBES_TO_REFINE):
-        assert len(submitted) == 1
-        observe(config.window + 1 + j, probe=True)
-    assert len(submitted) == 2 and learner.status[0].state == Learning.ADOPTED
-    assert learner.status[0].refinements == 0    # the regular refinements stay due (refine_window first)
-    joined = submitted[1]
-    assert len(joined) == config.window + PROBES_TO_REFINE     # (an ok injection before the first probe: none due)
-    assert all(a is b for a, b in zip(joined, submitted[0]))      # the model's own window first
-    assert joined[-1][0].counter == config.window + PROBES_TO_REFINE   # the newest probe is held out
+        self.learner.observe(inj, 17.0, mismatch, bad, Status.REJECTED if probe else
+                             Status.MODEL_MISMATCH if mismatch else Status.OK,
+                             Status.MODEL_MISMATCH if bad else Status.OK, failed_probe=probe)
 
 
 def test_a_monitored_model_is_refined_twice_first_over_the_smaller_window_and_no_more():
