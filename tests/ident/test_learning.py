@@ -515,11 +515,39 @@ def test_a_models_first_refinement_grows_on_from_the_injections_it_was_learned_o
     assert k - monitored_from == config.refine_window - config.window
 
 
+def test_a_refused_refinement_over_failed_probes_has_the_injector_learn_again():
+    """A refinement over the model's own injections and the levels it failed at that is refused (no
+    one parameter set explains both) says the probes are another part, not levels this one has yet
+    to learn: the injector re-learns from a new window while the model in use serves. (A part swapped
+    under its predecessor's correction failed as probes; refined over both parts' injections, the lot
+    then spread 4.3 µm at p95 on the bus.)"""
+    from estimator.ident.learning.learning import PROBES_TO_REFINE
+
+    config = SelfCalConfig()
+    life = _AdoptingLife(config, adopting=1)
+    for k in range(config.window):
+        life.observe(k, mismatch=True)
+    life.observe(config.window)
+    for j in range(PROBES_TO_REFINE):
+        life.observe(config.window + 1 + j, probe=True)
+    assert len(life.submitted) == 2                        # the refinement over the probes, refused
+    st = life.learner.status[0]
+    assert st.state == Learning.RELEARNING and "learning again" in st.message, st.message
+    assert 0 not in life.learner._windows and 0 not in life.learner._refine
+    start = k = config.window + 1 + PROBES_TO_REFINE
+    while len(life.submitted) == 2:                       # a new window fills and is calibrated
+        life.observe(k, probe=True)
+        k += 1
+        assert k < 4 * config.window
+    assert [inj.counter for inj, _ in life.submitted[2]] == list(range(start, start + config.window))
+
+
 class _AdoptingLife:
     """One injector (id 0) at 60/150/240 N on the simulated plant, under a learner whose calibrator adopts
-    every window it is given; ``submitted``: each window's items, in order."""
+    each of the first ``adopting`` windows it is given and refuses the rest; ``submitted``: each window's
+    items, in order."""
 
-    def __init__(self, config: SelfCalConfig) -> None:
+    def __init__(self, config: SelfCalConfig, adopting: int = 1_000_000) -> None:
         import numpy as np
 
         from estimator.ident.learning.learning import Learner
@@ -537,6 +565,9 @@ class _AdoptingLife:
 
             def submit(self, iid, window, base, config, current):
                 life.submitted.append(list(window.items))
+                if len(life.submitted) > adopting:
+                    self.done.append(CalibrationOutcome(iid, CalibrationStatus(Learning.REFUSED, message="no"), None))
+                    return
                 self.done.append(CalibrationOutcome(iid, CalibrationStatus(Learning.ADOPTED, len(window.items)),
                                                     base))
 

@@ -311,11 +311,30 @@ class Learner:
                                    refusals=0, retry_in=0, batch=0, preload_span=0.0, refined=refined,
                                    refinements=refinements))
             return
+        if run.probed and self._current(iid) is not None:
+            self._relearn_from_probes(iid, before, new, refinements, refined, out.status.message)
+            return
         adequate = math.isfinite(out.status.held_out_chi2)
         self._set(iid, replace(before, state=Learning.MONITORING if self._current(iid) is not None else Learning.IDLE,
                                calibrations=new.calibrations, refined=refined, refinements=refinements, evidence=0.0,
                                out_of_tolerance=new.out_of_tolerance if adequate else before.out_of_tolerance,
                                message="refinement: " + out.status.message))
+
+    def _relearn_from_probes(self, iid: int, before: CalibrationStatus, new: CalibrationStatus,
+                             refinements: int, refined: bool, why: str) -> None:
+        """A refinement over the model's own injections and the drive levels it failed at was refused:
+        no one parameter set explains both, or it explains the newest worse. The failed probes are
+        then not levels this part has yet to learn but another part, or one that changed: the model
+        in use keeps serving while the injector re-learns from a new window (the refinement's window
+        holds injections from before the change too: a part swapped at injection 40 failed as probes
+        under its predecessor's correction; refined over both parts' injections, one such refinement
+        was adopted, and the lot then spread 4.3 µm at p95 on the bus)."""
+        self._windows.pop(iid, None)
+        self._refine.pop(iid, None)
+        self._set(iid, replace(before, state=Learning.RELEARNING, calibrations=new.calibrations, refined=refined,
+                               refinements=refinements, evidence=0.0,
+                               message="refinement over the drive levels the model failed at: " + why
+                                       + "; learning again"))
 
     # ---- commands, seeds and persistence -----------------------------------------------------
     def forget(self, iid: int) -> None:
