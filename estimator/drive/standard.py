@@ -22,8 +22,7 @@ from __future__ import annotations
 
 import base64
 import math
-from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -40,8 +39,7 @@ MAX_LENGTH_S = 2e-3           # a drive table longer than this (s) is refused (a
 MAX_GRIDS = 16                # sampled grids (period, length) and chains a drive keeps
 
 
-@dataclass(frozen=True, slots=True)
-class DriveCheck:
+class DriveCheck(NamedTuple):
     """One injection's measured current against the standard drive: ``scale`` (the least-squares
     factor of the standard drive, relative), ``residual_rel`` (RMS of what the scaled standard drive
     leaves unexplained over the RMS of the measured current), ``agrees`` (within the tolerance)."""

@@ -46,15 +46,22 @@ class SimulatorPool:
         self.max_size = max_size
         self.periods_ns = frozenset(int(p) for p in periods_ns)
         self._sims: OrderedDict[float, FastSimulator] = OrderedDict()
+        self._last_key: tuple[float, float] = (math.nan, math.nan)
         self.built = 0          # simulators built so far (evictions = built - len)
         self.over_budget = 0    # injections refused because the build budget was spent
         self.build_burst, self.build_interval_s = build_burst, build_interval_s
         self._tokens = float(build_burst)
         self._t_tokens: float | None = None
 
-    @staticmethod
-    def _key(dt_s: float) -> float:
-        return round(dt_s * 1e9, 3)
+    def _key(self, dt_s: float) -> float:
+        """The pool's key of a sample period (s): ns to 1 ps. The last one is remembered (every injection
+        looks its simulator up three times, at one period)."""
+        last = self._last_key
+        if dt_s == last[0]:
+            return last[1]
+        key = round(dt_s * 1e9, 3)
+        self._last_key = (dt_s, key)   # one tuple: a reader on another thread sees a pair that belongs together
+        return key
 
     def refusal(self, dt_s: float, time_s: float = math.nan) -> str | None:
         """Why this sample period (s) of an injection at ``time_s`` (s, bus time; NaN: unknown) is not

@@ -567,11 +567,65 @@ def test_a_steady_operating_point_is_carried_and_carries_no_error(sim, monkeypat
     assert calls, "a rail-pressure step is simulated, not carried"
 
 
+def test_a_correction_made_by_name_is_the_constructors():
+    """``Correction.of`` (every injection's, without the frozen dataclass's per-field ``__setattr__``)
+    gives what the constructor gives, field for field, defaults included; a field it does not have is
+    an error, and the result is as frozen."""
+    from dataclasses import FrozenInstanceError, fields
+
+    values = {f.name: v for f, v in zip(fields(Correction), (
+        1.1, -0.4, 11.0, 60.0, 0.05, 0.2, 11.0, 60.5, 0.01, -2.0, 80.0, True, False, True, (0.6, 1.8), (-9.0, 9.0),
+        "why", 1.02, ((40.0, 1.1, 0.1, 0.05, 0.3),), (0.9, 1.1), True))}
+    assert len(values) == len(fields(Correction))
+    assert Correction.of(**values) == Correction(**values)
+    assert Correction.of(scale=1.2).__dict__ == Correction(scale=1.2).__dict__
+    with pytest.raises(TypeError, match="no field bogus"):
+        Correction.of(bogus=1.0)
+    with pytest.raises(FrozenInstanceError):
+        Correction.of(scale=1.2).scale = 1.3  # type: ignore[misc]
+
+
+def test_the_estimates_noise_at_a_steady_preload_force_is_carried_but_a_preload_move_near_idle_is_not(
+        sim, monkeypatch):
+    """The estimate's injection-to-injection noise (L_h ±0.02 µm, moving the stroke 0.04 µm each time) at
+    a steady preload force is carried by the derivatives, within 0.005 µm and 0.03 µs of a correction
+    simulated anew (the stroke and the opening instant are close to linear in N_u and L_h); a preload
+    force that moves the stroke 0.05 µm or the opening instant 0.2 µs near idle, where the opening
+    bends, is simulated."""
+    import estimator.drive.correction as corr_mod
+
+    forces: list[float] = []
+    real = corr_mod.respond
+
+    def counted(*a, **kw):
+        forces.append(a[4])
+        return real(*a, **kw)
+    monkeypatch.setattr(corr_mod, "respond", counted)
+    comp = compensator()
+    comp.update(0, True, sim, 17.0, 4.0, COV, 100.0, sim)
+    forces.clear()
+    for k in range(24):
+        lh_um, nu = 4.0 + (0.02 if k % 2 else -0.02), 17.0 + 0.003 * k
+        c = comp.update(0, True, sim, nu, lh_um, COV, 100.0, sim)
+        n = len(forces)
+        fresh = compensator().update(0, True, sim, nu, lh_um, COV, 100.0, sim)
+        del forces[n:]
+        assert c.stroke_um == pytest.approx(fresh.stroke_um, abs=0.005)
+        assert c.opening_us == pytest.approx(fresh.opening_us, abs=0.03)
+    assert forces.count(100.0) <= 2, forces.count(100.0)      # 26 when 0.02 µm and 0.1 µs were carried
+    comp.update(0, True, sim, 17.0, 4.0, COV, 36.0, sim)
+    d_f = comp._injectors[0].main.response.d_f   # the preload force's share of the move beyond its own limits,
+    moved = 36.0 + min(0.05 / abs(d_f[0]), 0.2 / abs(d_f[1]))   # within the estimate's
+    forces.clear()
+    comp.update(0, True, sim, 17.0, 4.0, COV, moved, sim)
+    assert moved in forces, "a preload move near idle is simulated, not carried"
+
+
 def test_a_deferred_compensator_leaves_the_tables_simulations_to_the_idle_worker(sim, monkeypatch):
     """Deferred (the daemon's): an injection's correction simulates nothing for the preload table and
     refreshes no derivative merely due by age; :meth:`background` does both. It then holds exactly the
     table an immediate compensator computes for the same estimates, and each correction is the same
-    (to rounding once the derivatives were refreshed) but for its table, the previous estimate's. Left undone, the work runs before the
+    (within the carry's second-order error once the derivatives were refreshed) but for its table, the previous estimate's. Left undone, the work runs before the
     injector's next injection."""
     import estimator.drive.correction as corr_mod
 
@@ -598,7 +652,9 @@ def test_a_deferred_compensator_leaves_the_tables_simulations_to_the_idle_worker
         if k < corr_mod.REFRESH_INJECTIONS:     # then the derivatives, refreshed one injection apart
             assert replace(b, table=()) == replace(a, table=()), k
         else:
-            assert (b.scale, b.stroke_um, b.opening_us) == pytest.approx((a.scale, a.stroke_um, a.opening_us), abs=1e-4)
+            # carried from another simulation: the same within the carry's second-order error
+            assert (b.scale, b.stroke_um) == pytest.approx((a.scale, a.stroke_um), abs=2e-3)
+            assert b.opening_us == pytest.approx(a.opening_us, abs=1e-2)
         assert b.table == before
         while later.background():
             pass
