@@ -215,6 +215,7 @@ def _send(bus, codec, inj: Injection, counter: int) -> None:
         bus.send(to_message(fr))
 
 
+@pytest.mark.timeout(1200)   # the deadlines below, not the suite's 300 s: the calibration waits for idle cores
 def test_the_daemon_calibrates_a_mismatched_injector_in_the_background_and_keeps_its_model(tmp_path):
     """As a HIL bench runs it: self_calibration = "on"; a series injector the nominal model cannot
     explain goes learning -> calibrating -> adopted on the bus (ModelCalibration) while the
