@@ -262,6 +262,42 @@ def test_a_refinement_that_explains_the_held_out_alike_is_adopted_and_a_first_ca
     assert refinement.held_out_chi2 == first.held_out_chi2
 
 
+def test_a_refinement_over_failed_probes_that_are_another_parts_is_refused():
+    """A refinement over a part's injections whose newest (held out) are drive levels its model failed
+    at: when those are a second part's (swapped under the first's correction), the refinement explains
+    them better than the model in use but leaves them thousands of sd above the noise, and is refused;
+    the same refinement without probes, and one whose probes are the part's own, is adopted."""
+    import numpy as np
+
+    from estimator.ident.learning.selfcal import ANOTHER_PART_Z, CalibrationWindow, self_calibrate
+    from estimator.ident.measurement import Injection
+    from estimator.model.parameters import load_nominal
+    from sim_bench.hardware.plant import Plant, PlantConfig
+    from sim_bench.hardware.series_part import draw
+
+    rng = np.random.default_rng(5)
+    first, second = draw(rng), draw(rng)
+    c = SelfCalConfig()
+
+    def refined(probes, probed: bool):
+        window = CalibrationWindow(c.window, refining=True, probed=probed)
+        for k in range(c.window):
+            part = probes if k >= c.window - c.held_out else first
+            f = 30.0 + 270.0 * ((k * 7) % 11) / 10
+            m = Plant(PlantConfig(window_s=150e-6), part.params).measure(17.0, 3e-6, f, np.random.default_rng(105 + k))
+            window.add(Injection(m.current_a, m.voltage_v, m.dt_s, f, 0, k, time_s=0.1 * k), 17.0)
+        return self_calibrate(window, load_nominal(), c, current=first.params)
+
+    status, params = refined(second, probed=True)
+    assert params is None and "another part" in status.message, status.message
+    assert status.held_out_chi2 > c.adopt_chi2          # better than the model in use all the same
+    assert float(status.message.split(" sd ")[0].split()[-1]) >= ANOTHER_PART_Z
+    status, params = refined(second, probed=False)
+    assert params is not None, status.message           # the rule is the probes' only
+    status, params = refined(first, probed=True)
+    assert params is not None, status.message
+
+
 def test_a_status_of_a_calibration_that_explained_the_held_out_worse_round_trips(tmp_path):
     """A refused calibration's held-out chi-square gain and N_u shift may be negative; the state file
     keeps them."""

@@ -130,6 +130,12 @@ def assess(residual_v: np.ndarray, fitted: int = 2, structure_threshold: float =
     return Adequacy(structure, low, excess, sigma, adequate)
 
 
+def structure_z(residual_v: np.ndarray, fitted: int = 2) -> float:
+    """The residual's (V) smooth structure (:func:`assess`) in standard deviations above its expectation
+    under a correct model (chi-square of :data:`SMOOTH_COLUMNS` components)."""
+    return (assess(residual_v, fitted).structure - SMOOTH_COLUMNS) / math.sqrt(2.0 * SMOOTH_COLUMNS)
+
+
 @functools.lru_cache(maxsize=32)
 def _rows(n: int) -> np.ndarray:
     """:func:`smooth_basis` transposed, C-contiguous (a column per row), read-only."""

@@ -43,7 +43,7 @@ import numpy as np
 
 from estimator.errors import EstimatorError
 from estimator.ident.config import IdentConfig
-from estimator.ident.fit.adequacy import SMOOTH_COLUMNS, assess, current_noise_a, noise_level_v
+from estimator.ident.fit.adequacy import current_noise_a, noise_level_v, structure_z
 from estimator.ident.fit.idle_stroke import identify, predict_valve
 from estimator.ident.fit.levenberg_marquardt import LeastSquaresResult, least_squares_lm
 from estimator.ident.measurement import Injection
@@ -451,8 +451,7 @@ class _Problem:
     def misfit_z(self, f: LeastSquaresResult) -> float:
         """The worst injection's smooth residual structure (chi-square of its lowest cosine components,
         :func:`~estimator.ident.fit.adequacy.assess`) in standard deviations above its expectation."""
-        return max((assess(r, 2 + self.p // self.b).structure - SMOOTH_COLUMNS) / math.sqrt(2.0 * SMOOTH_COLUMNS)
-                   for r in self.voltage_residuals(f))
+        return max(structure_z(r, 2 + self.p // self.b) for r in self.voltage_residuals(f))
 
     def restarted(self, fit: LeastSquaresResult, max_restarts: int, max_iterations: int) -> tuple[LeastSquaresResult, int]:
         """The best of ``fit`` and up to ``max_restarts`` restarts while the residual is not white.

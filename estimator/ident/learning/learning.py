@@ -238,7 +238,7 @@ class Learner:
                 probed: bool = False) -> None:
         """Hand ``window`` to the calibrator for ``purpose`` (:class:`_Running`); for ``monitoring``, as the
         refinement of the model in service it is (its adoption rule: ``CalibrationWindow.refining``)."""
-        window = replace(window, refining=purpose == Learning.MONITORING)
+        window = replace(window, refining=purpose == Learning.MONITORING, probed=probed)
         self._running[iid] = _Running(purpose, window, probed)
         self.calibrator.submit(iid, window, self.base, config, self._current(iid))
         self.collect()
@@ -323,7 +323,8 @@ class Learner:
     def _relearn_from_probes(self, iid: int, before: CalibrationStatus, new: CalibrationStatus,
                              refinements: int, refined: bool, why: str) -> None:
         """A refinement over the model's own injections and the drive levels it failed at was refused:
-        no one parameter set explains both, or it explains the newest worse. The failed probes are
+        no one parameter set explains both, it explains the newest worse, or it leaves one of them
+        another part's misfit (:data:`~estimator.ident.learning.selfcal.ANOTHER_PART_Z`). The failed probes are
         then not levels this part has yet to learn but another part, or one that changed: the model
         in use keeps serving while the injector re-learns from a new window (the refinement's window
         holds injections from before the change too: a part swapped at injection 40 failed as probes
