@@ -239,7 +239,7 @@ class Learner:
         """Hand ``window`` to the calibrator for ``purpose`` (:class:`_Running`); for ``monitoring``, as the
         refinement of the model in service it is (its adoption rule: ``CalibrationWindow.refining``)."""
         window = replace(window, refining=purpose == Learning.MONITORING, probed=probed)
-        self._running[iid] = _Running(purpose, window, probed)
+        self._running[iid] = _Running(purpose, window)
         self.calibrator.submit(iid, window, self.base, config, self._current(iid))
         self.collect()
 
@@ -301,7 +301,7 @@ class Learner:
         at are learned by those (refined over the probes, a Prandtl–Ishlinskii part opened 0.3-0.45 µs
         late at 1.2-1.36 times the standard drive, beyond its σ, until its refinement over 60 there)."""
         iid = out.injector_id
-        counted = int(not run.probed)
+        counted = int(not run.window.probed)
         refinements = _refinements(before) + counted
         refined = before.refined or bool(counted)
         if out.params is not None and self._current(iid) is not None:
@@ -311,7 +311,7 @@ class Learner:
                                    refusals=0, retry_in=0, batch=0, preload_span=0.0, refined=refined,
                                    refinements=refinements))
             return
-        if run.probed and self._current(iid) is not None:
+        if run.window.probed and self._current(iid) is not None:
             self._relearn_from_probes(iid, before, new, refinements, refined, out.status.message)
             return
         adequate = math.isfinite(out.status.held_out_chi2)
@@ -414,12 +414,11 @@ class Learner:
 
 class _Running(NamedTuple):
     """A calibration handed to the calibrator: what it is for (``LEARNING``, ``RELEARNING`` or
-    ``MONITORING``: a refinement), its window (the adopted model's basis) and whether it is a
-    refinement over failed probes (not counted among the regular ones)."""
+    ``MONITORING``: a refinement) and its window (the adopted model's basis; ``probed``: a refinement
+    over failed probes, not counted among the regular ones)."""
 
     purpose: Learning
     window: CalibrationWindow
-    probed: bool
 
 
 def _joined(basis: CalibrationWindow, new: CalibrationWindow, capacity: int) -> CalibrationWindow:
