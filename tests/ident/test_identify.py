@@ -339,3 +339,28 @@ def test_the_published_fit_is_ringed_and_the_other_only_where_the_choice_is_clos
     est_m = identify(mis, sim)
     assert est_m.robust and est_m.model_error_stat > cfg.model_error_threshold + FLIP_MARGIN and rings == [True]
     assert est_m.evaluations < 100    # the local fits, not the global search
+
+
+def test_columns_no_simulation_explains_are_never_the_minimum():
+    """Columns whose every point failed (NaN cost, as at a learned model's widened N_u range where no
+    start is feasible) are never taken for the profile's minimum, nor does a zoom beside them cast a
+    NaN to a row: the start is the valley's."""
+    import warnings
+
+    from estimator.ident.fit.cold_start import profile_start
+    from estimator.ident.fit.search import Box
+
+    config = IdentConfig()
+    box = Box(np.array([14.9, -2.0]), np.array([23.2, 10.0]))
+    edge = np.linspace(14.9, 23.2, config.grid[0])[6]        # the grid column right of the minimum fails
+
+    def f(x):
+        cost = (x[:, 1] - 4.0 - 2.0 * (x[:, 0] - 18.0)) ** 2 + 30.0 * (x[:, 0] - 18.0) ** 2
+        # infeasible below the valley where N_u < 17.5: each such column's lowest point has a failed one beside it
+        cost = np.where((x[:, 0] < 17.5) & (x[:, 1] < 3.7 + 2.0 * (x[:, 0] - 18.0)), np.inf, cost)
+        return np.where(x[:, 0] >= edge - 1e-9, np.nan, cost)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        x = profile_start(f, box, config)[0]
+    assert abs(x[0] - 18.0) < 0.1 and abs(x[1] - 4.0) < 0.3

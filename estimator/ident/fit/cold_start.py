@@ -86,16 +86,19 @@ class SharedGrid:
 
 
 def _column_minima(j: np.ndarray, lh: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per column (axis 0 = N_u) the parabola-refined minimum of J over the L_h rows and its L_h."""
+    """Per column (axis 0 = N_u) the parabola-refined minimum of J over the L_h rows and its L_h. A
+    point no simulation explains (NaN) counts as infinitely far: argmin would take it as the minimum."""
+    j = np.where(np.isnan(j), np.inf, j)
     k = np.clip(np.argmin(j, axis=1), 1, lh.size - 2)
     cols = np.arange(j.shape[0])
     j0, j1, j2 = j[cols, k - 1], j[cols, k], j[cols, k + 1]
     h = lh[1] - lh[0]
-    c2 = j0 - 2 * j1 + j2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        shift = np.where(c2 > 0, 0.5 * (j0 - j2) / c2, 0.0)
-    shift = np.clip(shift, -1.0, 1.0)
-    jmin = np.where(c2 > 0, j1 - 0.25 * (j0 - j2) * shift, j1)
+    with np.errstate(divide="ignore", invalid="ignore"):   # inf - inf beside a point that failed
+        c2 = j0 - 2 * j1 + j2
+        curved = np.isfinite(c2) & (c2 > 0)       # a parabola through three finite points
+        shift = np.where(curved, 0.5 * (j0 - j2) / c2, 0.0)
+        shift = np.clip(shift, -1.0, 1.0)
+        jmin = np.where(curved, j1 - 0.25 * (j0 - j2) * shift, j1)
     best = np.minimum(jmin, j.min(axis=1))
     return best, lh[k] + shift * h
 
