@@ -166,7 +166,7 @@ class Daemon:
         if self.state_path is None:
             return
         states, calibrations, learning, drives, problems = load_all(self.state_path)
-        problems += self.tracker.restore(states) + self.tracker.restore_calibrations(calibrations, learning)
+        problems += self.tracker.restore(states, calibrations) + self.tracker.restore_calibrations(calibrations, learning)
         if self.processor.compensator is not None:
             self.processor.compensator.restore_drives(drives)
         if problems:

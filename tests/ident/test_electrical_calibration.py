@@ -358,3 +358,38 @@ def test_a_second_start_at_an_earlier_model_finds_the_deeper_minimum():
     both = calibrate_electrical(batch, also_from=true)
     assert both.chi2 < alone.chi2 - 5.0
     assert worst(alone.params) > 0.15 > 0.10 > worst(both.params)
+
+
+def test_a_hot_part_beyond_the_tables_n_u_range_is_learned_with_its_range_widened():
+    """A series part run hot, its N_u 21.3-22.0 N/V beyond Table 1's 15-21 (its own structure within
+    ±10 %): the batch presses on the range's edge, so it is fitted again with the range widened by the
+    tolerance. The learned model carries that range; its N_u, in its own structure's terms, follows the
+    truth to within 0.05 N/V of one common shift, its L_h within 0.2 µm, and a new hot injection is
+    ``ok`` with it, not at a search bound."""
+    from dataclasses import replace
+
+    from estimator.ident.fit.idle_stroke import identify
+    from estimator.model.fast_sim import FastSimulator
+
+    part, _plant, rng = _part_and_plant(7)
+    params = part.params
+    hot = replace(params, psa=params.psa.with_nu_range(15.0, 23.0))     # the plant simulates beyond 21
+    plant = Plant(PlantConfig(window_s=200e-6), hot)
+    batch = ((28.0, 21.3), (60.0, 21.5), (100.0, 21.8), (150.0, 22.0), (220.0, 21.4), (300.0, 21.9))
+    injections = []
+    for f, nu in batch:
+        m = plant.measure(nu, LH_UM * 1e-6, f, rng)
+        injections.append(Injection(m.current_a, m.voltage_v, m.dt_s, f))
+    res = calibrate_electrical(injections)
+    assert res.adequate
+    assert 21.0 < 22.1 < res.params.psa.nu_max_n_per_v <= 21.0 * 1.1 + 1e-9
+    assert res.params.psa.nu_min_n_per_v == load_nominal().psa.nu_min_n_per_v
+    kept = InjectorParameters.from_mapping(res.params.to_mapping())      # as the daemon's state keeps it
+    assert kept.psa.nu_max_n_per_v == res.params.psa.nu_max_n_per_v
+    shift = res.nu_n_per_v - np.array([nu for _f, nu in batch])
+    assert np.ptp(shift) < 0.05 and np.all(np.abs(res.lh_um - LH_UM) < 0.2)
+    m = plant.measure(21.7, LH_UM * 1e-6, 120.0, rng)
+    inj = Injection(m.current_a[:201], m.voltage_v[:201], m.dt_s, 120.0)
+    own = identify(inj, FastSimulator(res.params, m.dt_s))
+    assert own.status.value == "ok" and abs(own.nu_n_per_v - 21.7 - np.mean(shift)) < 0.05
+    assert abs(own.lh_m * 1e6 - LH_UM) < 0.2

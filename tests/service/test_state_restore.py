@@ -122,6 +122,23 @@ def test_round_trip_of_a_good_file(tmp_path, good_entry):
     assert t.restore(states) == [] and set(t.states) == {0, 5}
 
 
+def test_a_state_beyond_the_tables_n_u_range_is_kept_for_an_injector_whose_model_allows_it(tmp_path, good_entry):
+    """An injector learned hot has a model whose N_u range reaches beyond the tables' 21.1 N/V: its
+    state at 22 N/V is physically possible with that model, and dropped only without it."""
+    from dataclasses import replace
+
+    from estimator.ident.tracking.tracker import TrackerState
+    from estimator.model.parameters import load_nominal
+
+    hot = copy.deepcopy(good_entry)
+    hot["x"][0] = 22.0
+    base = load_nominal()
+    own = replace(base, psa=base.psa.with_nu_range(15.0, 23.1))
+    assert Tracker(TrackerConfig()).restore({0: TrackerState.from_dict(hot)}) != []
+    t = Tracker(TrackerConfig())
+    assert t.restore({0: TrackerState.from_dict(hot)}, {0: own}) == [] and t.states[0].x[0] == 22.0
+
+
 def _saved(tmp_path, entry):
     from estimator.ident.tracking.tracker import TrackerState
     path = tmp_path / "estimator-state.json"

@@ -194,23 +194,29 @@ class Tracker:
                 self.learning.restore(iid, st, iid in self.own_pools)
         return problems
 
-    def restore(self, states: dict[int, TrackerState]) -> list[str]:
-        """Take restored states that are physically possible for this estimator; returns one line per
-        state dropped (the dropped ones are gone: the next save will not contain them)."""
-        ident = self.config.ident
-        psa = self.params.psa
-        nu, lh = ident.nu_range(self.params), ident.lh_range(self.params)
-        nu_lo = max(nu[0], psa.nu_min_n_per_v - NU_EXTRAPOLATION_N_PER_V)
-        nu_hi = min(nu[1], psa.nu_max_n_per_v + NU_EXTRAPOLATION_N_PER_V)
-        box = Box(np.array([nu_lo, lh[0]]), np.array([nu_hi, lh[1]]))
+    def restore(self, states: dict[int, TrackerState],
+                own: dict[int, InjectorParameters] | None = None) -> list[str]:
+        """Take restored states that are physically possible for this estimator (for an injector with
+        its own parameter set in ``own``, for that set: a learned model's N_u range can be wider than
+        the tables'); returns one line per state dropped (the dropped ones are gone: the next save
+        will not contain them)."""
         problems = []
         for inj_id, st in states.items():
+            box = self._box((own or {}).get(inj_id, self.params))
             why = physical_problem(st, self.config, box, self.temperature_range_c)
             if why is None:
                 self.states[inj_id] = st
             else:
                 problems.append(f"injector {inj_id}: {why}")
         return problems
+
+    def _box(self, params: InjectorParameters) -> Box:
+        """The (N_u N/V, L_h m) box an estimate with ``params`` can lie in."""
+        ident, psa = self.config.ident, params.psa
+        nu, lh = ident.nu_range(params), ident.lh_range(params)
+        nu_lo = max(nu[0], psa.nu_min_n_per_v - NU_EXTRAPOLATION_N_PER_V)
+        nu_hi = min(nu[1], psa.nu_max_n_per_v + NU_EXTRAPOLATION_N_PER_V)
+        return Box(np.array([nu_lo, lh[0]]), np.array([nu_hi, lh[1]]))
 
     def warm_up(self, cold_start: bool = True) -> None:
         """Load (or compile) every compiled function an update uses, and the N_u table of the default
