@@ -634,8 +634,7 @@ def calibrate_electrical(injections: list[Injection], base: InjectorParameters |
     fit, restarts = problem.restarted(fit, max_restarts, max_iterations)
     wide = _widened(problem, fit, base, tolerance)
     if wide is not None:    # the batch's N_u pressed on the range: fitted again with the range widened
-        again = _Problem(_batch(injections, wide, names, tolerance, window_s, fit_chain), wide, names, tolerance,
-                         limits, tuple(thresholds_c) if hysteresis else ())
+        again = _Problem(problem.batch, wide, names, tolerance, limits, tuple(thresholds_c) if hysteresis else ())
         trial, more = again.restarted(again.solve(fit.x, max_iterations), max_restarts, max_iterations)
         if trial.cost < fit.cost:
             problem, fit, base, restarts = again, trial, wide, restarts + more
@@ -655,9 +654,9 @@ def _widened(problem: _Problem, fit: LeastSquaresResult, base: InjectorParameter
     lo, hi = problem.lo[problem.p], problem.hi[problem.p]
     psa = base.psa
     low, high = psa.nu_min_n_per_v, psa.nu_max_n_per_v
-    if nu.size and float(np.max(nu)) >= hi - NU_EDGE_N_PER_V:
+    if float(np.max(nu)) >= hi - NU_EDGE_N_PER_V:     # a batch holds two injections at least (_batch)
         high = psa.nu_max_n_per_v * (1.0 + tolerance)
-    if nu.size and float(np.min(nu)) <= lo + NU_EDGE_N_PER_V:
+    if float(np.min(nu)) <= lo + NU_EDGE_N_PER_V:
         low = psa.nu_min_n_per_v * (1.0 - tolerance)
     if (low, high) == (psa.nu_min_n_per_v, psa.nu_max_n_per_v):
         return None

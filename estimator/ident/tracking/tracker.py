@@ -29,7 +29,7 @@ from estimator.ident.tracking.recursive import TrackResult, publish, update
 from estimator.ident.tracking.tracker_state import TrackerState, physical_problem
 from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.model.fast_sim import FastSimulator
-from estimator.model.parameters import NU_EXTRAPOLATION_N_PER_V, InjectorParameters
+from estimator.model.parameters import InjectorParameters
 
 __all__ = ["TrackResult", "Tracker", "TrackerState"]
 
@@ -212,11 +212,10 @@ class Tracker:
 
     def _box(self, params: InjectorParameters) -> Box:
         """The (N_u N/V, L_h m) box an estimate with ``params`` can lie in."""
-        ident, psa = self.config.ident, params.psa
+        ident = self.config.ident
         nu, lh = ident.nu_range(params), ident.lh_range(params)
-        nu_lo = max(nu[0], psa.nu_min_n_per_v - NU_EXTRAPOLATION_N_PER_V)
-        nu_hi = min(nu[1], psa.nu_max_n_per_v + NU_EXTRAPOLATION_N_PER_V)
-        return Box(np.array([nu_lo, lh[0]]), np.array([nu_hi, lh[1]]))
+        sim_lo, sim_hi = params.psa.simulation_nu_range      # what its simulators accept
+        return Box(np.array([max(nu[0], sim_lo), lh[0]]), np.array([min(nu[1], sim_hi), lh[1]]))
 
     def warm_up(self, cold_start: bool = True) -> None:
         """Load (or compile) every compiled function an update uses, and the N_u table of the default
