@@ -551,6 +551,35 @@ def test_a_models_first_refinement_grows_on_from_the_injections_it_was_learned_o
     assert k - monitored_from == config.refine_window - config.window
 
 
+def test_a_model_whose_estimates_are_uncertain_is_refined_sooner_from_its_adoption_on():
+    """A model whose estimates are ``uncertain`` (its own calibration's σ(L_h) above the limit, which
+    averaging does not shrink) gets no correction until it is refined: its first refinement collects
+    from the adoption on, not after ``confirm``, and is calibrated once it holds half a learning
+    window of new injections beside the model's own, not ``refine_window - window`` of them. (A
+    Prandtl–Ishlinskii part's first model stated 0.36 µm against 0.25 and was uncertain for 16
+    injections.) The second refinement, due once the first's estimates are ok, waits as before."""
+    config = SelfCalConfig()
+    fresh = config.window // 2
+    assert fresh < config.refine_window - config.window
+    life = _AdoptingLife(config)
+    for k in range(config.window):
+        life.observe(k, mismatch=True)
+    assert len(life.submitted) == 1 and life.learner.status[0].state == Learning.ADOPTED
+    for k in range(config.window, config.window + fresh):
+        assert len(life.submitted) == 1, k
+        life.observe(k, uncertain=True)
+    assert len(life.submitted) == 2, "refined after half a learning window of uncertain estimates"
+    own, refinement = life.submitted
+    assert len(refinement) == config.window + fresh and all(a is b for a, b in zip(refinement, own))
+    assert life.learner.status[0].refinements == 1
+    k = config.window + fresh
+    while len(life.submitted) == 2:        # ok estimates: the second refinement comes when its window is full
+        life.observe(k)
+        k += 1
+        assert k < 4 * config.refine_again
+    assert len(life.submitted[2]) == config.refine_again
+
+
 def test_a_refused_refinement_over_failed_probes_has_the_injector_learn_again():
     """A refinement over the model's own injections and the levels it failed at that is refused (no
     one parameter set explains both) says the probes are another part, not levels this one has yet
@@ -614,8 +643,8 @@ class _AdoptingLife:
         self.learner = Learner(config, load_nominal(), Adopting(),
                                lambda iid, params, prepared: own.__setitem__(iid, params), lambda iid: own.get(iid))
 
-    def observe(self, k: int, probe: bool = False, mismatch: bool = False) -> None:
-        """Injection ``k``: ok, a failed probe, or one the model in use does not explain."""
+    def observe(self, k: int, probe: bool = False, mismatch: bool = False, uncertain: bool = False) -> None:
+        """Injection ``k``: ok (or ``uncertain``), a failed probe, or one the model in use does not explain."""
         from estimator.ident.measurement import Injection
 
         f = (60.0, 150.0, 240.0)[k % 3]
@@ -623,7 +652,7 @@ class _AdoptingLife:
         inj = Injection(m.current_a, m.voltage_v, m.dt_s, f, 0, k, time_s=0.1 * k)
         bad = probe or mismatch
         self.learner.observe(inj, 17.0, mismatch, bad, Status.REJECTED if probe else
-                             Status.MODEL_MISMATCH if mismatch else Status.OK,
+                             Status.MODEL_MISMATCH if mismatch else Status.UNCERTAIN if uncertain else Status.OK,
                              Status.MODEL_MISMATCH if bad else Status.OK, failed_probe=probe)
 
 

@@ -196,6 +196,7 @@ class CalibrationWindow:
     capacity: int
     items: list[tuple[Injection, float]] = field(default_factory=list)   # (injection, its N_u estimate)
     waited: int = 0       # injections added while full (each made room for itself)
+    added: int = 0        # injections added to it (those it was started with not counted)
     refining: bool = False   # a model in service refined on it (set by the learner; :func:`_adoptable`)
     probed: bool = False     # ... and its newest injections are drive levels that model failed at (set by the
                              # learner): they must not be another part's (:data:`ANOTHER_PART_Z`)
@@ -205,6 +206,7 @@ class CalibrationWindow:
         older of the two injections whose operating points are closest."""
         w = inj.window(WINDOW_S)   # copied: a view would keep the whole trace alive
         self.items.append((replace(w, current_a=w.current_a.copy(), voltage_v=w.voltage_v.copy()), float(nu_n_per_v)))
+        self.added += 1
         if len(self.items) > self.capacity:
             pts = np.array([[i.f_open_n / PRELOAD_SCALE_N, nu / NU_SCALE_N_PER_V] for i, nu in self.items])
             d = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2) + np.eye(len(pts)) * 1e9
