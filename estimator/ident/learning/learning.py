@@ -154,8 +154,8 @@ class Learner:
     def _monitor(self, iid: int, st: CalibrationStatus, inj: Injection, raw_mismatch: bool, nu: float,
                  uncertain: bool = False) -> None:
         """An own model in service: confirm it, watch it, collect while re-learning. ``uncertain``: the
-        injection's published estimate is (σ(L_h) above the limit): its due refinement is collected
-        from the model's adoption on and comes sooner (:meth:`_refined`)."""
+        injection's published estimate is ``uncertain`` (σ(L_h) above the limit): the due refinement
+        is collected from the model's adoption on and comes sooner (:meth:`_refined`)."""
         c = self.config
         evidence = max(0.0, st.evidence + (1.0 if raw_mismatch else 0.0) - c.monitor_drift)
         served = st.served + 1
@@ -219,8 +219,8 @@ class Learner:
         twelve injections can state σ(L_h) above the limit by itself (its calibration's uncertainty,
         which averaging does not shrink): its estimates are then never ``ok`` and the part gets no
         correction until the refinement. A Prandtl–Ishlinskii part's first model stated 0.36 µm
-        against 0.25; its refinement over 24 injections, at injection 51, 16 after the adoption,
-        stated less, and the part was on its target from 56."""
+        against 0.25; refined over 24 injections, at injection 51, 16 after the adoption, the part
+        was on its target from 56; refined over 18, at 41, from 45."""
         size = _next_refinement(st, self.config) or self.config.refine_window or self.config.window
         c = replace(self.config, window=size)
         window = self._refine.get(iid)
@@ -229,9 +229,10 @@ class Learner:
         window.add(inj, nu)
         probed = self._probes.get(iid, 0) >= PROBES_TO_REFINE
         basis = self._basis.get(iid) if probed else None
+        full = window.ready(c)
         if basis is not None:    # the levels it failed at beside those it was learned at: calibrated at once
             window = _joined(basis, window, max(size, self.config.window))
-        elif not (window.ready(c) or (probed and window.ready(self.config)) or (uncertain and _half_fresh(window, self.config))):
+        elif not (full or (probed and window.ready(self.config)) or (uncertain and _half_fresh(window, self.config))):
             return False
         self._refine.pop(iid, None)
         after = 0 if probed else _next_refinement(replace(st, refinements=_refinements(st) + 1, refined=True),
@@ -239,8 +240,7 @@ class Learner:
         if after > len(window.items):   # the next refinement's window grows on from this one's injections
             self._refine[iid] = CalibrationWindow(after, list(window.items))
         why = ("refining the model over the drive levels it failed at" if probed
-               else "refining the model over a larger window" + ("" if window.ready(c) else ", sooner: its estimates "
-                                                                  "are uncertain"))
+               else "refining the model over a larger window" + ("" if full else ", sooner: its estimates are uncertain"))
         self._probes.pop(iid, None)
         self._set(iid, replace(st, state=Learning.CALIBRATING, served=served, evidence=0.0,
                                message=why + _narrow_note(window, c, "; ")))
