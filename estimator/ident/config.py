@@ -135,6 +135,8 @@ class TrackerConfig:
     q_lh_per_sqrt_s: float = 0.002          # L_h random walk (wear), µm per sqrt(s)
     q_rate_per_sqrt_s: float = 0.01         # N_u drift-rate random walk, N/V/s per sqrt(s)
     q_rate_per_sqrt_s_known_t: float = 0.001  # the same where the temperature change is measured
+    q_wear_um: float = 1e-4                 # the wear rate's random walk, µm per injection, per injection
+    max_wear_um: float = 0.015              # bound of |dL_h| per injection, µm (its prior sd a third of it)
     max_rate_n_per_v_s: float = 0.3         # physical bound of |dN_u/dt| (5 degC/s at 0.06 N/V/degC)
     rate_tau_s: float = 120.0               # a drift rate decays with this time constant (warm-ups end)
     slope_n_per_v_degc: float = 0.06        # prior of dN_u/dT (eq. 25; Table 1: 15..21 N/V over 0..100 degC)
@@ -153,9 +155,9 @@ class TrackerConfig:
 
     def __post_init__(self) -> None:
         _positive(self, "q_nu_n_per_v", "q_lh_um", "gate_chi2", "raw_publish_chi2", "default_interval_s", "max_interval_s",
-                  "max_rate_n_per_v_s", "rate_tau_s", "slope_sigma")
+                  "max_rate_n_per_v_s", "rate_tau_s", "slope_sigma", "max_wear_um")
         _positive(self, "q_nu_per_sqrt_s", "q_nu_per_sqrt_s_known_t", "q_lh_per_sqrt_s", "q_rate_per_sqrt_s",
-                  "q_rate_per_sqrt_s_known_t", allow_zero=True)
+                  "q_rate_per_sqrt_s_known_t", "q_wear_um", allow_zero=True)
         if not math.isfinite(self.slope_n_per_v_degc):
             raise ValueError(f"slope_n_per_v_degc = {self.slope_n_per_v_degc!r} must be a number")
         for name in ("max_consecutive_outliers", "warm_cycles", "robust_on_after", "robust_off_after",

@@ -10,6 +10,7 @@ import pytest
 from estimator.ident.config import TrackerConfig
 from estimator.ident.measurement import Injection
 from estimator.ident.status import Status
+from estimator.ident.tracking import kalman
 from estimator.ident.tracking.tracker import Tracker, TrackerState
 
 from ..helpers import COLD_MIN_EVALUATIONS, WARM_MAX_EVALUATIONS, measured, record_codes
@@ -65,7 +66,8 @@ def test_glitch_rejected_counted_and_estimate_unmoved(sim):
         before = tr.update(at(measured(17.2, 4.0, 1500 + k)[0], 0.04 * k))
     glitch = tr.update(at(measured(17.2, 4.0, 1600)[0], 0.8, gain=1.2))   # 20 % current-gain error
     assert glitch.status == Status.REJECTED and glitch.outliers == 1 and "outlier" in glitch.reason
-    assert glitch.lh_m == pytest.approx(before.lh_m, abs=1e-9) and not tr.states[0].robust
+    wear_m = tr.states[0].x[kalman.WEAR] * 1e-6       # the filter's own prediction: one injection's wear on
+    assert glitch.lh_m == pytest.approx(before.lh_m + wear_m, abs=1e-9) and not tr.states[0].robust
     after = tr.update(at(measured(17.2, 4.0, 1601)[0], 0.84))
     assert after.status == Status.OK and abs(after.lh_m * 1e6 - 4.0) < 0.05
 
@@ -221,3 +223,18 @@ def test_warm_up_runs_a_cold_start_and_compiled_warm_updates_without_touching_th
     assert list(tr.states) == [3] and tr.states[3].to_dict() == before
     assert codes == [fit_kernel.FIT] * 2      # both warm updates were one compiled cycle each
     assert len(tr.pool) == 1                           # the default sample period's simulator, shared
+
+
+def test_a_state_saved_before_the_wear_rate_loads_without_wear():
+    """A daemon's state file written by a filter of four states (no wear rate) still loads: no wear,
+    the wear rate's prior variance, everything else as it was saved."""
+    from estimator.ident.tracking.tracker_state import wear_variance
+
+    saved = TrackerState().with_prior(17.5, 3.2).to_dict()
+    saved["x"] = saved["x"][:4]
+    saved["p"] = [row[:4] for row in saved["p"][:4]]
+    back = TrackerState.from_dict(json.loads(json.dumps(saved)))
+    assert back.x[:4] == saved["x"] and back.x[kalman.WEAR] == 0.0
+    assert back.p[kalman.WEAR][kalman.WEAR] == wear_variance(TrackerConfig())
+    assert [row[:4] for row in back.p[:4]] == saved["p"]
+    assert Tracker().restore({0: back}) == []

@@ -112,13 +112,16 @@ BOX_CONFIG = TrackerConfig()
 
 @settings(max_examples=200, deadline=None)
 @given(nu=st.floats(15.0, 21.0), lh=st.floats(-0.5, 10.0), rate=st.floats(-5.0, 5.0), slope=st.floats(-2.0, 2.0),
-       var=st.floats(1e-8, 5e-4))   # the filter caps its variances (the slope's at 9e-4)
-def test_a_state_the_estimator_wrote_always_loads(nu, lh, rate, slope, var):
+       wear=st.floats(-1.0, 1.0), var=st.floats(1e-8, 5e-4))   # the filter caps its variances (the slope's at 9e-4)
+def test_a_state_the_estimator_wrote_always_loads(nu, lh, rate, slope, wear, var):
     """Whatever the filter computed, what it stores is within the bounds its loader checks (one source)."""
     st_ = TrackerState()
-    _store(st_, np.array([nu, lh, rate, slope]), np.eye(kalman.N_STATE) * var, 1.0, 40.0, BOX_CONFIG)
+    cov = np.eye(kalman.N_STATE) * var
+    cov[kalman.WEAR, kalman.WEAR] = min(var, BOX_CONFIG.max_wear_um ** 2)   # the wear rate's cap
+    _store(st_, np.array([nu, lh, rate, slope, wear]), cov, 1.0, 40.0, BOX_CONFIG)
     back = TrackerState.from_dict(json.loads(json.dumps(st_.to_dict())))
     tracker = Tracker(BOX_CONFIG)
     assert tracker.restore({0: back}) == []
     rate_max, lo, hi = state_bounds(BOX_CONFIG)
     assert abs(back.x[kalman.RATE]) <= rate_max and lo <= back.x[kalman.SLOPE] <= hi
+    assert abs(back.x[kalman.WEAR]) <= BOX_CONFIG.max_wear_um

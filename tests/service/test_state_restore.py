@@ -47,9 +47,10 @@ def test_bad_injectors_never_stop_the_daemon(tmp_path, injectors, good_entry):
 
 
 @pytest.mark.parametrize("field, value, why", [
-    ("accepted", "many", "accepted"), ("x", [100, 500, 0, 0.06], "N_u"), ("x", [17.0, 14.9, 0, 0.06], "L_h"),
-    ("x", [32.77, 32.77, 0, 0.06], "N_u"), ("x", [17.0, 3.0, 50.0, 0.06], "drift rate"),
-    ("p", [[1e6, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1e-4, 0], [0, 0, 0, 1e-4]], "caps"),
+    ("accepted", "many", "accepted"), ("x", [100, 500, 0, 0.06, 0], "N_u"), ("x", [17.0, 14.9, 0, 0.06, 0], "L_h"),
+    ("x", [32.77, 32.77, 0, 0.06, 0], "N_u"), ("x", [17.0, 3.0, 50.0, 0.06, 0], "drift rate"),
+    ("x", [17.0, 3.0, 0, 0.06, 0.5], "wear rate"),
+    ("p", [[1e6, 0, 0, 0, 0], [0, 1, 0, 0, 0], [0, 0, 1e-4, 0, 0], [0, 0, 0, 1e-4, 0], [0, 0, 0, 0, 1e-6]], "caps"),
     ("temperature_c", 1e6, "temperature"), ("updates", 2 ** 60, "count"),
 ])
 def test_poisoned_entry_is_dropped_once_and_never_written_back(tmp_path, good_entry, caplog, field, value, why):

@@ -68,6 +68,7 @@ from estimator.ident.tracking.tracker_state import (
     TrackerState,
     process_noise,
     state_bounds,
+    wear_variance,
 )
 from estimator.model.fast_sim import FastSimulator, remember
 from estimator.units import UM_PER_M, US_PER_S
@@ -418,11 +419,13 @@ def _held(st: TrackerState, now: float | None, temp: float | None, config: Track
 
 def _store(st: TrackerState, x: np.ndarray, p: np.ndarray, now: float | None, temp: float | None,
            config: TrackerConfig) -> None:
-    """Keep the filter's state (the drift rate and temperature slope held within :func:`state_bounds`)."""
+    """Keep the filter's state (the drift rate and temperature slope held within :func:`state_bounds`,
+    the wear rate within its bound)."""
     rate_max, slope_lo, slope_hi = state_bounds(config)
     x = np.array(x, dtype=float)
     x[kalman.RATE] = min(max(x[kalman.RATE], -rate_max), rate_max)
     x[kalman.SLOPE] = min(max(x[kalman.SLOPE], slope_lo), slope_hi)
+    x[kalman.WEAR] = min(max(x[kalman.WEAR], -config.max_wear_um), config.max_wear_um)
     st.x, st.p = x.tolist(), p.tolist()
     if now is not None:
         st.time_s = now
@@ -434,7 +437,7 @@ def _store(st: TrackerState, x: np.ndarray, p: np.ndarray, now: float | None, te
 def _restart(st: TrackerState, z: np.ndarray, r: np.ndarray, now: float | None, temp: float | None,
              config: TrackerConfig) -> None:
     x, p = kalman.initial(z, r, (config.max_rate_n_per_v_s / 3.0) ** 2, config.slope_n_per_v_degc,
-                          config.slope_sigma ** 2)
+                          config.slope_sigma ** 2, wear_variance(config))
     if st.initialized and np.all(np.isfinite(st.x)):   # keep what was learned of the temperature slope
         x[kalman.SLOPE], p[kalman.SLOPE, kalman.SLOPE] = st.x[kalman.SLOPE], st.p[kalman.SLOPE][kalman.SLOPE]
     st.pending, st.doubts = None, 0

@@ -24,7 +24,8 @@ def process_noise(config: TrackerConfig, box: Box) -> kalman.ProcessNoise:
         config.q_nu_n_per_v, config.q_lh_um, config.q_nu_per_sqrt_s, config.q_nu_per_sqrt_s_known_t,
         config.q_lh_per_sqrt_s,
         config.q_rate_per_sqrt_s, config.q_rate_per_sqrt_s_known_t, config.slope_sigma / math.sqrt(3600.0), config.rate_tau_s,
-        (float(span[0] / 2) ** 2, float(span[1] / 2) ** 2, config.max_rate_n_per_v_s ** 2, config.slope_sigma ** 2))
+        (float(span[0] / 2) ** 2, float(span[1] / 2) ** 2, config.max_rate_n_per_v_s ** 2, config.slope_sigma ** 2,
+         config.max_wear_um ** 2), config.q_wear_um)
 
 
 @dataclass
@@ -109,8 +110,9 @@ class TrackerState:
             if not is_covariance(c, -1e-15):
                 raise ValueError("current_noise_cov is not a symmetric positive semi-definite covariance")
             st.current_noise_cov = c.tolist()
-        st.x = _check_array(d, "x", (kalman.N_STATE,), st.initialized).tolist()
-        p = _check_array(d, "p", (kalman.N_STATE, kalman.N_STATE), True)
+        x, p = _without_wear(d)
+        st.x = (x if x is not None else _check_array(d, "x", (kalman.N_STATE,), st.initialized)).tolist()
+        p = p if p is not None else _check_array(d, "p", (kalman.N_STATE, kalman.N_STATE), True)
         if st.initialized and not is_covariance(p):
             raise ValueError("p is not a symmetric positive semi-definite covariance")
         st.p = p.tolist()
@@ -139,8 +141,28 @@ class TrackerState:
                    slope: float = 0.06, slope_sigma: float = 0.03) -> TrackerState:
         """A state that starts from a given prior (used by EstimatorCommand 'set prior')."""
         x, p = kalman.initial(np.array([nu_n_per_v, lh_um], dtype=float), np.diag(np.square(sigma)), 0.01 ** 2,
-                              slope, slope_sigma ** 2)
+                              slope, slope_sigma ** 2, wear_variance(TrackerConfig()))
         return replace(TrackerState(), initialized=True, x=x.tolist(), p=p.tolist())
+
+
+def wear_variance(config: TrackerConfig) -> float:
+    """The wear rate's prior variance, (µm per injection)^2: a third of its bound, squared."""
+    return (config.max_wear_um / 3.0) ** 2
+
+
+def _without_wear(d: dict[str, Any]) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """A state written before the filter had a wear rate (four states): its ``x`` and ``p`` with no
+    wear and the wear rate's prior variance; (None, None) for any other state."""
+    old = kalman.N_STATE - 1
+    x, p = d.get("x"), d.get("p")
+    if not (isinstance(x, list) and len(x) == old and isinstance(p, list) and len(p) == old):
+        return None, None
+    xs = _check_array(d, "x", (old,), bool(d.get("initialized", False)))
+    ps = _check_array(d, "p", (old, old), True)
+    pn = np.zeros((kalman.N_STATE, kalman.N_STATE))
+    pn[:old, :old] = ps
+    pn[kalman.WEAR, kalman.WEAR] = wear_variance(TrackerConfig())
+    return np.append(xs, 0.0), pn
 
 
 def _check_bool(d: dict[str, Any], name: str, default: bool) -> bool:
@@ -210,6 +232,8 @@ def physical_problem(st: TrackerState, config: TrackerConfig, box: Box,
             return f"drift rate {x[kalman.RATE]:.4g} N/V/s is beyond the bound {rate_max} N/V/s"
         if not slope_lo - 1e-12 <= x[kalman.SLOPE] <= slope_hi + 1e-12:
             return f"temperature slope {x[kalman.SLOPE]:.4g} N/V/degC is beyond {SLOPE_SDS:g} prior sigma"
+        if abs(x[kalman.WEAR]) > config.max_wear_um * (1 + 1e-9):
+            return f"wear rate {x[kalman.WEAR]:.4g} µm per injection is beyond the bound {config.max_wear_um} µm"
         if np.any(np.diag(p) > 1.01 * np.asarray(noise.max_var)):
             return "p has variances beyond the filter's caps"
     if st.pending is not None:
