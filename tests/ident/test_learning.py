@@ -529,8 +529,9 @@ def test_a_models_first_refinement_grows_on_from_the_injections_it_was_learned_o
     """A learned model's first refinement is calibrated over the newest injections its own window
     holds (half ``refine_window`` at most) and those since, the newest held out: it spans the drive
     levels the model was learned at and those its correction leads to, and comes as many injections
-    sooner. (A swapped part's model learned at its predecessor's correction and refined over 24 new
-    injections opened 0.5 µs early with σ 0.11 µs; over 12 of each, 0.23 µs early with σ 0.13 µs.)"""
+    sooner, and is adopted as a refinement of the same part's model. (A swapped part's model learned
+    at its predecessor's correction and refined over 24 new injections opened 0.5 µs early with σ
+    0.11 µs; over 12 of each, 0.23 µs early with σ 0.13 µs.)"""
     config = SelfCalConfig()
     assert config.refine_window // 2 >= config.window      # the whole first window is kept
     life = _AdoptingLife(config)
@@ -544,6 +545,7 @@ def test_a_models_first_refinement_grows_on_from_the_injections_it_was_learned_o
         assert k < 4 * config.refine_window
     own, refinement = life.submitted
     assert len(refinement) == config.refine_window and life.learner.status[0].refinements == 1
+    assert life.adoptions == [False, True]    # the refinement keeps what the filter learned of the part
     assert all(a is b for a, b in zip(refinement, own))       # the model's own window first, ...
     new = refinement[config.window:]
     assert [inj.counter for inj, _ in new] == list(range(k - len(new), k))   # ... then the newest, held out
@@ -640,8 +642,13 @@ class _AdoptingLife:
                 done, self.done = self.done, []
                 return done
 
-        self.learner = Learner(config, load_nominal(), Adopting(),
-                               lambda iid, params, prepared: own.__setitem__(iid, params), lambda iid: own.get(iid))
+        self.adoptions: list[bool] = []   # each adoption's ``refined`` (a refinement of the part's model)
+
+        def adopt(iid: int, params: Any, prepared: Any, refined: bool) -> None:
+            own[iid] = params
+            self.adoptions.append(refined)
+
+        self.learner = Learner(config, load_nominal(), Adopting(), adopt, lambda iid: own.get(iid))
 
     def observe(self, k: int, probe: bool = False, mismatch: bool = False, uncertain: bool = False) -> None:
         """Injection ``k``: ok (or ``uncertain``), a failed probe, or one the model in use does not explain."""

@@ -238,3 +238,46 @@ def test_a_state_saved_before_the_wear_rate_loads_without_wear():
     assert back.p[kalman.WEAR][kalman.WEAR] == wear_variance(TrackerConfig())
     assert [row[:4] for row in back.p[:4]] == saved["p"]
     assert Tracker().restore({0: back}) == []
+
+
+def test_a_refined_model_keeps_what_the_filter_learned_of_the_part_and_a_new_model_does_not(sim):
+    """Adopted as a refinement of the same part's model, the injector is re-acquired cold (N_u and L_h
+    under another model are biased differently) with the wear rate and temperature slope it had
+    learned; a model for a new part starts them from their priors."""
+    def worn(tr: Tracker, first: int, n: int) -> None:
+        for k in range(first, first + n):
+            tr.update(at(measured(17.0, 3.0 + 0.01 * k, 3100 + k)[0], float(k)))
+
+    refined, new = Tracker(sim=sim), Tracker(sim=sim)
+    worn(refined, 0, 30)
+    learned = list(refined.states[0].x), [row[:] for row in refined.states[0].p]
+    assert 0.006 < learned[0][kalman.WEAR] < 0.014       # it learned the part's 0.01 µm per injection
+    new.states[0] = TrackerState.from_dict(refined.states[0].to_dict())
+    refined.adopt(0, refined.params, refined=True)
+    new.adopt(0, new.params)
+    worn(refined, 30, 1)
+    worn(new, 30, 1)
+    for k in (kalman.SLOPE, kalman.WEAR):
+        assert refined.states[0].x[k] == learned[0][k] and refined.states[0].p[k][k] == learned[1][k][k]
+    assert new.states[0].x[kalman.WEAR] == 0.0 and new.states[0].updates == 1   # a cold start for both
+    assert refined.states[0].updates == 1
+    worn(refined, 31, 9)
+    worn(new, 31, 9)
+    assert refined.states[0].p[kalman.LH][kalman.LH] < 0.7 * new.states[0].p[kalman.LH][kalman.LH]
+
+
+def test_a_state_carried_to_a_refined_model_round_trips_and_is_checked_when_restored():
+    """A carried state (not yet re-acquired) is strict JSON and loads; a carried wear rate beyond its
+    bound, or a negative variance, does not."""
+    from estimator.ident.tracking.tracker_state import carried_over
+
+    carried = carried_over(TrackerState().with_prior(17.5, 3.2))
+    carried.x[kalman.WEAR] = 0.004
+    blob = json.dumps(carried.to_dict(), allow_nan=False)
+    back = TrackerState.from_dict(json.loads(blob))
+    assert not back.initialized and back.x[kalman.WEAR] == 0.004 and np.isnan(back.x[kalman.LH])
+    assert Tracker().restore({0: back}) == []
+    back.x[kalman.WEAR] = 0.5
+    assert "wear rate" in Tracker().restore({0: back})[0]
+    back.x[kalman.WEAR], back.p[kalman.SLOPE][kalman.SLOPE] = 0.004, -1e-6
+    assert "variances" in Tracker().restore({0: back})[0]

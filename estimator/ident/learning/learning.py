@@ -76,12 +76,13 @@ class Learner:
     """The learning lifecycle of every injector of one tracker (see the module docstring).
 
     ``base`` is the configured parameter set (the tables, the calibrations' prior); ``adopt`` the
-    tracker's hook that swaps an injector's own model in (``None`` params: back to the tables);
+    tracker's hook that swaps an injector's own model in (``None`` params: back to the tables; its
+    last argument True for a refinement of the same part's model);
     ``current`` tells which parameter set an injector is estimated with now.
     """
 
     def __init__(self, config: SelfCalConfig, base: InjectorParameters, calibrator: Calibrator | None,
-                 adopt: Callable[[int, InjectorParameters | None, Any], None],
+                 adopt: Callable[[int, InjectorParameters | None, Any, bool], None],
                  current: Callable[[int], InjectorParameters | None]) -> None:
         self.config = config
         self.base = base
@@ -112,7 +113,7 @@ class Learner:
         if st is None or self._current(iid) is None or st.serves(inj.f_open_n, self.config):
             return
         self._drop_work(iid)      # a refinement running for the model too: its outcome is dropped
-        self._adopt(iid, None, None)
+        self._adopt(iid, None, None, False)
         self._set(iid, replace(st, state=Learning.LEARNING, source="tables", evidence=0.0, served=0, batch=0,
                                preload_span=0.0, refined=False, refinements=0, learned_lo_n=0.0, learned_hi_n=0.0,
                                message=f"preload force {inj.f_open_n:.0f} N outside {st.learned_lo_n:.0f}-"
@@ -289,7 +290,7 @@ class Learner:
             self._finish_refinement(out, before, new, run)
             return
         if out.params is not None:
-            self._adopt(iid, out.params, out.prepared)
+            self._adopt(iid, out.params, out.prepared, False)
             self._basis[iid] = run.window
             self._set(iid, replace(new, state=Learning.ADOPTED, source="learned", evidence=0.0, served=0,
                                    refusals=0, retry_in=0, batch=0, preload_span=0.0))
@@ -318,7 +319,7 @@ class Learner:
         refinements = _refinements(before) + counted
         refined = before.refined or bool(counted)
         if out.params is not None and self._current(iid) is not None:
-            self._adopt(iid, out.params, out.prepared)
+            self._adopt(iid, out.params, out.prepared, True)
             self._basis[iid] = run.window
             self._set(iid, replace(new, state=Learning.ADOPTED, source="learned", evidence=0.0, served=0,
                                    refusals=0, retry_in=0, batch=0, preload_span=0.0, refined=refined,

@@ -64,6 +64,7 @@ from estimator.ident.measurement import Injection
 from estimator.ident.status import Status
 from estimator.ident.tracking import kalman
 from estimator.ident.tracking.tracker_state import (
+    CARRIED,
     Pending,
     TrackerState,
     process_noise,
@@ -440,6 +441,10 @@ def _restart(st: TrackerState, z: np.ndarray, r: np.ndarray, now: float | None, 
                           config.slope_sigma ** 2, wear_variance(config))
     if st.initialized and np.all(np.isfinite(st.x)):   # keep what was learned of the temperature slope
         x[kalman.SLOPE], p[kalman.SLOPE, kalman.SLOPE] = st.x[kalman.SLOPE], st.p[kalman.SLOPE][kalman.SLOPE]
+    elif not st.initialized:   # a state carried over to a refined model: its slope and wear rate
+        for k in CARRIED:
+            if math.isfinite(st.x[k]):
+                x[k], p[k, k] = st.x[k], st.p[k][k]
     st.pending, st.doubts = None, 0
     st.time_s = st.temperature_c = None
     _store(st, x, p, now, temp, config)

@@ -26,7 +26,7 @@ from estimator.ident.measurement import Injection
 from estimator.ident.simulators import SimulatorPool
 from estimator.ident.status import Learning, Status
 from estimator.ident.tracking.recursive import TrackResult, publish, update
-from estimator.ident.tracking.tracker_state import TrackerState, physical_problem
+from estimator.ident.tracking.tracker_state import TrackerState, carried_over, physical_problem
 from estimator.model.drive import SAMPLE_PERIOD_S
 from estimator.model.fast_sim import FastSimulator
 from estimator.model.parameters import InjectorParameters
@@ -121,15 +121,19 @@ class Tracker:
         pool = self.own_pools.get(injector_id)
         return pool.params if pool is not None else None
 
-    def _use_model(self, injector_id: int, params: InjectorParameters | None, pool: Any = None) -> None:
+    def _use_model(self, injector_id: int, params: InjectorParameters | None, pool: Any = None,
+                   refined: bool = False) -> None:
         """Estimate ``injector_id`` with ``params`` (None: the configured ones) from now on, re-acquired
-        from a cold start."""
+        from a cold start; ``refined``: a refinement of the same part's model, which keeps what the
+        filter learned of the part (:func:`carried_over`)."""
         if params is None:
             self.own_pools.pop(injector_id, None)
         else:
             self.own_pools[injector_id] = pool if isinstance(pool, SimulatorPool) else SimulatorPool(
                 params, self.pool.max_size, self.pool.periods_ns)
-        self.states.pop(injector_id, None)
+        old = self.states.pop(injector_id, None)
+        if refined:
+            self.states[injector_id] = carried_over(old)
 
     def own_pool(self, params: InjectorParameters, tables: dict[float, np.ndarray] | None = None) -> SimulatorPool:
         """A simulator pool for an injector's own ``params`` with its simulators' tables: those in
@@ -145,9 +149,12 @@ class Tracker:
             pool.get(SAMPLE_PERIOD_S).kernel_handle()
         return pool
 
-    def adopt(self, injector_id: int, params: InjectorParameters, pool: SimulatorPool | None = None) -> None:
-        """Estimate ``injector_id`` with its own ``params`` from now on (re-acquired from a cold start)."""
-        self._use_model(injector_id, params, pool)
+    def adopt(self, injector_id: int, params: InjectorParameters, pool: SimulatorPool | None = None,
+              refined: bool = False) -> None:
+        """Estimate ``injector_id`` with its own ``params`` from now on (re-acquired from a cold start;
+        ``refined``: a refinement of the same part's model, whose temperature slope and wear rate the
+        filter keeps)."""
+        self._use_model(injector_id, params, pool, refined)
         if self.learning is not None:
             self.learning.adopted(injector_id)
 

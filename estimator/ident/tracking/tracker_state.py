@@ -87,7 +87,9 @@ class TrackerState:
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict for JSON (no NaN: unknown values are None)."""
-        return asdict(self)
+        d = asdict(self)
+        d["x"] = [v if math.isfinite(v) else None for v in self.x]
+        return d
 
     @classmethod
     def from_dict(cls, d: Any) -> TrackerState:
@@ -143,6 +145,23 @@ class TrackerState:
         x, p = kalman.initial(np.array([nu_n_per_v, lh_um], dtype=float), np.diag(np.square(sigma)), 0.01 ** 2,
                               slope, slope_sigma ** 2, wear_variance(TrackerConfig()))
         return replace(TrackerState(), initialized=True, x=x.tolist(), p=p.tolist())
+
+
+CARRIED = (kalman.SLOPE, kalman.WEAR)   # what the filter learns of the part itself, whatever its model
+
+
+def carried_over(st: TrackerState | None) -> TrackerState:
+    """A state for the same part re-acquired under a refinement of its model: N_u and L_h start cold
+    (under another model they are biased differently), the temperature slope and the wear rate
+    learned so far are kept with their variances (:data:`CARRIED`; the restart takes them). Learned
+    afresh after every refinement, the wear rate's prior (sd 0.005 µm per injection) let L_h wander
+    and widened its σ for the 20-odd injections it took to learn it again."""
+    new = TrackerState()
+    if st is None or not st.initialized or not all(map(math.isfinite, st.x)):
+        return new
+    for k in CARRIED:
+        new.x[k], new.p[k][k] = st.x[k], st.p[k][k]
+    return new
 
 
 def wear_variance(config: TrackerConfig) -> float:
@@ -224,18 +243,21 @@ def physical_problem(st: TrackerState, config: TrackerConfig, box: Box,
     if st.temperature_c is not None and not t_lo <= st.temperature_c <= t_hi:
         return f"temperature_c = {st.temperature_c} degC is outside {t_lo:g}..{t_hi:g} degC"
     points = []
+    x, p = np.asarray(st.x, dtype=float), np.asarray(st.p, dtype=float)
+    # an initialized state holds every component; one not yet acquired at most those carried over
+    held = list(range(kalman.N_STATE)) if st.initialized else [k for k in CARRIED if math.isfinite(x[k])]
+    rate_max, slope_lo, slope_hi = state_bounds(config)
     if st.initialized:
-        x, p = np.asarray(st.x, dtype=float), np.asarray(st.p, dtype=float)
         points.append(("x", x[:2]))
-        rate_max, slope_lo, slope_hi = state_bounds(config)
         if abs(x[kalman.RATE]) > rate_max * (1 + 1e-9):
             return f"drift rate {x[kalman.RATE]:.4g} N/V/s is beyond the bound {rate_max} N/V/s"
-        if not slope_lo - 1e-12 <= x[kalman.SLOPE] <= slope_hi + 1e-12:
-            return f"temperature slope {x[kalman.SLOPE]:.4g} N/V/degC is beyond {SLOPE_SDS:g} prior sigma"
-        if abs(x[kalman.WEAR]) > config.max_wear_um * (1 + 1e-9):
-            return f"wear rate {x[kalman.WEAR]:.4g} µm per injection is beyond the bound {config.max_wear_um} µm"
-        if np.any(np.diag(p) > 1.01 * np.asarray(noise.max_var)):
-            return "p has variances beyond the filter's caps"
+    if kalman.SLOPE in held and not slope_lo - 1e-12 <= x[kalman.SLOPE] <= slope_hi + 1e-12:
+        return f"temperature slope {x[kalman.SLOPE]:.4g} N/V/degC is beyond {SLOPE_SDS:g} prior sigma"
+    if kalman.WEAR in held and abs(x[kalman.WEAR]) > config.max_wear_um * (1 + 1e-9):
+        return f"wear rate {x[kalman.WEAR]:.4g} µm per injection is beyond the bound {config.max_wear_um} µm"
+    var = np.diag(p)[held]
+    if np.any(var > 1.01 * np.asarray(noise.max_var)[held]) or np.any(var < 0.0):
+        return "p has variances beyond the filter's caps"
     if st.pending is not None:
         points.append(("pending z", np.asarray(st.pending.z, dtype=float)))
         r = np.asarray(st.pending.r, dtype=float)
