@@ -122,6 +122,6 @@ def test_a_state_the_estimator_wrote_always_loads(nu, lh, rate, slope, wear, var
     back = TrackerState.from_dict(json.loads(json.dumps(st_.to_dict())))
     tracker = Tracker(BOX_CONFIG)
     assert tracker.restore({0: back}) == []
-    rate_max, lo, hi = state_bounds(BOX_CONFIG)
+    rate_max, lo, hi, wear_max = state_bounds(BOX_CONFIG)
     assert abs(back.x[kalman.RATE]) <= rate_max and lo <= back.x[kalman.SLOPE] <= hi
-    assert abs(back.x[kalman.WEAR]) <= BOX_CONFIG.max_wear_um
+    assert abs(back.x[kalman.WEAR]) <= wear_max == BOX_CONFIG.max_wear_um

@@ -420,13 +420,13 @@ def _held(st: TrackerState, now: float | None, temp: float | None, config: Track
 
 def _store(st: TrackerState, x: np.ndarray, p: np.ndarray, now: float | None, temp: float | None,
            config: TrackerConfig) -> None:
-    """Keep the filter's state (the drift rate and temperature slope held within :func:`state_bounds`,
-    the wear rate within its bound)."""
-    rate_max, slope_lo, slope_hi = state_bounds(config)
+    """Keep the filter's state (the drift rate, temperature slope and wear rate held within
+    :func:`state_bounds`)."""
+    rate_max, slope_lo, slope_hi, wear_max = state_bounds(config)
     x = np.array(x, dtype=float)
     x[kalman.RATE] = min(max(x[kalman.RATE], -rate_max), rate_max)
     x[kalman.SLOPE] = min(max(x[kalman.SLOPE], slope_lo), slope_hi)
-    x[kalman.WEAR] = min(max(x[kalman.WEAR], -config.max_wear_um), config.max_wear_um)
+    x[kalman.WEAR] = min(max(x[kalman.WEAR], -wear_max), wear_max)
     st.x, st.p = x.tolist(), p.tolist()
     if now is not None:
         st.time_s = now

@@ -246,15 +246,15 @@ def physical_problem(st: TrackerState, config: TrackerConfig, box: Box,
     x, p = np.asarray(st.x, dtype=float), np.asarray(st.p, dtype=float)
     # an initialized state holds every component; one not yet acquired at most those carried over
     held = list(range(kalman.N_STATE)) if st.initialized else [k for k in CARRIED if math.isfinite(x[k])]
-    rate_max, slope_lo, slope_hi = state_bounds(config)
+    rate_max, slope_lo, slope_hi, wear_max = state_bounds(config)
     if st.initialized:
         points.append(("x", x[:2]))
         if abs(x[kalman.RATE]) > rate_max * (1 + 1e-9):
             return f"drift rate {x[kalman.RATE]:.4g} N/V/s is beyond the bound {rate_max} N/V/s"
     if kalman.SLOPE in held and not slope_lo - 1e-12 <= x[kalman.SLOPE] <= slope_hi + 1e-12:
         return f"temperature slope {x[kalman.SLOPE]:.4g} N/V/degC is beyond {SLOPE_SDS:g} prior sigma"
-    if kalman.WEAR in held and abs(x[kalman.WEAR]) > config.max_wear_um * (1 + 1e-9):
-        return f"wear rate {x[kalman.WEAR]:.4g} µm per injection is beyond the bound {config.max_wear_um} µm"
+    if kalman.WEAR in held and abs(x[kalman.WEAR]) > wear_max * (1 + 1e-9):
+        return f"wear rate {x[kalman.WEAR]:.4g} µm per injection is beyond the bound {wear_max} µm"
     var = np.diag(p)[held]
     if np.any(var > 1.01 * np.asarray(noise.max_var)[held]) or np.any(var < 0.0):
         return "p has variances beyond the filter's caps"
@@ -274,9 +274,10 @@ def physical_problem(st: TrackerState, config: TrackerConfig, box: Box,
 SLOPE_SDS = 10.0   # the temperature slope is held within this many prior sigmas of the prior slope
 
 
-def state_bounds(config: TrackerConfig) -> tuple[float, float, float]:
-    """The bounds of the filter's drift rate (|rate| at most, N/V/s) and temperature slope (low, high,
-    N/V/degC): what :func:`_store` holds the filter to and what a restored state is checked against
-    (one fact, so that a state the estimator wrote always loads)."""
+def state_bounds(config: TrackerConfig) -> tuple[float, float, float, float]:
+    """The bounds of the filter's drift rate (|rate| at most, N/V/s), temperature slope (low, high,
+    N/V/degC) and wear rate (|w| at most, µm per injection): what :func:`_store` holds the filter to
+    and what a restored state is checked against (one fact, so that a state the estimator wrote
+    always loads)."""
     return (config.max_rate_n_per_v_s, config.slope_n_per_v_degc - SLOPE_SDS * config.slope_sigma,
-            config.slope_n_per_v_degc + SLOPE_SDS * config.slope_sigma)
+            config.slope_n_per_v_degc + SLOPE_SDS * config.slope_sigma, config.max_wear_um)
