@@ -403,6 +403,15 @@ def cmd_selfcal(args: argparse.Namespace) -> int:
         print(refusal_bench.format_report(ref))
         _write_json(args.json_out or DEFAULT_OUT / "selfcal-refusals.json", ref)
         return 0 if ref["passed"] else 1
+    if args.minima:
+        from sim_bench.benches import minimum_bench
+
+        if not 1 <= args.minima <= 1000:
+            raise EstimatorError(f"--minima {args.minima}: must be within 1..1000")
+        rep = minimum_bench.run(args.minima)
+        print(minimum_bench.format_report(rep))
+        _write_json(args.json_out or DEFAULT_OUT / "selfcal-minima.json", rep)
+        return 0 if rep["passed"] else 1
     if args.hysteresis:
         from sim_bench.benches import hysteresis_bench
 
@@ -615,6 +624,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "calibrations (false refusals, false out_of_tolerance, false hysteresis elements), hysteresis parts (learned "
                    "with an element or refused) and parts "
                    "beyond tolerance (flagged); about 3 s a part")
+    s.add_argument("--minima", type=int, default=0, metavar="N",
+                   help="instead: N good seeded series parts, each one's first learning window calibrated as the "
+                   "learner does and from the part's own parameters too: how often the calibration stops short of "
+                   "the deeper minimum (about 8 s a part)")
     s.add_argument("--hysteresis", action="store_true",
                    help="instead: series parts whose hysteresis R(N_u) I cannot explain (two shapes, three sizes) "
                         "through the tracker with learning on: learned with a hysteresis element, L_h and the opening "

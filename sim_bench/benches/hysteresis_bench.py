@@ -30,7 +30,7 @@ from estimator.ident.learning.selfcal import SelfCalConfig
 from estimator.ident.status import Status
 from estimator.ident.tracking.tracker import Tracker
 from estimator.service.calibration_worker import BackgroundCalibrator
-from sim_bench.benches.refusal_bench import HYSTERESIS_PARTS, SEED_HYSTERESIS, _life, hysteresis_variant
+from sim_bench.benches.refusal_bench import HYSTERESIS_PARTS, SEED_HYSTERESIS, hysteresis_variant, part_life
 
 FROM = 40               # injections before the scored ones
 ONLINE_PACE_S, ONLINE_INJECTIONS, ONLINE_SETTLE = 0.25, 400, 30
@@ -41,7 +41,7 @@ def part(i: int, injections: int = 70, online: bool = False) -> dict[str, Any]:
     """The ``i``-th hysteresis part through the learning tracker (``online``: with the background
     calibrator, paced in real time); its row."""
     gain, shape = hysteresis_variant(i)
-    life = _life(SEED_HYSTERESIS + i, hysteresis=(gain, shape))
+    life = part_life(SEED_HYSTERESIS + i, hysteresis=(gain, shape))
     calibrator = BackgroundCalibrator() if online else None
     tracker = Tracker(self_calibration=SelfCalConfig(), calibrator=calibrator)
     trace, busy_ms = [], []

@@ -44,7 +44,9 @@ def hysteresis_variant(i: int) -> tuple[float, str]:
     return HYSTERESIS_GAINS[i % len(HYSTERESIS_GAINS)], HYSTERESIS_SHAPES[(i // len(HYSTERESIS_GAINS)) % len(HYSTERESIS_SHAPES)]
 
 
-def _life(seed: int, beyond: bool = False, hysteresis: tuple[float, str] | None = None) -> Life:
+def part_life(seed: int, beyond: bool = False, hysteresis: tuple[float, str] | None = None) -> Life:
+    """The seeded series part ``seed`` (beyond tolerance, or with a hysteresis (gain, shape)) in a life of its
+    own: every other seed behind the typical amplifier chain."""
     chain = series_part.TYPICAL_CHAIN if seed % 2 else NO_CHAIN
     parts = ((0, *hysteresis),) if hysteresis is not None else ()
     return draw_lot(1, seed, LotSpec(chain=chain, beyond_fraction=1.0 if beyond else 0.0, hysteresis=parts))[0]
@@ -73,7 +75,7 @@ def _offline(life: Life) -> dict[str, Any]:
 
 def part_row(kind: str, seed: int, online_only: bool = False, variant: tuple[float, str] | None = None) -> dict[str, Any]:
     """One seeded part of ``kind`` (good, hysteresis with ``variant`` (gain, shape), beyond) through the calibrations."""
-    life = _life(seed, beyond=kind == "beyond", hysteresis=variant if kind == "hysteresis" else None)
+    life = part_life(seed, beyond=kind == "beyond", hysteresis=variant if kind == "hysteresis" else None)
     cfg = SelfCalConfig()      # the element tried where the tables are refused (the default)
     row: dict[str, Any] = {"kind": kind, "seed": seed, "chain": bool(seed % 2), "part": life.parts[0].describe(),
                            "online": _online(life, cfg)}

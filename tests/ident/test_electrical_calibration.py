@@ -299,20 +299,20 @@ def test_cli_refuses_a_batch_without_writing_a_file_and_flags_a_part_beyond_tole
     parameter file. The same part's true traces: calibrated with a hysteresis element, written to its
     file. A part with a mounting stiffness 15-20 % off: its file is written and the JSON names the
     parameter out_of_tolerance."""
-    from sim_bench.benches.refusal_bench import _life
+    from sim_bench.benches.refusal_bench import part_life
 
     run = [sys.executable, "-m", "estimator", "calibrate", "--electrical", "--hysteresis"]
     part = (1.0, "prandtl-ishlinskii")
-    wrong = _write_life(tmp_path, _life(2000, hysteresis=part), 16, "w", stated_preload_n=150.0)
+    wrong = _write_life(tmp_path, part_life(2000, hysteresis=part), 16, "w", stated_preload_n=150.0)
     r = subprocess.run([*run, *map(str, wrong), "--out", str(tmp_path / "w.toml")], capture_output=True, text=True,
                        timeout=600, cwd=REPO)
     assert r.returncode == 1 and "refused" in r.stderr and not (tmp_path / "w.toml").exists()
-    hyst = _write_life(tmp_path, _life(2000, hysteresis=part), 16, "h")
+    hyst = _write_life(tmp_path, part_life(2000, hysteresis=part), 16, "h")
     r = subprocess.run([*run, *map(str, hyst), "--out", str(tmp_path / "h.toml")], capture_output=True, text=True,
                        timeout=600, cwd=REPO)
     assert r.returncode == 0, r.stderr
     assert "[hysteresis]" in (tmp_path / "h.toml").read_text()
-    life = _life(4001, beyond=True)
+    life = part_life(4001, beyond=True)
     beyond = _write_life(tmp_path, life, 24, "b")
     r = subprocess.run([*run, *map(str, beyond), "--out", str(tmp_path / "b.toml"), "--json", str(tmp_path / "b.json")],
                        capture_output=True, text=True, timeout=300, cwd=REPO)

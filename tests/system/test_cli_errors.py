@@ -88,6 +88,11 @@ def test_bench_zero_seconds(tmp_path):
     assert "--seconds 0" in one_error_line(run("-m", "sim_bench", "bench", "--seconds", "0", "--out", str(tmp_path)))
 
 
+def test_selfcal_absurd_part_counts():
+    assert "--minima 5000" in one_error_line(run("-m", "sim_bench", "selfcal", "--minima", "5000"))
+    assert "--refusals 5000" in one_error_line(run("-m", "sim_bench", "selfcal", "--refusals", "5000"))
+
+
 def test_replay_skips_a_garbage_line_and_names_it(tmp_path):
     import can
 
