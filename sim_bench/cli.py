@@ -7,6 +7,7 @@ import json
 import logging
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -388,6 +389,17 @@ def cmd_reliability(args: argparse.Namespace) -> int:
     return 1 if rep["failures"] else 0
 
 
+def _part_sweep(name: str, parts: int, bench: Any, json_out: Path | None) -> int:
+    """A ``selfcal`` sweep over ``parts`` seeded parts (``--refusals``, ``--minima``; ``bench`` its module):
+    the report printed and written as JSON; exit 1 if a target is missed."""
+    if not 1 <= parts <= 1000:
+        raise EstimatorError(f"--{name} {parts}: must be within 1..1000")
+    rep = bench.run(parts)
+    print(bench.format_report(rep))
+    _write_json(json_out or DEFAULT_OUT / f"selfcal-{name}.json", rep)
+    return 0 if rep["passed"] else 1
+
+
 def cmd_selfcal(args: argparse.Namespace) -> int:
     """Series injectors calibrated from their own current and voltage; exit 1 if a target is missed."""
     from sim_bench.benches import selfcal_bench
@@ -397,21 +409,11 @@ def cmd_selfcal(args: argparse.Namespace) -> int:
     if args.refusals:
         from sim_bench.benches import refusal_bench
 
-        if not 1 <= args.refusals <= 1000:
-            raise EstimatorError(f"--refusals {args.refusals}: must be within 1..1000")
-        ref = refusal_bench.run(args.refusals)
-        print(refusal_bench.format_report(ref))
-        _write_json(args.json_out or DEFAULT_OUT / "selfcal-refusals.json", ref)
-        return 0 if ref["passed"] else 1
+        return _part_sweep("refusals", args.refusals, refusal_bench, args.json_out)
     if args.minima:
         from sim_bench.benches import minimum_bench
 
-        if not 1 <= args.minima <= 1000:
-            raise EstimatorError(f"--minima {args.minima}: must be within 1..1000")
-        rep = minimum_bench.run(args.minima)
-        print(minimum_bench.format_report(rep))
-        _write_json(args.json_out or DEFAULT_OUT / "selfcal-minima.json", rep)
-        return 0 if rep["passed"] else 1
+        return _part_sweep("minima", args.minima, minimum_bench, args.json_out)
     if args.hysteresis:
         from sim_bench.benches import hysteresis_bench
 
