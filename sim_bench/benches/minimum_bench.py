@@ -24,9 +24,9 @@ from typing import Any
 import numpy as np
 
 from estimator.ident.learning.electrical import calibrate_electrical
-from estimator.ident.learning.selfcal import CalibrationWindow, SelfCalConfig
+from estimator.ident.learning.selfcal import SelfCalConfig
 from estimator.model.parameters import load_nominal
-from sim_bench.benches.refusal_bench import SEED_GOOD, part_life
+from sim_bench.benches.refusal_bench import SEED_GOOD, learning_window, part_life
 
 SHORT_SHARE = 0.01       # calibrations whose L_h is more than its σ from the deeper minimum's: at most this share
 COST_GAP = 2.0           # chi-square above the deeper minimum's that counts as stopping short of it
@@ -36,13 +36,7 @@ def first_window(seed: int, config: SelfCalConfig) -> tuple[list[Any], np.ndarra
     """The learner's first window of the good part ``seed``: the calibrated injections (the held-out
     ones left out), their true L_h (µm) and the part's own parameters with its measurement chain."""
     life = part_life(seed)
-    window = CalibrationWindow(config.window)
-    truth: dict[float, float] = {}      # by preload force: the window keeps copies of the injections
-    for inj, _m, t in life.injections(200):
-        window.add(inj, t["nu_true"])
-        truth[inj.f_open_n] = t["lh_true_um"]
-        if window.ready(config):
-            break
+    window, truth = learning_window(life, config)
     items = [inj for inj, _ in window.items][:-config.held_out]
     lh = np.array([truth[inj.f_open_n] for inj in items])
     return items, lh, replace(life.parts[0].params, chain=life.chain)

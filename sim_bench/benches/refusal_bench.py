@@ -52,12 +52,21 @@ def part_life(seed: int, beyond: bool = False, hysteresis: tuple[float, str] | N
     return draw_lot(1, seed, LotSpec(chain=chain, beyond_fraction=1.0 if beyond else 0.0, hysteresis=parts))[0]
 
 
-def _online(life: Life, config: SelfCalConfig) -> dict[str, Any]:
+def learning_window(life: Life, config: SelfCalConfig) -> tuple[CalibrationWindow, dict[float, float]]:
+    """The learner's first window of ``life`` (filled from its first 200 injections until ready) and
+    each injection's true L_h (µm) by its preload force (the window keeps copies of the injections)."""
     window = CalibrationWindow(config.window)
+    lh_um: dict[float, float] = {}
     for inj, _m, truth in life.injections(200):
         window.add(inj, truth["nu_true"])
+        lh_um[inj.f_open_n] = truth["lh_true_um"]
         if window.ready(config):
             break
+    return window, lh_um
+
+
+def _online(life: Life, config: SelfCalConfig) -> dict[str, Any]:
+    window, _ = learning_window(life, config)
     t0 = time.perf_counter()
     status, params = self_calibrate(window, load_nominal(), config)
     return {"adopted": params is not None, "element": params is not None and params.hysteresis.present,
